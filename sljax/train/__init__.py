@@ -1,0 +1,1 @@
+"""sljax.train."""

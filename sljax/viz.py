@@ -1,0 +1,57 @@
+"""Pictures: panels of images and colour-mapped maps with scale bars, saved as PNG."""
+
+import dataclasses
+import os
+
+import numpy as np
+
+
+@dataclasses.dataclass(frozen=True)
+class Panel:
+  """One tile of a figure: an image (HxW or HxWx3 in [0, 1]) or a scalar map with a colour bar."""
+  title: str
+  image: np.ndarray
+  cmap: str | None = None  # None: show as an image; else a matplotlib colour map + scale bar
+  vmin: float | None = None
+  vmax: float | None = None
+  label: str = ""  # unit written beside the scale bar, e.g. "px"
+
+
+def save_panels(path: str | os.PathLike, panels: list[Panel], ncols: int = 4,
+                title: str | None = None, tile_inches: float = 3.0) -> None:
+  """Writes a grid of panels to a PNG; non-finite map values are drawn grey."""
+  import matplotlib
+  matplotlib.use("Agg")
+  import matplotlib.pyplot as plt
+
+  ncols = max(1, min(ncols, len(panels)))
+  nrows = -(-len(panels) // ncols)
+  fig, axes = plt.subplots(nrows, ncols, figsize=(tile_inches * ncols * 1.15, tile_inches * nrows),
+                           squeeze=False)
+  for ax in axes.flat:
+    ax.axis("off")
+  for ax, p in zip(axes.flat, panels):
+    img = np.asarray(p.image, dtype=np.float32)
+    if img.ndim == 3 and img.shape[-1] == 1:
+      img = img[..., 0]
+    if p.cmap is None:
+      ax.imshow(np.clip(img, 0, 1), cmap="gray" if img.ndim == 2 else None, vmin=0, vmax=1,
+                interpolation="nearest")
+    else:
+      finite = img[np.isfinite(img)]
+      vmin = p.vmin if p.vmin is not None else (float(finite.min()) if finite.size else 0.0)
+      vmax = p.vmax if p.vmax is not None else (float(finite.max()) if finite.size else 1.0)
+      cmap = plt.get_cmap(p.cmap).copy()
+      cmap.set_bad("0.5")
+      im = ax.imshow(np.ma.masked_invalid(img), cmap=cmap, vmin=vmin, vmax=vmax,
+                     interpolation="nearest")
+      bar = fig.colorbar(im, ax=ax, fraction=0.046, pad=0.02)
+      if p.label:
+        bar.set_label(p.label)
+    ax.set_title(p.title, fontsize=9)
+  if title:
+    fig.suptitle(title)
+  fig.tight_layout()
+  os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+  fig.savefig(path, dpi=100)
+  plt.close(fig)

@@ -1,0 +1,112 @@
+"""`sljax decode DATASET`: raw structured-light captures -> sl0/, sl1/ and code disparity."""
+
+import argparse
+
+_DEFAULT_SHADOW = 10.0  # 8-bit grey levels; mirrors sljax.sl.decode.DecodeConfig
+_DEFAULT_BIT = 4.0
+
+
+def register(subparsers) -> None:
+  """Adds the `decode` subcommand."""
+  p = subparsers.add_parser(
+      "decode", help="decode raw structured-light captures into pattern maps and disparity",
+      description="For every scene below DATASET holding raw0/ and raw1/ (white, black, p000..., "
+      "optional inverses i000...), classify each pattern bit, write sl0/ and sl1/ "
+      "(0 dark, 255 lit, 128 unknown) and, where absent, disp0.pfm / disp1.pfm from matching "
+      "equal codes along the rectified scanlines (inf = unknown). Existing disparity files are "
+      "never replaced (they may be ground truth); delete them to recompute.")
+  p.add_argument("dataset", metavar="DATASET", help="dataset root (or one scene folder)")
+  p.add_argument("--overwrite", action="store_true", help="replace existing sl0/ and sl1/")
+  p.add_argument("--code", choices=("binary", "gray"), default=None,
+                 help="projected code (default: meta.json or dataset.json 'code')")
+  p.add_argument("--shadow-threshold", type=float, default=_DEFAULT_SHADOW, metavar="LEVELS",
+                 help="white - black below this (8-bit grey levels) is shadow "
+                 f"(default {_DEFAULT_SHADOW:g})")
+  p.add_argument("--bit-threshold", type=float, default=_DEFAULT_BIT, metavar="LEVELS",
+                 help="|pattern - inverse| (or |pattern - mean|) below this (8-bit grey levels) "
+                 f"is an uncertain bit (default {_DEFAULT_BIT:g})")
+  p.add_argument("--no-disparity", action="store_true",
+                 help="only write the pattern maps, no disp0.pfm / disp1.pfm")
+  p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+  """Decodes every scene with raw captures; returns 0 on success."""
+  import sys
+  from pathlib import Path
+
+  import numpy as np
+  from tqdm import tqdm
+
+  from sljax.data.dataset import FolderSource
+  from sljax.data.pfm import write_pfm
+  from sljax.data.scene import write_patterns
+  from sljax.errors import SljaxError, require
+  from sljax.sl.decode import DecodeConfig, count_patterns, decode_captures
+  from sljax.sl.match import disparity_from_codes
+
+  require(args.shadow_threshold >= 0 and args.bit_threshold >= 0,
+          "--shadow-threshold and --bit-threshold must be >= 0")
+  config = DecodeConfig(shadow_threshold=args.shadow_threshold / 255.0,
+                        bit_threshold=args.bit_threshold / 255.0)
+  src = FolderSource(args.dataset)
+  todo = [i for i, path in enumerate(src.paths)
+          if (path / "raw0").is_dir() and (path / "raw1").is_dir()]
+  require(todo, f"{src.root}: no scene holds both raw0/ and raw1/ (raw captures to decode)")
+
+  # Check every scene before writing anything, so a refusal never leaves a partial run.
+  codes = {}
+  for i in todo:
+    meta = src.get(i, parts=set()).meta  # views and meta.json only
+    code = args.code or meta.get("code") or src.info.get("code")
+    require(code in ("binary", "gray"),
+            f"scene {src.paths[i]}: unknown code {code!r}: set 'code' in meta.json or "
+            "dataset.json, or pass --code binary|gray")
+    codes[i] = code
+    # Pattern counts from the file names alone (cheap); decoding reads the pixels later.
+    names = [dict.fromkeys(p.stem for p in (src.paths[i] / f"raw{cam}").glob("*.png"))
+             for cam in (0, 1)]
+    counts = [count_patterns(n, f"scene {src.paths[i]}: raw{cam}") for cam, n in enumerate(names)]
+    differ = sorted(set(names[0]) ^ set(names[1]))
+    require(not differ, f"scene {src.paths[i]}: raw0 holds {counts[0]} patterns, raw1 holds "
+            f"{counts[1]} (captures in only one view: {', '.join(differ[:6])})")
+  if not args.overwrite:
+    for i in todo:
+      for folder in ("sl0", "sl1"):
+        existing = sorted((src.paths[i] / folder).glob("[0-9][0-9][0-9]*.png"))
+        if existing:
+          raise SljaxError(f"scene {src.paths[i]}: {folder}/{existing[0].name} exists "
+                           "(use --overwrite to replace it)")
+
+  written_disp, kept_disp, coverage = 0, [], []
+  for i in tqdm(todo, desc="decode", unit="scene", file=sys.stderr, disable=None):
+    path = src.paths[i]
+    scene = src.get(i, parts={"raw"})
+    code = codes[i]
+    require(scene.raw1 is not None, f"scene {path}: raw1: missing")
+    t0 = count_patterns(scene.raw0, f"scene {path}: raw0")
+    t1 = count_patterns(scene.raw1, f"scene {path}: raw1")
+    require(t0 == t1, f"scene {path}: raw0 holds {t0} patterns, raw1 holds {t1}")
+    dec = [decode_captures(raw, code, t0, config, where=f"scene {path}: raw{cam}")
+           for cam, raw in enumerate((scene.raw0, scene.raw1))]
+    for cam, d in enumerate(dec):
+      write_patterns(path / f"sl{cam}", d.bits, overwrite=args.overwrite)
+    coverage.append(float(np.mean([np.isfinite(d.column).mean() for d in dec])))
+    if args.no_disparity:
+      continue
+    targets = [Path(path / f"disp{cam}.pfm") for cam in (0, 1)]
+    absent = [not p.exists() for p in targets]
+    if any(absent):
+      disps = disparity_from_codes(dec[0].column, dec[1].column)
+      for p, missing, disp in zip(targets, absent, disps):
+        if missing:
+          write_pfm(p, disp)
+          written_disp += 1
+    kept_disp += [str(p) for p, missing in zip(targets, absent) if not missing]
+
+  print(f"decoded {len(todo)} scene(s) of {len(src)} below {src.root}: sl0/ and sl1/ written; "
+        f"decoded pixels {100 * np.mean(coverage):.1f}% on average")
+  if not args.no_disparity:
+    print(f"disparity files written: {written_disp}; kept existing: {len(kept_disp)}"
+          + (f" (e.g. {kept_disp[0]}; delete to recompute)" if kept_disp else ""))
+  return 0

@@ -1,0 +1,122 @@
+"""Raw structured-light captures -> per-pixel pattern bits and projector column.
+
+A capture set for one camera holds 'white' and 'black' (projector fully on / off), the
+patterns 'p000'..'p{t-1}' (coarsest first) and optionally their inverses 'i000'... . A bit is
+lit when the pattern is brighter than its inverse (robust to albedo and ambient light), or,
+without inverses, brighter than the per-pixel mean of white and black. A pixel whose
+white - black contrast is small is not reached by the projector (shadow) and is unknown; a bit
+whose two compared values are too close is uncertain and unknown.
+"""
+
+import dataclasses
+import re
+
+import numpy as np
+
+from sljax.errors import require
+from sljax.sl import codes
+
+
+@dataclasses.dataclass(frozen=True)
+class DecodeConfig:
+  """Decoding thresholds on intensities in [0, 1] (defaults expressed in 8-bit grey levels).
+
+  shadow_threshold: pixels with white - black below it are projector shadow (10 grey levels:
+    well above 8-bit sensor noise, well below the contrast of a lit matte surface).
+  bit_threshold: a bit whose |pattern - inverse| (or |pattern - (white + black) / 2|) is
+    below it is uncertain (4 grey levels: about 2-3 sigma of typical 8-bit noise on the
+    difference of two captures; catches pixels on a stripe edge).
+  """
+  shadow_threshold: float = 10.0 / 255.0
+  bit_threshold: float = 4.0 / 255.0
+
+
+@dataclasses.dataclass
+class Decoded:
+  """Decoding result of one camera; unknown entries are NaN."""
+  bits: np.ndarray       # HxWxt float32 0/1, NaN where shadow or uncertain
+  column: np.ndarray     # HxW float32 decoded code value, NaN if any bit is unknown
+  shadow: np.ndarray     # HxW bool
+  uncertain: np.ndarray  # HxWxt bool
+
+
+_PATTERN_KEY = re.compile(r"^([pi])(\d{3})$")
+
+
+def count_patterns(raw: dict[str, np.ndarray], where: str = "raw captures") -> int:
+  """Number of patterns t in a capture dict; SljaxError names a missing key."""
+  indices = {}
+  for key in raw:
+    m = _PATTERN_KEY.match(key)
+    if m:
+      indices.setdefault(m.group(1), set()).add(int(m.group(2)))
+  ps = indices.get("p", set())
+  require(ps, f"{where}: no pattern captures (expected p000, p001, ...)")
+  t = max(ps) + 1
+  for k in range(t):
+    require(k in ps, f"{where}: missing pattern capture p{k:03d}")
+  return t
+
+
+def has_inverses(raw: dict[str, np.ndarray]) -> bool:
+  """Whether a capture dict holds inverse captures (i000, ...)."""
+  return any(_PATTERN_KEY.match(k) and k.startswith("i") for k in raw)
+
+
+def column_from_bits(bits: np.ndarray, code: str, threshold: float = 0.5) -> np.ndarray:
+  """HxWxt pattern values (1 lit, 0 dark, NaN unknown; or probabilities) -> HxW float32 code.
+
+  A value >= threshold is a lit bit; a pixel with any NaN bit decodes to NaN.
+  """
+  b = np.asarray(bits, np.float32)
+  known = ~np.isnan(b).any(axis=-1)
+  column = codes.decode(np.nan_to_num(b, nan=0.0) >= threshold, code).astype(np.float32)
+  column[~known] = np.nan
+  return column
+
+
+def decode_captures(raw: dict[str, np.ndarray], code: str, t: int | None = None,
+                    config: DecodeConfig = DecodeConfig(), where: str = "raw captures"
+                    ) -> Decoded:
+  """Classifies every pattern bit and decodes the projector column of every pixel.
+
+  raw: float32 HxW captures in [0, 1] keyed 'white', 'black', 'p000'... and optionally
+  'i000'...; t defaults to the number of pattern captures. `where` names the capture set in
+  error messages (e.g. the scene folder).
+  """
+  codes._check_code(code)
+  for key in ("white", "black"):
+    require(key in raw, f"{where}: missing capture '{key}'")
+  n = count_patterns(raw, where)
+  t = n if t is None else int(t)
+  for k in range(t):
+    require(f"p{k:03d}" in raw, f"{where}: missing pattern capture p{k:03d}")
+  inv = has_inverses(raw)
+  if inv:
+    for k in range(t):
+      require(f"i{k:03d}" in raw, f"{where}: missing inverse capture i{k:03d}")
+
+  white = np.asarray(raw["white"], np.float32)
+  black = np.asarray(raw["black"], np.float32)
+  require(white.ndim == 2, f"{where}: captures must be HxW grey images, got white {white.shape}")
+  shape = white.shape
+  keys = ["black"] + [f"p{k:03d}" for k in range(t)] + ([f"i{k:03d}" for k in range(t)] if inv
+                                                         else [])
+  for key in keys:
+    require(np.shape(raw[key]) == shape,
+            f"{where}: capture '{key}' has shape {np.shape(raw[key])}, 'white' has {shape}")
+
+  p = np.stack([np.asarray(raw[f"p{k:03d}"], np.float32) for k in range(t)], axis=-1)
+  if inv:
+    ref = np.stack([np.asarray(raw[f"i{k:03d}"], np.float32) for k in range(t)], axis=-1)
+  else:
+    ref = ((white + black) * 0.5)[..., None]
+  diff = p - ref
+  shadow = (white - black) < config.shadow_threshold
+  uncertain = np.abs(diff) < config.bit_threshold
+  unknown = uncertain | shadow[..., None]
+  bits = np.where(unknown, np.float32(np.nan), (diff > 0).astype(np.float32))
+  bits = np.broadcast_to(bits, shape + (t,)).astype(np.float32)
+  column = column_from_bits(bits, code)
+  return Decoded(bits=bits, column=column, shadow=shadow,
+                 uncertain=np.broadcast_to(uncertain, shape + (t,)).copy())

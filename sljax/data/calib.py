@@ -1,8 +1,11 @@
 """Middlebury 2014 calib.txt: the camera model of a rectified stereo pair."""
 
 import dataclasses
+import os
 
 import numpy as np
+
+from sljax.errors import SljaxError
 
 
 @dataclasses.dataclass(frozen=True)
@@ -22,3 +25,106 @@ class Calib:
   def focal(self) -> float:
     """Focal length of the left camera in pixels."""
     return float(self.cam0[0, 0])
+
+
+_REQUIRED = ("cam0", "cam1", "doffs", "baseline", "width", "height", "ndisp")
+
+
+def _parse_matrix(text: str, path: str, key: str) -> np.ndarray:
+  """Parses Middlebury matrix syntax `[f 0 cx; 0 f cy; 0 0 1]` into a 3x3 float64 array."""
+  body = text.strip()
+  if not (body.startswith("[") and body.endswith("]")):
+    raise SljaxError(f"{path}: key {key!r} must be a matrix like [f 0 cx; 0 f cy; 0 0 1], "
+                     f"got {text.strip()!r}")
+  try:
+    rows = [[float(v) for v in row.replace(",", " ").split()]
+            for row in body[1:-1].split(";")]
+  except ValueError:
+    raise SljaxError(f"{path}: key {key!r} holds a non-number: {text.strip()!r}") from None
+  if len(rows) != 3 or any(len(r) != 3 for r in rows):
+    raise SljaxError(f"{path}: key {key!r} must be a 3x3 matrix, got {text.strip()!r}")
+  return np.array(rows, dtype=np.float64)
+
+
+def _format_number(value: float) -> str:
+  """Writes integers without a decimal point and other numbers with full precision."""
+  value = float(value)
+  if value.is_integer() and abs(value) < 1e15:
+    return str(int(value))
+  return repr(value)
+
+
+def _format_matrix(m: np.ndarray) -> str:
+  return "[" + "; ".join(" ".join(_format_number(v) for v in row) for row in np.asarray(m)) + "]"
+
+
+def read_calib(path: str | os.PathLike) -> Calib:
+  """Reads a Middlebury 2014 calib.txt; unknown keys (isint, dyavg, dymax, ...) are ignored."""
+  path = os.fspath(path)
+  try:
+    with open(path, encoding="utf-8") as f:
+      lines = f.read().splitlines()
+  except OSError as e:
+    raise SljaxError(f"{path}: cannot read calibration ({e.strerror or e})") from None
+  values: dict[str, str] = {}
+  for n, line in enumerate(lines, 1):
+    if not line.strip() or line.lstrip().startswith("#"):
+      continue
+    key, sep, value = line.partition("=")
+    if not sep:
+      raise SljaxError(f"{path}: line {n} is not 'key=value': {line.strip()!r}")
+    values[key.strip()] = value.strip()
+  missing = [k for k in _REQUIRED if k not in values]
+  if missing:
+    raise SljaxError(f"{path}: calibration lacks required key(s) {', '.join(missing)}")
+
+  def number(key: str) -> float:
+    try:
+      return float(values[key])
+    except ValueError:
+      raise SljaxError(f"{path}: key {key!r} is not a number: {values[key]!r}") from None
+
+  def integer(key: str) -> int:
+    v = number(key)
+    if not v.is_integer():
+      raise SljaxError(f"{path}: key {key!r} must be an integer, got {values[key]!r}")
+    return int(v)
+
+  return Calib(
+      cam0=_parse_matrix(values["cam0"], path, "cam0"),
+      cam1=_parse_matrix(values["cam1"], path, "cam1"),
+      doffs=number("doffs"),
+      baseline=number("baseline"),
+      width=integer("width"),
+      height=integer("height"),
+      ndisp=integer("ndisp"),
+      vmin=number("vmin") if "vmin" in values else None,
+      vmax=number("vmax") if "vmax" in values else None)
+
+
+def write_calib(path: str | os.PathLike, calib: Calib) -> None:
+  """Writes calib.txt in Middlebury 2014 syntax (vmin/vmax only when set)."""
+  lines = [
+      f"cam0={_format_matrix(calib.cam0)}",
+      f"cam1={_format_matrix(calib.cam1)}",
+      f"doffs={_format_number(calib.doffs)}",
+      f"baseline={_format_number(calib.baseline)}",
+      f"width={int(calib.width)}",
+      f"height={int(calib.height)}",
+      f"ndisp={int(calib.ndisp)}",
+  ]
+  if calib.vmin is not None:
+    lines.append(f"vmin={_format_number(calib.vmin)}")
+  if calib.vmax is not None:
+    lines.append(f"vmax={_format_number(calib.vmax)}")
+  with open(os.fspath(path), "w", encoding="utf-8") as f:
+    f.write("\n".join(lines) + "\n")
+
+
+def depth_from_disparity(disp: np.ndarray, calib: Calib) -> np.ndarray:
+  """Depth in mm, Z = f * B / (d + doffs); unknown or non-positive d + doffs gives inf."""
+  d = np.asarray(disp, dtype=np.float64) + calib.doffs
+  valid = np.isfinite(d) & (d > 0)
+  z = np.full(d.shape, np.inf, dtype=np.float64)
+  z[valid] = calib.focal * calib.baseline / d[valid]
+  return z.astype(np.float32)

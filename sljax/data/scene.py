@@ -1,11 +1,18 @@
 """One stereo scene in memory, as every scene source (folder, synthetic, SCARED) yields it."""
 
 import dataclasses
+import json
+import os
+import re
+from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
-from sljax.data.calib import Calib
+from sljax.data.calib import Calib, read_calib, write_calib
+from sljax.data.pfm import read_pfm, write_pfm
+from sljax.errors import SljaxError
 
 
 @dataclasses.dataclass
@@ -38,3 +45,352 @@ class Scene:
   def shape(self) -> tuple[int, int]:
     """(height, width) of the views."""
     return self.im0.shape[:2]
+
+
+UNKNOWN_PATTERN = 128  # on-disk value of an unknown pattern pixel (0 = dark, 255 = lit)
+PARTS = frozenset({"im", "disp", "mask", "sl", "raw", "calib", "meta"})
+_PATTERN_FILE = re.compile(r"^(\d{3,})\.png$")
+_RAW_FILE = re.compile(r"^(white|black|[pi]\d{3,})\.png$")
+# ITU-R BT.601 luma, the weights OpenCV uses for RGB -> gray.
+_LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32)
+
+
+def _fail(scene_dir: Path, file: str, problem: str) -> SljaxError:
+  return SljaxError(f"scene {scene_dir}: {file}: {problem}")
+
+
+def to_gray(image: np.ndarray) -> np.ndarray:
+  """HxWx3 RGB (or HxWx1) float image -> HxWx1 luma."""
+  if image.shape[-1] == 1:
+    return image
+  return (image @ _LUMA)[..., None].astype(np.float32)
+
+
+def read_image(path: str | os.PathLike, gray: bool | None = None) -> np.ndarray:
+  """Reads an 8- or 16-bit PNG to float32 HxWxC in [0, 1] (RGB order; alpha dropped).
+
+  gray=None keeps the file's channels (C = 1 or 3), True gives C = 1, False gives C = 3.
+  """
+  path = os.fspath(path)
+  raw = cv2.imread(path, cv2.IMREAD_UNCHANGED)
+  if raw is None:
+    reason = "missing" if not os.path.exists(path) else "not a readable image"
+    raise SljaxError(f"{path}: {reason}")
+  if raw.dtype == np.uint8:
+    scale = 255.0
+  elif raw.dtype == np.uint16:
+    scale = 65535.0
+  else:
+    raise SljaxError(f"{path}: expected an 8- or 16-bit image, got {raw.dtype}")
+  if raw.ndim == 2:
+    img = raw[..., None]
+  elif raw.shape[2] == 1:
+    img = raw
+  elif raw.shape[2] in (3, 4):
+    img = raw[..., 2::-1]  # BGR(A) -> RGB
+  else:
+    raise SljaxError(f"{path}: unsupported channel count {raw.shape[2]}")
+  img = img.astype(np.float32) / np.float32(scale)
+  if gray is True:
+    img = to_gray(img)
+  elif gray is False and img.shape[2] == 1:
+    img = np.repeat(img, 3, axis=2)
+  return np.ascontiguousarray(img)
+
+
+def write_image(path: str | os.PathLike, image: np.ndarray, bit_depth: int = 8) -> None:
+  """Writes a float image in [0, 1] (HxW, HxWx1 or HxWx3 RGB) as an 8- or 16-bit PNG."""
+  path = os.fspath(path)
+  if bit_depth not in (8, 16):
+    raise SljaxError(f"{path}: bit depth must be 8 or 16, got {bit_depth}")
+  img = np.asarray(image, dtype=np.float32)
+  if img.ndim == 3 and img.shape[2] == 1:
+    img = img[..., 0]
+  if not (img.ndim == 2 or (img.ndim == 3 and img.shape[2] == 3)):
+    raise SljaxError(f"{path}: cannot write an image of shape {img.shape}")
+  maxval = 255 if bit_depth == 8 else 65535
+  q = np.round(np.clip(np.nan_to_num(img, nan=0.0), 0.0, 1.0) * maxval)
+  q = q.astype(np.uint8 if bit_depth == 8 else np.uint16)
+  if q.ndim == 3:
+    q = np.ascontiguousarray(q[..., ::-1])  # RGB -> BGR for OpenCV
+  if not cv2.imwrite(path, q):
+    raise SljaxError(f"{path}: could not write image")
+
+
+def patterns_to_png(patterns: np.ndarray) -> np.ndarray:
+  """Float patterns (1 lit, 0 dark, NaN unknown) -> uint8 0/255/UNKNOWN_PATTERN."""
+  p = np.asarray(patterns, dtype=np.float32)
+  out = np.where(p >= 0.5, 255, 0).astype(np.uint8)
+  out[np.isnan(p)] = UNKNOWN_PATTERN
+  return out
+
+
+def patterns_from_png(values: np.ndarray) -> np.ndarray:
+  """uint8 pattern pixels -> float32 1/0/NaN; exactly UNKNOWN_PATTERN is unknown, else > 127 lit."""
+  v = np.asarray(values)
+  out = (v > 127).astype(np.float32)
+  out[v == UNKNOWN_PATTERN] = np.nan
+  return out
+
+
+def _numbered_files(folder: Path, pattern: re.Pattern) -> list[Path]:
+  return sorted((p for p in folder.iterdir() if pattern.match(p.name)),
+                key=lambda p: (len(p.name), p.name))
+
+
+def read_patterns(folder: str | os.PathLike) -> np.ndarray:
+  """Reads folder/000.png, 001.png, ... (coarsest first) into HxWxt float32, NaN unknown."""
+  folder = Path(folder)
+  if not folder.is_dir():
+    raise SljaxError(f"{folder}: missing pattern folder")
+  files = _numbered_files(folder, _PATTERN_FILE)
+  if not files:
+    raise SljaxError(f"{folder}: no pattern images 000.png, 001.png, ...")
+  numbers = [int(_PATTERN_FILE.match(p.name).group(1)) for p in files]
+  if numbers != list(range(len(files))):
+    missing = sorted(set(range(max(numbers) + 1)) - set(numbers))
+    raise SljaxError(f"{folder}: pattern images are not numbered 000..{len(files) - 1:03d} "
+                     f"(missing {', '.join(f'{m:03d}.png' for m in missing[:5])})")
+  planes = []
+  for p in files:
+    v = cv2.imread(os.fspath(p), cv2.IMREAD_UNCHANGED)
+    if v is None:
+      raise SljaxError(f"{p}: not a readable image")
+    if v.dtype != np.uint8:
+      raise SljaxError(f"{p}: pattern images must be 8-bit (0 dark, 255 lit, 128 unknown)")
+    if v.ndim == 3:
+      v = v[..., 0]
+    if planes and v.shape != planes[0].shape:
+      raise SljaxError(f"{p}: size {v.shape[1]}x{v.shape[0]} differs from "
+                       f"{files[0].name} ({planes[0].shape[1]}x{planes[0].shape[0]})")
+    planes.append(v)
+  return patterns_from_png(np.stack(planes, axis=-1))
+
+
+def write_patterns(folder: str | os.PathLike, patterns: np.ndarray,
+                   overwrite: bool = False) -> None:
+  """Writes HxWxt patterns as folder/000.png ... (0/255, UNKNOWN_PATTERN for NaN)."""
+  folder = Path(folder)
+  p = np.asarray(patterns)
+  if p.ndim != 3:
+    raise SljaxError(f"{folder}: patterns must be HxWxt, got shape {p.shape}")
+  existing = _numbered_files(folder, _PATTERN_FILE) if folder.is_dir() else []
+  if existing and not overwrite:
+    raise SljaxError(f"{existing[0]}: exists (use overwrite)")
+  folder.mkdir(parents=True, exist_ok=True)
+  for old in existing:  # a shorter sequence must not leave stale planes behind
+    old.unlink()
+  png = patterns_to_png(p)
+  for k in range(png.shape[2]):
+    if not cv2.imwrite(os.fspath(folder / f"{k:03d}.png"), png[..., k]):
+      raise SljaxError(f"{folder / f'{k:03d}.png'}: could not write image")
+
+
+def read_raw(folder: str | os.PathLike) -> dict[str, np.ndarray]:
+  """Reads raw captures (white, black, p000..., i000...) as HxW float32 gray in [0, 1]."""
+  folder = Path(folder)
+  if not folder.is_dir():
+    raise SljaxError(f"{folder}: missing raw capture folder")
+  files = _numbered_files(folder, _RAW_FILE)
+  if not files:
+    raise SljaxError(f"{folder}: no raw captures (white.png, black.png, p000.png, ...)")
+  out: dict[str, np.ndarray] = {}
+  for p in files:
+    img = read_image(p, gray=True)[..., 0]
+    first = next(iter(out.items()), None)
+    if first is not None and img.shape != first[1].shape:
+      raise SljaxError(f"{p}: size {img.shape[1]}x{img.shape[0]} differs from "
+                       f"{first[0]}.png ({first[1].shape[1]}x{first[1].shape[0]})")
+    out[p.stem] = img
+  return out
+
+
+def write_raw(folder: str | os.PathLike, raw: dict[str, np.ndarray], bit_depth: int = 8,
+              overwrite: bool = False) -> None:
+  """Writes raw captures as gray PNGs named by their keys (white, black, p000, ...)."""
+  folder = Path(folder)
+  for key in raw:
+    if not _RAW_FILE.match(f"{key}.png"):
+      raise SljaxError(f"{folder}: raw capture key {key!r} is not white, black, pNNN or iNNN")
+  existing = _numbered_files(folder, _RAW_FILE) if folder.is_dir() else []
+  if existing and not overwrite:
+    raise SljaxError(f"{existing[0]}: exists (use overwrite)")
+  folder.mkdir(parents=True, exist_ok=True)
+  for old in existing:
+    old.unlink()
+  for key, img in raw.items():
+    write_image(folder / f"{key}.png", img, bit_depth)
+
+
+def present_parts(path: str | os.PathLike) -> dict[str, list[str]]:
+  """Which parts a scene folder holds: {part: [files or folders present]}, cheap (no decoding)."""
+  path = Path(path)
+  names = {
+      "im": ["im0.png", "im1.png"], "disp": ["disp0.pfm", "disp1.pfm"], "mask": ["mask0.png"],
+      "sl": ["sl0", "sl1"], "raw": ["raw0", "raw1"], "calib": ["calib.txt"], "meta": ["meta.json"],
+  }
+  out = {}
+  for part, files in names.items():
+    found = [f for f in files if (path / f).exists()]
+    if found:
+      out[part] = found
+  return out
+
+
+def _check_size(scene_dir: Path, file: str, array: np.ndarray, hw: tuple[int, int]) -> None:
+  if tuple(array.shape[:2]) != tuple(hw):
+    raise _fail(scene_dir, file, f"size {array.shape[1]}x{array.shape[0]} differs from "
+                f"im0.png ({hw[1]}x{hw[0]})")
+
+
+def load_scene(path: str | os.PathLike, gray: bool | None = None,
+               parts: set[str] | None = None) -> Scene:
+  """Loads a scene folder (a superset of a Middlebury 2014 scene) into a Scene.
+
+  parts: subset of PARTS; None loads everything present. The views (im0/im1) are always
+  loaded. An explicitly requested part whose left-view file (disp0.pfm, mask0.png, sl0/,
+  raw0/, calib.txt, meta.json) is absent raises SljaxError; right-view files are loaded
+  when present. gray: None keeps the file's channels, True -> HxWx1, False -> HxWx3.
+  """
+  scene_dir = Path(path)
+  if not scene_dir.is_dir():
+    raise SljaxError(f"scene {scene_dir}: not a folder")
+  explicit = parts is not None
+  parts = set(PARTS) if parts is None else set(parts)
+  unknown = parts - PARTS
+  if unknown:
+    raise SljaxError(f"scene {scene_dir}: unknown part(s) {sorted(unknown)}; "
+                     f"choose from {sorted(PARTS)}")
+
+  def need(file: str) -> bool:
+    """True when the file is there; raises when it was explicitly requested but absent."""
+    if (scene_dir / file).exists():
+      return True
+    if explicit:
+      raise _fail(scene_dir, file, "missing")
+    return False
+
+  for f in ("im0.png", "im1.png"):
+    if not (scene_dir / f).exists():
+      raise _fail(scene_dir, f, "missing")
+  im0 = read_image(scene_dir / "im0.png", gray)
+  im1 = read_image(scene_dir / "im1.png", gray)
+  hw = im0.shape[:2]
+  _check_size(scene_dir, "im1.png", im1, hw)
+  if im0.shape[2] != im1.shape[2]:  # one gray, one colour file: promote the gray one
+    im0, im1 = (np.repeat(im, 3, axis=2) if im.shape[2] == 1 else im for im in (im0, im1))
+  scene = Scene(name=scene_dir.name, im0=im0, im1=im1)
+
+  if "disp" in parts:
+    for i, f in enumerate(("disp0.pfm", "disp1.pfm")):
+      if (need(f) if i == 0 else (scene_dir / f).exists()):
+        d = read_pfm(scene_dir / f)
+        if d.ndim != 2:
+          raise _fail(scene_dir, f, f"disparity must have one channel, got shape {d.shape}")
+        _check_size(scene_dir, f, d, hw)
+        setattr(scene, f[:5], d)
+  if "mask" in parts and need("mask0.png"):
+    m = cv2.imread(os.fspath(scene_dir / "mask0.png"), cv2.IMREAD_UNCHANGED)
+    if m is None:
+      raise _fail(scene_dir, "mask0.png", "not a readable image")
+    m = m.reshape(m.shape[0], m.shape[1], -1).any(axis=2)
+    _check_size(scene_dir, "mask0.png", m, hw)
+    scene.mask0 = m
+  if "sl" in parts:
+    for i, f in enumerate(("sl0", "sl1")):
+      if (need(f) if i == 0 else (scene_dir / f).exists()):
+        p = read_patterns(scene_dir / f)
+        _check_size(scene_dir, f, p, hw)
+        setattr(scene, f, p)
+    if scene.sl0 is not None and scene.sl1 is not None and scene.sl0.shape != scene.sl1.shape:
+      raise _fail(scene_dir, "sl1", f"holds {scene.sl1.shape[2]} patterns, "
+                  f"sl0 holds {scene.sl0.shape[2]}")
+  if "raw" in parts:
+    for i, f in enumerate(("raw0", "raw1")):
+      if (need(f) if i == 0 else (scene_dir / f).exists()):
+        raw = read_raw(scene_dir / f)
+        _check_size(scene_dir, f, next(iter(raw.values())), hw)
+        setattr(scene, f, raw)
+    if scene.raw0 is not None and scene.raw1 is not None and set(scene.raw0) != set(scene.raw1):
+      diff = sorted(set(scene.raw0) ^ set(scene.raw1))
+      raise _fail(scene_dir, "raw1", f"captures differ from raw0 ({', '.join(diff[:5])})")
+  if "calib" in parts and need("calib.txt"):
+    scene.calib = read_calib(scene_dir / "calib.txt")
+  if "meta" in parts and need("meta.json"):
+    try:
+      meta = json.loads((scene_dir / "meta.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError) as e:
+      raise _fail(scene_dir, "meta.json", f"not valid JSON ({e})") from None
+    if not isinstance(meta, dict):
+      raise _fail(scene_dir, "meta.json", "must hold a JSON object")
+    scene.meta = meta
+  return scene
+
+
+def _json_default(value: Any) -> Any:
+  if isinstance(value, np.generic):
+    return value.item()
+  if isinstance(value, np.ndarray):
+    return value.tolist()
+  if isinstance(value, Path):
+    return str(value)
+  raise TypeError(f"cannot store {type(value).__name__} in meta.json")
+
+
+def write_scene(path: str | os.PathLike, scene: Scene, overwrite: bool = False,
+                bit_depth: int = 8) -> None:
+  """Writes the non-None parts of a scene as a scene folder (images as bit_depth-bit PNG).
+
+  Nothing is written when any target file exists and overwrite is False.
+  """
+  scene_dir = Path(path)
+  hw = tuple(scene.im0.shape[:2])
+  _check_size(scene_dir, "im1", np.asarray(scene.im1), hw)
+  for name in ("disp0", "disp1", "mask0", "sl0", "sl1"):
+    value = getattr(scene, name)
+    if value is not None:
+      _check_size(scene_dir, name, np.asarray(value), hw)
+  if scene.sl0 is not None and scene.sl1 is not None and scene.sl0.shape != scene.sl1.shape:
+    raise _fail(scene_dir, "sl1", f"holds {scene.sl1.shape[-1]} patterns, "
+                f"sl0 holds {scene.sl0.shape[-1]}")
+
+  targets = ["im0.png", "im1.png"]
+  targets += [f for f, v in (("disp0.pfm", scene.disp0), ("disp1.pfm", scene.disp1),
+                             ("mask0.png", scene.mask0), ("calib.txt", scene.calib),
+                             ("meta.json", scene.meta or None)) if v is not None]
+  if not overwrite:
+    for f in targets:
+      if (scene_dir / f).exists():
+        raise _fail(scene_dir, f, "exists (use overwrite)")
+    for folder, pattern in (("sl0", _PATTERN_FILE), ("sl1", _PATTERN_FILE),
+                            ("raw0", _RAW_FILE), ("raw1", _RAW_FILE)):
+      if getattr(scene, folder) is not None and (scene_dir / folder).is_dir():
+        existing = _numbered_files(scene_dir / folder, pattern)
+        if existing:
+          raise _fail(scene_dir, f"{folder}/{existing[0].name}", "exists (use overwrite)")
+
+  scene_dir.mkdir(parents=True, exist_ok=True)
+  write_image(scene_dir / "im0.png", scene.im0, bit_depth)
+  write_image(scene_dir / "im1.png", scene.im1, bit_depth)
+  if scene.disp0 is not None:
+    write_pfm(scene_dir / "disp0.pfm", scene.disp0)
+  if scene.disp1 is not None:
+    write_pfm(scene_dir / "disp1.pfm", scene.disp1)
+  if scene.mask0 is not None:
+    m = np.where(np.asarray(scene.mask0).reshape(hw) != 0, 255, 0).astype(np.uint8)
+    if not cv2.imwrite(os.fspath(scene_dir / "mask0.png"), m):
+      raise _fail(scene_dir, "mask0.png", "could not write image")
+  if scene.sl0 is not None:
+    write_patterns(scene_dir / "sl0", scene.sl0, overwrite=True)
+  if scene.sl1 is not None:
+    write_patterns(scene_dir / "sl1", scene.sl1, overwrite=True)
+  if scene.raw0 is not None:
+    write_raw(scene_dir / "raw0", scene.raw0, bit_depth, overwrite=True)
+  if scene.raw1 is not None:
+    write_raw(scene_dir / "raw1", scene.raw1, bit_depth, overwrite=True)
+  if scene.calib is not None:
+    write_calib(scene_dir / "calib.txt", scene.calib)
+  if scene.meta:
+    with open(scene_dir / "meta.json", "w", encoding="utf-8") as f:
+      json.dump(scene.meta, f, indent=2, sort_keys=True, default=_json_default)
+      f.write("\n")

@@ -1,0 +1,174 @@
+"""Conversion of a SCARED keyframe into a rectified scene folder with ground-truth disparity.
+
+A SCARED keyframe holds the raw (unrectified, distorted) stereo pair, a per-pixel 3D point
+map of the left view (x, y, z in mm, left camera frame) and the OpenCV stereo calibration.
+We rectify with cv2.stereoRectify (alpha = 0: the rectified views hold only valid pixels,
+CALIB_ZERO_DISPARITY: equal principal points, so doffs = 0) and project every 3D point into
+the rectified left view, keeping the nearest point per pixel; pixels that no point lands on
+take the point seen through them (the rectify map sampled back into the point map).
+"""
+
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from sljax.data.calib import Calib
+from sljax.data.scene import Scene, write_scene
+from sljax.errors import SljaxError
+
+LEFT, RIGHT = "Left_Image.png", "Right_Image.png"
+DEPTH, CALIB = "left_depth_map.tiff", "endoscope_calibration.yaml"
+RECTIFY_ALPHA = 0.0
+
+
+def read_scared_calibration(path: str | os.PathLike) -> dict[str, np.ndarray]:
+  """Reads M1 D1 M2 D2 R T (float64) from an OpenCV FileStorage YAML."""
+  path = os.fspath(path)
+  if not os.path.exists(path):
+    raise SljaxError(f"{path}: missing")
+  try:
+    fs = cv2.FileStorage(path, cv2.FILE_STORAGE_READ)
+  except cv2.error as e:
+    raise SljaxError(f"{path}: not an OpenCV FileStorage file ({e.err})") from None
+  if not fs.isOpened():
+    raise SljaxError(f"{path}: cannot open as OpenCV FileStorage")
+  out = {}
+  try:
+    for key in ("M1", "D1", "M2", "D2", "R", "T"):
+      node = fs.getNode(key)
+      m = None if node.empty() else node.mat()
+      if m is None:
+        raise SljaxError(f"{path}: lacks the matrix {key}")
+      out[key] = np.asarray(m, dtype=np.float64)
+  finally:
+    fs.release()
+  expect = {"M1": 9, "M2": 9, "R": 9, "T": 3}
+  for key, size in expect.items():
+    if out[key].size != size:
+      raise SljaxError(f"{path}: {key} has {out[key].size} values, expected {size}")
+  out["M1"], out["M2"], out["R"] = (out[k].reshape(3, 3) for k in ("M1", "M2", "R"))
+  out["T"] = out["T"].reshape(3, 1)
+  out["D1"], out["D2"] = out["D1"].reshape(1, -1), out["D2"].reshape(1, -1)
+  if out["R"].shape != (3, 3) or abs(np.linalg.det(out["R"]) - 1) > 1e-3:
+    raise SljaxError(f"{path}: R is not a rotation matrix")
+  return out
+
+
+def read_scared_points(path: str | os.PathLike) -> np.ndarray:
+  """HxWx3 float32 (x, y, z) in mm; unknown points (NaN or z == 0) become NaN."""
+  path = os.fspath(path)
+  if not os.path.exists(path):
+    raise SljaxError(f"{path}: missing")
+  raw = cv2.imread(path, cv2.IMREAD_UNCHANGED)
+  if raw is None or raw.ndim != 3 or raw.shape[2] != 3:
+    raise SljaxError(f"{path}: expected a 3-channel float TIFF of x, y, z (mm)")
+  # OpenCV returns a 3-channel TIFF in BGR order; the file stores x, y, z.
+  xyz = raw[..., ::-1].astype(np.float32)
+  bad = ~np.all(np.isfinite(xyz), axis=2) | (xyz[..., 2] <= 0)
+  xyz[bad] = np.nan
+  return xyz
+
+
+def _read_view(path: Path) -> np.ndarray:
+  if not path.exists():
+    raise SljaxError(f"{path}: missing")
+  img = cv2.imread(os.fspath(path), cv2.IMREAD_UNCHANGED)
+  if img is None or img.dtype not in (np.uint8, np.uint16):
+    raise SljaxError(f"{path}: not an 8- or 16-bit image")
+  return img
+
+
+def _to_float_rgb(bgr: np.ndarray) -> np.ndarray:
+  scale = 255.0 if bgr.dtype == np.uint8 else 65535.0
+  img = bgr if bgr.ndim == 3 else bgr[..., None]
+  if img.shape[2] >= 3:
+    img = img[..., 2::-1]
+  return img.astype(np.float32) / np.float32(scale)
+
+
+def rectified_disparity(xyz: np.ndarray, r1: np.ndarray, p1: np.ndarray, baseline: float,
+                        shape: tuple[int, int],
+                        lookup: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+  """Left disparity f*B/Z of 3D points in the rectified view (inf where unknown).
+
+  Points (left camera frame) are rotated by r1, projected with p1 and rounded to the nearest
+  pixel; where several land on a pixel the nearest wins. lookup = (map_x, map_y), the
+  rectified -> original pixel maps, fills pixels that received no point.
+  """
+  h, w = shape
+  f = float(p1[0, 0])
+  pts = xyz.reshape(-1, 3).astype(np.float64)
+  pts = pts[np.all(np.isfinite(pts), axis=1)]
+  rect = pts @ np.asarray(r1, np.float64).T
+  z = rect[:, 2]
+  front = z > 0
+  rect, z = rect[front], z[front]
+  u = np.rint(f * rect[:, 0] / z + p1[0, 2]).astype(np.int64)
+  v = np.rint(p1[1, 1] * rect[:, 1] / z + p1[1, 2]).astype(np.int64)
+  inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+  zbuf = np.full(h * w, np.inf)
+  np.minimum.at(zbuf, v[inside] * w + u[inside], z[inside])
+  zbuf = zbuf.reshape(h, w)
+  if lookup is not None:
+    # The point seen through each rectified pixel: nearest sample of the original map.
+    seen = np.stack([cv2.remap(xyz[..., c], lookup[0], lookup[1], cv2.INTER_NEAREST,
+                               borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
+                     for c in range(3)], axis=-1).astype(np.float64)
+    z_seen = seen @ np.asarray(r1, np.float64)[2]
+    hole = np.isinf(zbuf) & np.isfinite(z_seen) & (z_seen > 0)
+    zbuf[hole] = z_seen[hole]
+  disp = np.full((h, w), np.inf, np.float32)
+  known = np.isfinite(zbuf)
+  disp[known] = f * baseline / zbuf[known]
+  return disp
+
+
+def import_scared(keyframe_dir: str | os.PathLike, out_dir: str | os.PathLike,
+                  overwrite: bool = False) -> Path:
+  """Converts one SCARED keyframe folder into a rectified scene folder; returns out_dir."""
+  kf = Path(keyframe_dir)
+  out = Path(out_dir)
+  if not kf.is_dir():
+    raise SljaxError(f"{kf}: keyframe folder does not exist")
+  left, right = _read_view(kf / LEFT), _read_view(kf / RIGHT)
+  h, w = left.shape[:2]
+  if right.shape[:2] != (h, w):
+    raise SljaxError(f"{kf / RIGHT}: size {right.shape[1]}x{right.shape[0]} differs from "
+                     f"{LEFT} ({w}x{h})")
+  xyz = read_scared_points(kf / DEPTH)
+  if xyz.shape[:2] != (h, w):
+    raise SljaxError(f"{kf / DEPTH}: size {xyz.shape[1]}x{xyz.shape[0]} differs from "
+                     f"{LEFT} ({w}x{h})")
+  cal = read_scared_calibration(kf / CALIB)
+  t = cal["T"].ravel()
+  if abs(t[0]) <= abs(t[1]):
+    raise SljaxError(f"{kf / CALIB}: T = {t.tolist()} is not a horizontal stereo rig")
+
+  r1, r2, p1, p2, _, _, _ = cv2.stereoRectify(
+      cal["M1"], cal["D1"], cal["M2"], cal["D2"], (w, h), cal["R"], cal["T"],
+      flags=cv2.CALIB_ZERO_DISPARITY, alpha=RECTIFY_ALPHA)
+  f = float(p1[0, 0])
+  baseline = float(abs(p2[0, 3]) / p2[0, 0])  # equals |T| for a horizontal rig
+  maps0 = cv2.initUndistortRectifyMap(cal["M1"], cal["D1"], r1, p1, (w, h), cv2.CV_32FC1)
+  maps1 = cv2.initUndistortRectifyMap(cal["M2"], cal["D2"], r2, p2, (w, h), cv2.CV_32FC1)
+  im0 = cv2.remap(left, maps0[0], maps0[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+  im1 = cv2.remap(right, maps1[0], maps1[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+  disp = rectified_disparity(xyz, r1, p1, baseline, (h, w), lookup=maps0)
+
+  finite = disp[np.isfinite(disp)]
+  vmin = float(np.floor(finite.min())) if finite.size else None
+  vmax = float(np.ceil(finite.max())) if finite.size else None
+  ndisp = int(16 * np.ceil(max(vmax or 0.0, 1.0) / 16))
+  cam = np.array([[f, 0, p1[0, 2]], [0, p1[1, 1], p1[1, 2]], [0, 0, 1]], np.float64)
+  cam1 = np.array([[p2[0, 0], 0, p2[0, 2]], [0, p2[1, 1], p2[1, 2]], [0, 0, 1]], np.float64)
+  calib = Calib(cam0=cam, cam1=cam1, doffs=float(p2[0, 2] - p1[0, 2]), baseline=baseline,
+                width=w, height=h, ndisp=ndisp, vmin=vmin, vmax=vmax)
+  group = f"{kf.resolve().parent.name}/{kf.resolve().name}"
+  meta = {"group": group, "source": "SCARED", "keyframe": kf.resolve().name,
+          "rectify_alpha": RECTIFY_ALPHA, "known_pixels": int(finite.size)}
+  scene = Scene(name=out.name, im0=_to_float_rgb(im0), im1=_to_float_rgb(im1), disp0=disp,
+                calib=calib, meta=meta)
+  write_scene(out, scene, overwrite=overwrite, bit_depth=8 if left.dtype == np.uint8 else 16)
+  return out

@@ -41,8 +41,7 @@ def save_panels(path: str | os.PathLike, panels: list[Panel], ncols: int = 4,
       finite = img[np.isfinite(img)]
       vmin = p.vmin if p.vmin is not None else (float(finite.min()) if finite.size else 0.0)
       vmax = p.vmax if p.vmax is not None else (float(finite.max()) if finite.size else 1.0)
-      cmap = plt.get_cmap(p.cmap).copy()
-      cmap.set_bad("0.5")
+      cmap = plt.get_cmap(p.cmap).with_extremes(bad="0.5")
       im = ax.imshow(np.ma.masked_invalid(img), cmap=cmap, vmin=vmin, vmax=vmax,
                      interpolation="nearest")
       bar = fig.colorbar(im, ax=ax, fraction=0.046, pad=0.02)

@@ -1,1 +1,1 @@
-"""sljax.train."""
+"""Training: config and presets, state, the sharded step, the loop, checkpoints."""

@@ -1,0 +1,145 @@
+"""`sljax plot-runs WORKDIR... --out PNG`: validation MAE against epoch for several runs."""
+
+import argparse
+import json
+import math
+import os
+from pathlib import Path
+from typing import Any
+
+EPOCHS_FILE = "epochs.jsonl"
+CONFIG_FILE = "config.json"
+
+
+def register(subparsers) -> None:
+  """Adds the `plot-runs` subcommand."""
+  p = subparsers.add_parser(
+      "plot-runs", help="plot validation MAE against epoch for several training runs",
+      description="Reads WORKDIR/epochs.jsonl ('epoch', 'val_mae', other 'val_*' keys) and "
+                  "WORKDIR/config.json (label = model/strategy) of each run, draws validation "
+                  "MAE against epoch in one figure (like the paper's Fig. 7) and prints a "
+                  "Markdown table of the final metrics, also written beside the PNG (.md).",
+      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+  p.add_argument("workdirs", nargs="+", metavar="WORKDIR", help="training workdirs")
+  p.add_argument("--out", required=True, help="PNG to write; the table goes to the same name .md")
+  p.add_argument("--title", default="Validation MAE", help="figure title")
+  p.add_argument("--log", action="store_true", help="logarithmic MAE axis")
+  p.set_defaults(func=run)
+
+
+def run_label(config: dict[str, Any], workdir: Path) -> str:
+  """model/strategy for PSMNet runs, the model for the UNets, else the folder name."""
+  model = config.get("model")
+  strategy = config.get("strategy")
+  if model is None:
+    return workdir.name
+  if model == "psmnet" and strategy:
+    return f"{model}/{strategy}"
+  return str(model)
+
+
+def read_run(workdir: str | os.PathLike) -> dict[str, Any]:
+  """{'workdir', 'label', 'records'} of one run; SljaxError naming a missing/bad file."""
+  from sljax.errors import SljaxError
+
+  workdir = Path(workdir)
+  path = workdir / EPOCHS_FILE
+  if not path.is_file():
+    raise SljaxError(f"{workdir}: no {EPOCHS_FILE} (not a training workdir, or no epoch "
+                     "finished yet)")
+  records = []
+  for n, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+    if not line.strip():
+      continue
+    try:
+      rec = json.loads(line)
+    except json.JSONDecodeError as e:
+      raise SljaxError(f"{path}: line {n} is not JSON ({e.msg})") from None
+    if not isinstance(rec, dict) or "epoch" not in rec:
+      raise SljaxError(f"{path}: line {n} has no 'epoch' key")
+    records.append(rec)
+  config: dict[str, Any] = {}
+  cfg_path = workdir / CONFIG_FILE
+  if cfg_path.is_file():
+    try:
+      config = json.loads(cfg_path.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as e:
+      raise SljaxError(f"{cfg_path}: not valid JSON ({e.msg})") from None
+  return {"workdir": str(workdir), "label": run_label(config, workdir), "records": records}
+
+
+def _finite(v: Any) -> bool:
+  return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def summary_table(runs: list[dict[str, Any]]) -> str:
+  """Markdown table: final and best validation MAE and the final epoch's other val_* metrics."""
+  extra: list[str] = []
+  for r in runs:
+    vals = [rec for rec in r["records"] if _finite(rec.get("val_mae"))]
+    final = vals[-1] if vals else {}
+    for k in final:
+      if k.startswith("val_") and k != "val_mae" and _finite(final[k]) and k not in extra:
+        extra.append(k)
+  header = ["run", "workdir", "epochs", "final val MAE px", "best val MAE px (epoch)"] + extra
+  lines = ["| " + " | ".join(header) + " |", "|" + "|".join(" --- " for _ in header) + "|"]
+  for r in runs:
+    vals = [rec for rec in r["records"] if _finite(rec.get("val_mae"))]
+    epochs = max((rec["epoch"] for rec in r["records"]), default=0)
+    if vals:
+      final = vals[-1]
+      best = min(vals, key=lambda rec: rec["val_mae"])
+      cells = [f"{final['val_mae']:.3f}", f"{best['val_mae']:.3f} ({best['epoch']})"]
+      cells += [f"{final[k]:.4g}" if _finite(final.get(k)) else "-" for k in extra]
+    else:
+      cells = ["-", "-"] + ["-"] * len(extra)
+    lines.append("| " + " | ".join([r["label"], f"`{r['workdir']}`", str(epochs)] + cells) + " |")
+  return "\n".join(lines) + "\n"
+
+
+def plot(runs: list[dict[str, Any]], out: str | os.PathLike, title: str = "Validation MAE",
+         log: bool = False) -> None:
+  """One line per run: validation MAE (px) against epoch."""
+  import matplotlib
+  matplotlib.use("Agg")
+  import matplotlib.pyplot as plt
+
+  fig, ax = plt.subplots(figsize=(6.4, 4.2))
+  for r in runs:
+    pts = [(rec["epoch"], rec["val_mae"]) for rec in r["records"] if _finite(rec.get("val_mae"))]
+    if pts:
+      xs, ys = zip(*pts)
+      ax.plot(xs, ys, marker="o", markersize=3, label=r["label"])
+  ax.set_xlabel("epoch")
+  ax.set_ylabel("validation MAE (px)")
+  if log:
+    ax.set_yscale("log")
+  ax.set_title(title)
+  ax.grid(alpha=0.3)
+  ax.legend()
+  fig.tight_layout()
+  Path(out).parent.mkdir(parents=True, exist_ok=True)
+  fig.savefig(out, dpi=120)
+  plt.close(fig)
+
+
+def run(args) -> int:
+  """Reads the runs, writes the PNG and the table, prints the table."""
+  from sljax.errors import SljaxError
+
+  runs = [read_run(w) for w in args.workdirs]
+  labels = [r["label"] for r in runs]
+  for r in runs:  # several runs of one configuration: tell them apart by folder name
+    if labels.count(r["label"]) > 1:
+      r["label"] = f"{r['label']} ({Path(r['workdir']).name})"
+  if not any(_finite(rec.get("val_mae")) for r in runs for rec in r["records"]):
+    raise SljaxError("no run has a 'val_mae' in its epochs.jsonl: nothing to plot")
+  out = Path(args.out)
+  if out.suffix.lower() != ".png":
+    raise SljaxError(f"--out {out}: expected a .png file name")
+  plot(runs, out, args.title, args.log)
+  table = summary_table(runs)
+  out.with_suffix(".md").write_text(table, encoding="utf-8")
+  print(table, end="")
+  print(f"wrote {out} and {out.with_suffix('.md')}")
+  return 0

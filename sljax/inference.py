@@ -1,0 +1,299 @@
+"""Inference you can import: `predict = load(checkpoint)` then `predict(left, right)` on any size.
+
+Inputs: numpy images HxW, HxWx1 or HxWx3 (or batched BxHxWxC), uint8 (/255), uint16
+(/65535) or float already in [0, 1]. They are converted to the channel count the model was
+trained with (RGB -> gray by ITU-R BT.601 luma, gray -> RGB by repetition).
+
+Resolution modes:
+- "pad" (the PSMNet reference's test protocol): the pair is zero-padded at the TOP and RIGHT to
+  the next multiple of 32 in height and width, as the reference pads its test images, and the
+  outputs are cropped back (rows from the top pad on, columns up to the input width).
+- "resize" (the paper's evaluation): the pair is resized to the training size with the
+  training loader's resampling (area when shrinking, bilinear when enlarging), the outputs are
+  resized back bilinearly, and disparities are multiplied by input width / training width.
+
+Outputs: dict with "disparity" (HxW float32, input pixels; BxHxW for batched input) and, for
+structured-light models, "patterns" (left-view probabilities HxWxt), "patterns_right" (unet-sl)
+and "confidence" (HxW in [0, 1], higher is surer: the correlation's peak-ratio confidence for
+unet-sl, whose disparity is the windowed correlation of its predicted patterns, and the mean
+pattern certainty |2p - 1| for psmnet-mtl).
+
+The network runs in one jitted function; jax caches one compilation per model-input shape
+(in resize mode that is always the training size). `Predictor.traces` counts the traces.
+"""
+
+import dataclasses
+import os
+from typing import Any
+
+import numpy as np
+
+from sljax.errors import SljaxError
+
+PAD_MULTIPLE = 32
+MODES = ("pad", "resize")
+_LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32)
+
+
+def _to_float(image: np.ndarray, what: str) -> np.ndarray:
+  """uint8/uint16/float image -> float32 in [0, 1]; SljaxError for NaN or other dtypes."""
+  a = np.asarray(image)
+  if a.dtype == np.uint8:
+    return a.astype(np.float32) / 255.0
+  if a.dtype == np.uint16:
+    return a.astype(np.float32) / 65535.0
+  if a.dtype == np.bool_ or not np.issubdtype(a.dtype, np.floating):
+    raise SljaxError(f"{what}: images must be uint8, uint16 or float in [0, 1], got {a.dtype}")
+  a = a.astype(np.float32)
+  if not np.isfinite(a).all():
+    raise SljaxError(f"{what}: image holds NaN or infinite values")
+  if a.size and (a.min() < -0.01 or a.max() > 1.01):
+    raise SljaxError(f"{what}: float images must be scaled to [0, 1], got values in "
+                     f"[{a.min():g}, {a.max():g}]")
+  return np.clip(a, 0.0, 1.0)
+
+
+def _as_batch(image: np.ndarray, what: str) -> tuple[np.ndarray, bool]:
+  """HxW / HxWxC / BxHxWxC -> (BxHxWxC, batched)."""
+  a = np.asarray(image)
+  if a.ndim == 2:
+    a, batched = a[None, :, :, None], False
+  elif a.ndim == 3:
+    if a.shape[2] not in (1, 3):
+      raise SljaxError(f"{what}: a 3-D image must be HxWx1 or HxWx3 (1 or 3 channels), got "
+                       f"shape {a.shape} (pass a batch of gray images as BxHxWx1)")
+    a, batched = a[None], False
+  elif a.ndim == 4:
+    batched = True
+  else:
+    raise SljaxError(f"{what}: expected HxW, HxWxC or BxHxWxC, got shape {a.shape}")
+  if a.shape[3] not in (1, 3):
+    raise SljaxError(f"{what}: images need 1 or 3 channels, got {a.shape[3]} (shape {a.shape})")
+  if 0 in a.shape:
+    raise SljaxError(f"{what}: empty image of shape {a.shape}")
+  return a, batched
+
+
+def prepare_pair(left: np.ndarray, right: np.ndarray, channels: int | None = None,
+                 name: str = "input") -> tuple[np.ndarray, np.ndarray, bool]:
+  """Checks and converts a stereo pair to float32 BxHxWxC in [0, 1] (C = channels if given)."""
+  lb, batched = _as_batch(left, f"{name}: left view")
+  rb, batched_r = _as_batch(right, f"{name}: right view")
+  if batched != batched_r or lb.shape[:3] != rb.shape[:3]:
+    raise SljaxError(f"{name}: left and right views differ in size: {np.shape(left)} vs "
+                     f"{np.shape(right)}")
+  lf = _to_float(lb, f"{name}: left view")
+  rf = _to_float(rb, f"{name}: right view")
+  if channels is not None:
+    lf, rf = convert_channels(lf, channels), convert_channels(rf, channels)
+  elif lf.shape[3] != rf.shape[3]:  # one gray, one colour: promote the gray one
+    lf, rf = convert_channels(lf, 3), convert_channels(rf, 3)
+  return lf, rf, batched
+
+
+def convert_channels(images: np.ndarray, channels: int) -> np.ndarray:
+  """...xC float images -> ...x`channels` (gray <-> RGB)."""
+  c = images.shape[-1]
+  if c == channels:
+    return images
+  if channels == 1:
+    return (images @ _LUMA)[..., None].astype(np.float32)
+  if channels == 3:
+    return np.repeat(images, 3, axis=-1)
+  raise SljaxError(f"cannot convert {c}-channel images to {channels} channels")
+
+
+def _resize_maps(maps: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
+  """Bilinear (half-pixel centres) resize of BxHxW or BxHxWxC float maps."""
+  import cv2
+  if maps.shape[1:3] == tuple(hw):
+    return maps
+  out = []
+  for m in maps:  # one cv2 call per image (cv2 handles up to 512 channels at once)
+    r = cv2.resize(np.ascontiguousarray(m, dtype=np.float32), (hw[1], hw[0]),
+                   interpolation=cv2.INTER_LINEAR)
+    out.append(r.reshape(hw + m.shape[2:]))
+  return np.stack(out)
+
+
+def _as_size(size: Any) -> tuple[int, int] | None:
+  if size is None:
+    return None
+  if isinstance(size, (int, np.integer)):
+    return int(size), int(size)
+  h, w = (int(v) for v in size)
+  return h, w
+
+
+def _tree_diff(expected: Any, got: Any, path: str = "") -> str | None:
+  """First difference between two nested dicts of arrays (keys or shapes), or None."""
+  if isinstance(expected, dict) or hasattr(expected, "items"):
+    if not (isinstance(got, dict) or hasattr(got, "items")):
+      return f"{path or '/'}: expected a collection, got an array"
+    ek, gk = set(expected.keys()), set(got.keys())
+    if ek != gk:
+      missing, extra = sorted(ek - gk), sorted(gk - ek)
+      return (f"{path or '/'}: missing {missing[:3]}" if missing else
+              f"{path or '/'}: unexpected {extra[:3]}")
+    for k in sorted(ek):
+      d = _tree_diff(expected[k], got[k], f"{path}/{k}")
+      if d:
+        return d
+    return None
+  if hasattr(got, "items"):
+    return f"{path}: expected an array, got a collection"
+  es, gs = tuple(expected.shape), tuple(np.shape(got))
+  return None if es == gs else f"{path}: expected shape {es}, got {gs}"
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelSpec:
+  """What the predictor learnt about a model from an abstract run of it."""
+  channels: int
+  outputs: tuple[str, ...]
+
+  @property
+  def is_sl(self) -> bool:
+    """True for models that predict structured-light patterns."""
+    return "sl_logits" in self.outputs
+
+
+def _probe(model, variables, channels_first_guess: int, size: tuple[int, int],
+           name: str, model_desc: str) -> ModelSpec:
+  """Finds the input channel count the variables fit and the model's outputs (no compute)."""
+  import jax
+  import jax.numpy as jnp
+
+  h, w = size
+  diffs = []
+  for c in (channels_first_guess, 4 - channels_first_guess):
+    x = jax.ShapeDtypeStruct((1, h, w, c), jnp.float32)
+    try:
+      shapes = jax.eval_shape(
+          lambda a, b: model.init(jax.random.PRNGKey(0), a, b, train=False), x, x)
+    except Exception as e:  # a model that cannot take this channel count at all
+      diffs.append(f"{c} channels: {type(e).__name__}: {str(e).splitlines()[0][:200]}")
+      continue
+    # Every collection the model creates (params, batch_stats) must be in the variables.
+    d = _tree_diff(dict(shapes), {k: variables[k] for k in shapes.keys() if k in variables})
+    if d is None:
+      out = jax.eval_shape(lambda v, a, b: model.apply(v, a, b, train=False), variables, x, x)
+      return ModelSpec(channels=c, outputs=tuple(sorted(out.keys())))
+    diffs.append(f"{c} channels: {d}")
+  raise SljaxError(f"{name}: the checkpoint's variables do not match the model {model_desc} "
+                   f"({'; '.join(diffs)})")
+
+
+class Predictor:
+  """predict(left, right) -> dict of numpy outputs; see the module docstring."""
+
+  def __init__(self, model, variables, *, model_name: str, model_kwargs: dict | None = None,
+               train_size: Any = None, mode: str = "pad", gray: bool | None = None,
+               sl_max_disp: int | None = None, name: str | None = None):
+    import jax
+
+    if mode not in MODES:
+      raise SljaxError(f"mode must be one of {MODES}, got {mode!r}")
+    self.model_name = model_name
+    self.model_kwargs = dict(model_kwargs or {})
+    self.mode = mode
+    self.train_size = _as_size(train_size)
+    self.name = name or model_name
+    self.sl_max_disp = sl_max_disp
+    if mode == "resize" and self.train_size is None:
+      raise SljaxError(f"{self.name}: resize mode needs the training size, which the "
+                       "checkpoint's config lacks; use --mode pad (full resolution)")
+    self.variables = jax.tree_util.tree_map(jax.numpy.asarray, variables)  # on device once
+    probe_size = self.train_size or (256, 256)
+    guess = getattr(model, "in_channels", None) or (1 if gray else 3)
+    desc = f"{model_name}({', '.join(f'{k}={v!r}' for k, v in self.model_kwargs.items())})"
+    self.spec = _probe(model, variables, guess, probe_size, self.name, desc)
+    self.channels = self.spec.channels
+    self.traces = 0
+    self.train_config: dict[str, Any] = {}  # set by load(): the run's training config
+
+    def core(v, left, right):
+      self.traces += 1  # runs only while tracing: counts compilations
+      out = model.apply(v, left, right, train=False)
+      res = {}
+      if "disparity" in out:
+        res["disparity"] = out["disparity"].astype("float32")
+      if "sl_logits" in out:
+        res["patterns"] = jax.nn.sigmoid(out["sl_logits"])
+      if "sl_logits_right" in out:
+        res["patterns_right"] = jax.nn.sigmoid(out["sl_logits_right"])
+      return res
+
+    self._core = jax.jit(core)
+
+  @property
+  def is_sl(self) -> bool:
+    """True when the model predicts structured-light patterns."""
+    return self.spec.is_sl
+
+  def describe(self) -> str:
+    """One line naming the model and the resolution mode, for reports."""
+    if self.mode == "resize":
+      return (f"{self.model_name}: resized to the training size {self.train_size[0]}x"
+              f"{self.train_size[1]} and back (bilinear, disparity scaled by the width ratio)")
+    return f"{self.model_name}: full resolution, padded to a multiple of {PAD_MULTIPLE} (top/right)"
+
+  def __call__(self, left: np.ndarray, right: np.ndarray,
+               calib: Any = None) -> dict[str, np.ndarray]:
+    """Predicts disparity (and patterns) for a pair; `calib` is accepted and unused."""
+    del calib
+    from sljax.data.dataset import resize_image
+
+    lf, rf, batched = prepare_pair(left, right, self.channels, self.name)
+    b, h, w, _ = lf.shape
+    if self.mode == "pad":
+      ph, pw = -h % PAD_MULTIPLE, -w % PAD_MULTIPLE
+      widths = ((0, 0), (ph, 0), (0, pw), (0, 0))
+      lin, rin = np.pad(lf, widths), np.pad(rf, widths)
+    else:
+      th, tw = self.train_size
+      lin = np.stack([resize_image(x, (th, tw)) for x in lf])
+      rin = np.stack([resize_image(x, (th, tw)) for x in rf])
+    raw = self._core(self.variables, lin, rin)
+    out = {k: np.asarray(v, dtype=np.float32) for k, v in raw.items()}
+
+    if self.mode == "pad":
+      out = {k: v[:, ph:, :w] for k, v in out.items()}
+    if "patterns_right" in out:  # unet-sl: disparity by correlating the predicted patterns
+      from sljax.corr.correlation import sl_disparity
+      disp, _, conf = sl_disparity(out["patterns"], out["patterns_right"],
+                                   max_disp=self.sl_max_disp, confidence=True)
+      out["disparity"], out["confidence"] = disp, conf
+    elif "patterns" in out:  # mean |2p - 1| over patterns: 1 - sljax.corr's uncertainty
+      from sljax.corr.uncertainty import view_uncertainty
+      out["confidence"] = 1.0 - view_uncertainty(out["patterns"])
+    if self.mode == "resize":
+      scale = w / out["disparity"].shape[2]
+      out = {k: _resize_maps(v, (h, w)) for k, v in out.items()}
+      out["disparity"] = out["disparity"] * np.float32(scale)
+    out = {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in out.items()}
+    return out if batched else {k: v[0] for k, v in out.items()}
+
+
+def make_predictor(model_name: str, model_kwargs: dict, variables: dict, train_size: Any = None,
+                   mode: str = "pad", *, gray: bool | None = None, sl_max_disp: int | None = None,
+                   name: str | None = None) -> Predictor:
+  """Predictor for a model built by sljax.nets.build_model(model_name, **model_kwargs)."""
+  from sljax.nets import build_model
+  model = build_model(model_name, **dict(model_kwargs or {}))
+  return Predictor(model, variables, model_name=model_name, model_kwargs=model_kwargs,
+                   train_size=train_size, mode=mode, gray=gray, sl_max_disp=sl_max_disp,
+                   name=name)
+
+
+def load(checkpoint: str | os.PathLike, mode: str = "pad") -> Predictor:
+  """Predictor from a training workdir, its checkpoints dir, or a converted PSMNet dir."""
+  from sljax.train.checkpoint import load_for_inference
+  path = os.fspath(checkpoint)
+  model_name, model_kwargs, variables, config = load_for_inference(path)
+  config = dict(config or {})
+  predictor = make_predictor(model_name, model_kwargs, variables, train_size=config.get("size"),
+                             mode=mode, gray=config.get("gray"), name=path)
+  predictor.train_config = config
+  return predictor
+

@@ -1,0 +1,293 @@
+import cv2
+import flax.linen as nn
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from sljax import inference
+from sljax.data.dataset import resize_image
+from sljax.errors import SljaxError
+
+
+class ToyDisp(nn.Module):
+  """disparity = 10 * first channel of the left view + bias: every output pixel is traceable."""
+
+  @nn.compact
+  def __call__(self, left, right, train=False):
+    bias = self.param("bias", nn.initializers.zeros, (left.shape[-1],))
+    return {"disparity": 10.0 * left[..., 0] + bias[0] + 0.0 * right[..., 0]}
+
+
+class ToySL(nn.Module):
+  """Pattern logits = +-20 from the views themselves (t = channels), both views."""
+
+  @nn.compact
+  def __call__(self, left, right, train=False):
+    gain = self.param("gain", nn.initializers.ones, ())
+    return {"sl_logits": 20.0 * gain * (2.0 * left - 1.0),
+            "sl_logits_right": 20.0 * gain * (2.0 * right - 1.0)}
+
+
+def _toy(mode, channels=1, train_size=(32, 48)):
+  variables = {"params": {"bias": jnp.array([0.5] * channels, jnp.float32)}}
+  return inference.Predictor(ToyDisp(), variables, model_name="toy", train_size=train_size,
+                             mode=mode)
+
+
+@pytest.fixture(scope="module")
+def pad_predictor():
+  return _toy("pad")
+
+
+@pytest.fixture(scope="module")
+def resize_predictor():
+  return _toy("resize")
+
+
+def _pair(h, w, seed=0, c=None):
+  rng = np.random.default_rng(seed)
+  shape = (h, w) if c is None else (h, w, c)
+  return rng.uniform(0, 1, shape).astype(np.float32), rng.uniform(0, 1, shape).astype(np.float32)
+
+
+def test_pad_mode_on_odd_size_crops_back_exactly(pad_predictor):
+  left, right = _pair(37, 45)
+  out = pad_predictor(left, right)
+  assert out["disparity"].shape == (37, 45) and out["disparity"].dtype == np.float32
+  # Every output pixel comes from the same input pixel: crop offset is right.
+  np.testing.assert_allclose(out["disparity"], 10.0 * left + 0.5, rtol=1e-6)
+  assert pad_predictor.channels == 1
+
+
+def test_pad_mode_pads_top_and_right():
+  """The padded input the model sees: zeros above and right of the image (multiple of 32)."""
+  seen = {}
+
+  class Spy(nn.Module):
+    @nn.compact
+    def __call__(self, left, right, train=False):
+      seen["shape"] = left.shape
+      return {"disparity": left[..., 0]}
+
+  pred = inference.Predictor(Spy(), {}, model_name="spy", mode="pad", gray=True)
+  left, right = _pair(33, 40)
+  pred(left, right)
+  assert seen["shape"] == (1, 64, 64, 1)
+  lf = np.pad(left, ((31, 0), (0, 24)))
+  # Apply the model directly on our own padding: the predictor's crop gives the same map.
+  np.testing.assert_array_equal(pred(left, right)["disparity"], lf[31:, :40])
+
+
+def test_resize_mode_against_cv2(resize_predictor):
+  left, right = _pair(50, 70, seed=1)
+  out = resize_predictor(left, right)["disparity"]
+  small = resize_image(left[..., None], (32, 48))[..., 0]  # the training loader's resampling
+  net = 10.0 * small + 0.5
+  want = cv2.resize(net, (70, 50), interpolation=cv2.INTER_LINEAR) * (70 / 48)
+  assert out.shape == (50, 70)
+  np.testing.assert_allclose(out, want, rtol=1e-5, atol=1e-5)
+
+
+def test_inputs_uint8_uint16_rgb_and_batches(pad_predictor):
+  left, right = _pair(20, 30, seed=2)
+  base = pad_predictor(left, right)["disparity"]
+  u8l, u8r = (np.round(left * 255).astype(np.uint8), np.round(right * 255).astype(np.uint8))
+  np.testing.assert_allclose(pad_predictor(u8l, u8r)["disparity"],
+                             10.0 * u8l / 255.0 + 0.5, rtol=1e-5)
+  u16l = np.round(left * 65535).astype(np.uint16)
+  np.testing.assert_allclose(pad_predictor(u16l, u16l)["disparity"], base, atol=1e-3)
+  # An RGB view of a gray image converts back to the same gray (luma weights sum to 1).
+  rgb = np.repeat(left[..., None], 3, axis=2)
+  np.testing.assert_allclose(pad_predictor(rgb, rgb)["disparity"], base, atol=1e-5)
+  # Batched == one at a time.
+  l2, r2 = _pair(20, 30, seed=3)
+  batch = pad_predictor(np.stack([left, l2])[..., None], np.stack([right, r2])[..., None])
+  assert batch["disparity"].shape == (2, 20, 30)
+  np.testing.assert_allclose(batch["disparity"][0], base, rtol=1e-6)
+  np.testing.assert_allclose(batch["disparity"][1], pad_predictor(l2, r2)["disparity"], rtol=1e-6)
+
+
+def test_rgb_model_gets_gray_input_repeated():
+  pred = _toy("pad", channels=3)
+  assert pred.channels == 3
+  left, right = _pair(16, 16, seed=4)
+  np.testing.assert_allclose(pred(left, right)["disparity"], 10.0 * left + 0.5, rtol=1e-6)
+
+
+def test_compiled_once_per_shape(resize_predictor):
+  p = _toy("pad")
+  a = _pair(21, 33, seed=5)
+  p(*a)
+  p(*_pair(21, 33, seed=6))
+  assert p.traces == 1
+  p(*_pair(40, 33, seed=6))  # pads to another shape: one more trace
+  assert p.traces == 2
+  # Resize mode: the network always sees the training size.
+  before = resize_predictor.traces
+  resize_predictor(*_pair(17, 19))
+  resize_predictor(*_pair(60, 90))
+  assert resize_predictor.traces - before <= 1
+
+
+def test_bad_inputs(pad_predictor):
+  left, right = _pair(20, 30)
+  with pytest.raises(SljaxError, match="differ in size"):
+    pad_predictor(left, right[:, :29])
+  with pytest.raises(SljaxError, match="channels"):
+    pad_predictor(np.zeros((20, 30, 2), np.float32), np.zeros((20, 30, 2), np.float32))
+  with pytest.raises(SljaxError, match="channels"):
+    pad_predictor(np.zeros((1, 20, 30, 4), np.float32), np.zeros((1, 20, 30, 4), np.float32))
+  bad = left.copy()
+  bad[3, 4] = np.nan
+  with pytest.raises(SljaxError, match="NaN"):
+    pad_predictor(bad, right)
+  with pytest.raises(SljaxError, match=r"\[0, 1\]"):
+    pad_predictor(left * 255, right * 255)
+  with pytest.raises(SljaxError, match="int32"):
+    pad_predictor(left.astype(np.int32), right.astype(np.int32))
+  with pytest.raises(SljaxError, match="mode"):
+    _toy("crop")
+  with pytest.raises(SljaxError, match="training size"):
+    _toy("resize", train_size=None)
+
+
+def test_checkpoint_that_does_not_match_the_model():
+  with pytest.raises(SljaxError, match="do not match.*bias"):
+    inference.Predictor(ToyDisp(), {"params": {"bias": jnp.zeros((2,))}}, model_name="toy",
+                        name="ckpt/x")
+  with pytest.raises(SljaxError, match="ckpt/y.*do not match"):
+    inference.Predictor(ToyDisp(), {"params": {"other": jnp.zeros((1,))}}, model_name="toy",
+                        name="ckpt/y")
+
+
+def test_sl_model_disparity_from_pattern_correlation():
+  rng = np.random.default_rng(7)
+  h, w, d = 24, 64, 5
+  tex = (rng.uniform(size=(h, w + d, 3)) > 0.5).astype(np.float32)
+  left, right = tex[:, :w], tex[:, d:]  # right[x - d] = tex[x] = left[x]
+  pred = inference.Predictor(ToySL(), {"params": {"gain": jnp.ones(())}}, model_name="toy-sl",
+                             mode="pad")
+  assert pred.is_sl and pred.channels == 3
+  out = pred(left, right)
+  assert set(out) == {"disparity", "patterns", "patterns_right", "confidence"}
+  np.testing.assert_allclose(out["patterns"], left, atol=1e-6)
+  assert out["confidence"].shape == (h, w)
+  # Interior pixels (window fully inside, shift within the image) find the true shift.
+  np.testing.assert_array_equal(out["disparity"][8:-8, 8 + d:-8], d)
+
+
+# Real networks, tiny and randomly initialised.
+UNET_KW = {"depth": 2, "base_width": 4, "in_channels": 1}
+
+
+def random_variables(name, kwargs, seed, hw=(32, 48)):
+  """Random variables of the right structure without running init (slow on a busy CPU)."""
+  import jax
+  from sljax.nets import build_model
+  model = build_model(name, **kwargs)
+  x = jax.ShapeDtypeStruct((1, *hw, kwargs["in_channels"]), jnp.float32)
+  shapes = jax.eval_shape(lambda a, b: model.init(jax.random.PRNGKey(0), a, b, train=False), x, x)
+  rng = np.random.default_rng(seed)
+
+  def fill(path, leaf):
+    key = str(path[-1])
+    if "var" in key:
+      return jnp.asarray(rng.uniform(0.5, 1.5, leaf.shape), jnp.float32)
+    if "scale" in key:
+      return jnp.asarray(1.0 + 0.1 * rng.normal(size=leaf.shape), jnp.float32)
+    fan_in = max(1, int(np.prod(leaf.shape[:-1])))
+    return jnp.asarray(rng.normal(size=leaf.shape) / np.sqrt(fan_in), jnp.float32)
+
+  return jax.tree_util.tree_map_with_path(fill, dict(shapes))
+
+
+@pytest.fixture(scope="module")
+def unet_disp_vars():
+  return random_variables("unet-disp", UNET_KW, 0)
+
+
+@pytest.fixture(scope="module")
+def unet_sl_vars():
+  return random_variables("unet-sl", dict(UNET_KW, t=4), 1)
+
+
+@pytest.mark.parametrize("mode", ["pad", "resize"])
+def test_unet_disp_odd_sizes_and_batches(unet_disp_vars, mode):
+  pred = inference.make_predictor("unet-disp", UNET_KW, unet_disp_vars, train_size=(32, 48),
+                                  mode=mode)
+  assert not pred.is_sl and pred.channels == 1
+  rgb = np.random.default_rng(8).uniform(0, 1, (2, 37, 45, 3)).astype(np.float32)
+  right = rgb[:, :, ::-1].copy()
+  batch = pred(rgb, right)["disparity"]
+  assert batch.shape == (2, 37, 45) and np.isfinite(batch).all()
+  for i in range(2):
+    np.testing.assert_allclose(pred(rgb[i], right[i])["disparity"], batch[i], rtol=1e-5, atol=1e-5)
+  # The network's disparity = sigmoid * model-input width, so it stays inside [0, width].
+  width = 45 if mode == "resize" else 64
+  assert batch.min() >= 0 and batch.max() <= width
+
+
+def test_unet_sl_outputs(unet_sl_vars):
+  pred = inference.make_predictor("unet-sl", dict(UNET_KW, t=4), unet_sl_vars,
+                                  train_size=(32, 48), mode="resize")
+  assert pred.is_sl
+  left, right = _pair(33, 50, seed=9)
+  out = pred(left, right)
+  assert out["patterns"].shape == (33, 50, 4) and out["patterns_right"].shape == (33, 50, 4)
+  assert ((out["patterns"] >= 0) & (out["patterns"] <= 1)).all()
+  assert out["disparity"].shape == (33, 50) and out["confidence"].shape == (33, 50)
+  # Correlation at the training size (u = 25% of 48 = 12 px), scaled back by 50 / 48.
+  assert out["disparity"].max() <= 12 * 50 / 48 + 1e-4
+
+
+def test_wrong_model_options_for_checkpoint(unet_disp_vars):
+  with pytest.raises(SljaxError, match="ckpt.*do not match"):
+    inference.make_predictor("unet-disp", dict(UNET_KW, base_width=8), unet_disp_vars,
+                             name="ckpt")
+  with pytest.raises(SljaxError, match="do not match"):
+    inference.make_predictor("unet-sl", dict(UNET_KW, t=4), unet_disp_vars)
+
+
+def test_load_checkpoint_round_trip(unet_sl_vars, tmp_path):
+  import json
+
+  from sljax.train import checkpoint as ckpt
+  workdir = tmp_path / "run"
+  workdir.mkdir()
+  config = {"model": "unet-sl", "strategy": "stl", "net": "unet-sl",
+            "model_kwargs": dict(UNET_KW, t=4), "size": [32, 48], "gray": True, "t": 4}
+  (workdir / "config.json").write_text(json.dumps(config))
+  manager = ckpt.make_manager(workdir / "checkpoints")
+  ckpt.save(manager, 1, dict(unet_sl_vars), {"step": 1}, val_mae=1.0)
+  manager.wait_until_finished()
+  manager.close()
+  left, right = _pair(40, 40, seed=10)
+  direct = inference.make_predictor("unet-sl", dict(UNET_KW, t=4), unet_sl_vars,
+                                    train_size=(32, 48), mode="resize")
+  b = direct(left, right)
+  for path in (workdir, workdir / "checkpoints"):
+    loaded = inference.load(path, mode="resize")
+    assert loaded.train_size == (32, 48) and loaded.model_name == "unet-sl"
+    a = loaded(left, right)
+    np.testing.assert_array_equal(a["patterns"], b["patterns"])
+    np.testing.assert_array_equal(a["disparity"], b["disparity"])
+
+
+class ToyMTL(nn.Module):
+  """Like psmnet-mtl: a disparity and left-view pattern logits (logit = 4 * (image - 0.5))."""
+
+  @nn.compact
+  def __call__(self, left, right, train=False):
+    gain = self.param("gain", nn.initializers.ones, ())
+    return {"disparity": gain * left[..., 0], "sl_logits": 4.0 * gain * (left - 0.5)}
+
+
+def test_mtl_style_model_confidence_is_mean_pattern_certainty():
+  pred = inference.Predictor(ToyMTL(), {"params": {"gain": jnp.ones(())}}, model_name="toy-mtl",
+                             mode="pad")
+  left, right = _pair(20, 24, seed=11, c=3)
+  out = pred(left, right)
+  assert set(out) == {"disparity", "patterns", "confidence"}
+  p = 1.0 / (1.0 + np.exp(-4.0 * (left.astype(np.float64) - 0.5)))
+  np.testing.assert_allclose(out["patterns"], p, rtol=1e-5)
+  np.testing.assert_allclose(out["confidence"], np.abs(2 * p - 1).mean(axis=-1), atol=1e-5)

@@ -1,0 +1,109 @@
+"""Shared building blocks: PyTorch-faithful initialisers, conv + BatchNorm blocks, linear resizing.
+
+BatchNorm uses PyTorch's defaults (momentum 0.1 there, i.e. flax momentum 0.9; epsilon 1e-5) so
+that reference weights and training recipes carry over. One difference is kept on purpose:
+flax's running variance is the biased batch variance, PyTorch stores the unbiased one.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Sequence
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from sljax.nets.conv3d import Conv3D
+
+BN_MOMENTUM = 0.9  # flax convention: running = momentum * running + (1 - momentum) * batch
+BN_EPSILON = 1e-5
+
+# The reference's initialisation: N(0, sqrt(2 / n)), n = kernel volume * output channels.
+conv_init = nn.initializers.variance_scaling(2.0, "fan_out", "normal")
+# PyTorch's default for transposed convolutions (the reference leaves them untouched):
+# kaiming_uniform(a=sqrt(5)) on the weight (cin, cout, k...) whose "fan_in" PyTorch takes as
+# cout * kernel volume, i.e. U(-b, b) with b = 1 / sqrt(cout * kernel volume). In flax's layout
+# (k..., cin, cout) that volume times cout is the "fan_out".
+conv_transpose_init = nn.initializers.variance_scaling(1.0 / 3.0, "fan_out", "uniform")
+
+
+def batch_norm(name: str | None = None) -> nn.BatchNorm:
+  """A BatchNorm with PyTorch's momentum and epsilon (scale 1, bias 0 at init)."""
+  return nn.BatchNorm(momentum=BN_MOMENTUM, epsilon=BN_EPSILON, name=name)
+
+
+class ConvBN2D(nn.Module):
+  """Conv2d (no bias, PyTorch padding) followed by BatchNorm: the reference's `convbn`."""
+
+  features: int
+  kernel_size: int = 3
+  strides: int = 1
+  padding: int = 1
+  dilation: int = 1
+
+  @nn.compact
+  def __call__(self, x: jax.Array, train: bool) -> jax.Array:
+    """Applies conv then BN (batch statistics when train, running averages otherwise)."""
+    p = self.padding
+    x = nn.Conv(self.features, (self.kernel_size, self.kernel_size),
+                strides=(self.strides, self.strides), padding=((p, p), (p, p)),
+                kernel_dilation=(self.dilation, self.dilation), use_bias=False,
+                kernel_init=conv_init, name="conv")(x)
+    return batch_norm("bn")(x, use_running_average=not train)
+
+
+class ConvBN3D(nn.Module):
+  """Conv3d (no bias, PyTorch padding) followed by BatchNorm: the reference's `convbn_3d`."""
+
+  features: int
+  kernel_size: int = 3
+  strides: int = 1
+  padding: int = 1
+
+  @nn.compact
+  def __call__(self, x: jax.Array, train: bool) -> jax.Array:
+    """Applies conv then BN on NDHWC input."""
+    x = Conv3D(self.features, (self.kernel_size,) * 3, strides=self.strides,
+               padding=self.padding, use_bias=False, kernel_init=conv_init, name="conv")(x)
+    return batch_norm("bn")(x, use_running_average=not train)
+
+
+@functools.lru_cache(maxsize=256)
+def linear_resize_matrix(n_in: int, n_out: int, align_corners: bool) -> np.ndarray:
+  """(n_out, n_in) matrix of PyTorch's 1D linear interpolation weights.
+
+  align_corners=False: source = max((dst + 0.5) * n_in / n_out - 0.5, 0) (half-pixel centres);
+  align_corners=True: source = dst * (n_in - 1) / (n_out - 1) (end samples coincide).
+  """
+  dst = np.arange(n_out, dtype=np.float64)
+  if align_corners:
+    scale = (n_in - 1) / (n_out - 1) if n_out > 1 else 0.0
+    src = dst * scale
+  else:
+    src = np.maximum((dst + 0.5) * (n_in / n_out) - 0.5, 0.0)
+  i0 = np.minimum(np.floor(src).astype(np.int64), n_in - 1)
+  i1 = np.minimum(i0 + 1, n_in - 1)
+  w1 = src - i0
+  m = np.zeros((n_out, n_in), np.float64)
+  np.add.at(m, (np.arange(n_out), i0), 1.0 - w1)
+  np.add.at(m, (np.arange(n_out), i1), w1)
+  return m.astype(np.float32)
+
+
+def resize_linear(x: jax.Array, sizes: Sequence[int], axes: Sequence[int],
+                  align_corners: bool = False) -> jax.Array:
+  """Separable (bi/tri)linear resize of `axes` to `sizes`, PyTorch `interpolate` semantics.
+
+  Each axis is a small dense matrix product (exact, differentiable, fast on CPU); axes are
+  processed in the given order, so put the cheapest (smallest growth) first.
+  """
+  for size, axis in zip(sizes, axes):
+    axis = axis % x.ndim
+    n_in = x.shape[axis]
+    if n_in == size:
+      continue
+    m = jnp.asarray(linear_resize_matrix(n_in, int(size), bool(align_corners)), x.dtype)
+    x = jnp.moveaxis(jnp.tensordot(x, m, axes=((axis,), (1,))), -1, axis)
+  return x

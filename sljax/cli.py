@@ -29,6 +29,10 @@ def main(argv: list[str] | None = None) -> int:
   except SljaxError as e:
     print(f"sljax {args.command}: error: {e}", file=sys.stderr)
     return 2
+  except BrokenPipeError:
+    # `sljax info DATA | head`: the reader went away; stop quietly like other Unix tools.
+    sys.stderr.close()
+    return 0
   except KeyboardInterrupt:
     print(f"sljax {args.command}: interrupted", file=sys.stderr)
     return 130

@@ -2,6 +2,7 @@
 
 import argparse
 import importlib
+import os
 import pkgutil
 import sys
 
@@ -31,7 +32,7 @@ def main(argv: list[str] | None = None) -> int:
     return 2
   except BrokenPipeError:
     # `sljax info DATA | head`: the reader went away; stop quietly like other Unix tools.
-    sys.stderr.close()
+    os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
     return 0
   except KeyboardInterrupt:
     print(f"sljax {args.command}: interrupted", file=sys.stderr)

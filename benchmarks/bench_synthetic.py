@@ -1,0 +1,53 @@
+"""Synthetic renderer throughput: scenes/s in memory (with and without raw captures), make-data.
+
+Usage: JAX_PLATFORMS=cpu python benchmarks/bench_synthetic.py [--size 256] [--n 20] [--domain objects]
+Prints wall-clock and process-CPU scenes/s (CPU time is less sensitive to other load on the box).
+"""
+
+import argparse
+import os
+import tempfile
+import time
+
+
+def _rate(fn, n: int) -> tuple[float, float]:
+  """(wall scenes/s, cpu scenes/s) of n calls fn(i), after one warm-up call (compilation)."""
+  fn(0)
+  w0, c0 = time.perf_counter(), time.process_time()
+  for i in range(1, n + 1):
+    fn(i)
+  return n / (time.perf_counter() - w0), n / (time.process_time() - c0)
+
+
+def main() -> None:
+  """Runs the three measurements and prints a table."""
+  ap = argparse.ArgumentParser(description=__doc__)
+  ap.add_argument("--size", type=int, default=256)
+  ap.add_argument("--n", type=int, default=20)
+  ap.add_argument("--domain", default="objects")
+  args = ap.parse_args()
+
+  from sljax.data.scene import write_scene
+  from sljax.data.synthetic import SynthConfig, render_scene
+
+  cfg = SynthConfig(size=args.size, domain=args.domain)
+  rows = []
+  t0 = time.perf_counter()
+  render_scene(0, 0, cfg)
+  compile_s = time.perf_counter() - t0
+  rows.append(("in memory", *_rate(lambda i: render_scene(i, 0, cfg), args.n)))
+  rows.append(("in memory + raw", *_rate(lambda i: render_scene(i, 0, cfg, raw=True), args.n)))
+  with tempfile.TemporaryDirectory() as tmp:
+    def write(i):
+      scene = render_scene(i, 0, cfg, raw=True)
+      write_scene(os.path.join(tmp, scene.name), scene, overwrite=True)
+    rows.append(("make-data (raw, PNG/PFM)", *_rate(write, max(4, args.n // 4))))
+  print(f"synthetic {args.domain} {args.size}x{args.size}, {os.cpu_count()} CPUs, "
+        f"first call (compile) {compile_s:.1f} s")
+  print(f"{'path':28s} {'scenes/s (wall)':>16s} {'scenes/s (cpu)':>15s} {'vs 20/s target':>15s}")
+  for name, wall, cpu in rows:
+    print(f"{name:28s} {wall:16.2f} {cpu:15.2f} {wall / 20:15.2f}")
+
+
+if __name__ == "__main__":
+  main()

@@ -1,0 +1,557 @@
+"""Procedural stereo + projector renderer: the built-in dataset (objects and tissue domains).
+
+Geometry (world frame: metres, z up). A room [-0.5, 0.5]^2 x [0, 1] closes every scene.
+- objects: a podium (cylinder, 10 cm high) carries one random object, a union of K random
+  ellipsoids (a body and satellites on its surface: lobes, creases and self-occlusion) whose
+  extent is U(3, 10) cm, seen from random viewpoints looking at its centre.
+- tissue: a cluster of flattened, overlapping ellipsoidal lobes (folds between lobes) lying on a
+  table (the room floor), seen from above at 7-12 cm.
+Every surface is intersected in closed form, so depth, normals, projector shadows and occlusions
+between the views are exact (float32 rounding only).
+
+Rig. A rectified stereo pair (focal f = focal_factor * size px, principal point at the image
+centre, baseline B; Z = f B / d, doffs = 0) and a projector rigidly attached to the left camera
+(translation, rotation about the camera axes, square field of view) whose 2^t columns carry the
+plain binary (t = 8) or Gray (t = 9) stripe code of sljax.sl.codes. A light fixed to the rig sits
+at the projector's centre, so the light's cast shadows are exactly the projector shadows.
+
+Distance choice. The paper (Blender) put the camera U(3, 10) cm from objects scaled U(3, 10) cm;
+with our pinhole rig (45 deg field of view, B = 12 mm) the camera distance is instead chosen per
+view so that the object's projected radius is U(0.22, 0.38) of the image width (coverage 10-90%)
+and the nearest surface has a disparity <= max_disparity_fraction * width; the room walls
+(<= 1.4 m) stay above 2.5 px. So >= 99% of disparities lie in [1, W/4].
+
+Pixels: (x, y) = integer pixel centres, the ray of pixel x passes through x exactly. A left pixel x
+with disparity d sees the point of right pixel x - d. Ground-truth patterns are the code bits of
+the projector column that lights the pixel centre's surface point; they are unknown (NaN) where
+the point is in projector shadow (including self-shadow), outside the projector's field of view,
+or too weakly lit to be decoded (albedo x projector irradiance < min_contrast).
+
+Raw captures (grey): black = albedo * raw_ambient, white = black + albedo * irradiance, pattern
+k and its inverse in between; blurred (Gaussian raw_blur px) and with sensor noise. They are
+matte: specular highlights only appear in im0/im1.
+
+Determinism: scene i of seed s depends on (s, i) only: the shape (shared by the 10 views of a
+group, group = i // views_per_object) uses fold_in(fold_in(PRNGKey(s), 0), group), the view
+fold_in(fold_in(PRNGKey(s), 1), i) and the noise fold_in(fold_in(PRNGKey(s), 2), i). One jitted
+call renders one scene, so nothing depends on batch size or worker count.
+"""
+
+import dataclasses
+import functools
+import math
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from sljax.data import synth_geometry as geo
+from sljax.data.calib import Calib
+from sljax.data.scene import Scene
+from sljax.errors import require
+from sljax.sl import codes
+
+DOMAINS = ("objects", "tissue")
+ROOM_LO = (-0.5, -0.5, 0.0)
+ROOM_HI = (0.5, 0.5, 1.0)
+_LUMA = (0.299, 0.587, 0.114)
+
+
+@dataclasses.dataclass(frozen=True)
+class SynthConfig:
+  """Renderer settings; None fields take the domain's default (see `resolved`)."""
+  size: int = 256                      # image width = height (px)
+  domain: str = "objects"              # "objects" (paper's virtual set) or "tissue"
+  code: str | None = None              # binary (objects) / gray (tissue)
+  t: int | None = None                 # patterns: 8 (binary) / 9 (gray); projector width 2^t
+  focal_factor: float = 1.2            # f = focal_factor * size px (about 45 deg field of view)
+  baseline_m: float | None = None      # 0.012 (objects) / 0.005 (tissue, laparoscope-like)
+  projector_translation_m: tuple[float, float, float] = (0.02, 0.0, 0.02)  # in left-camera axes
+  projector_rotation_deg: tuple[float, float, float] = (0.0, 1.5, 0.0)     # about x, y, z
+  projector_fov_deg: float | None = None  # horizontal = vertical; 70 (objects) / 90 (tissue)
+  views_per_object: int = 10           # views sharing one object (one group)
+  object_size_m: tuple[float, float] = (0.03, 0.10)
+  podium_height_m: float = 0.10
+  num_ellipsoids: int | None = None    # 7 (objects) / 8 (tissue lobes)
+  texture_amplitude: float | None = None  # 0.05 (objects: nearly textureless) / 1.0 (tissue)
+  specular: float | None = None        # 0 (objects) / 0.25 (tissue); im0/im1 only
+  ambient: float = 0.25                # im0/im1: ambient light
+  light: float = 0.75                  # im0/im1: rig light (Lambertian)
+  projector_power: float = 0.7         # raw: projector irradiance on a frontal surface
+  raw_ambient: float = 0.08            # raw: ambient light
+  min_contrast: float = 0.06           # patterns unknown where albedo x irradiance is below
+  min_stripe_px: float = 1.0           # a pattern bit is unknown where its stripes are narrower
+  image_noise: float = 0.002           # std of im0/im1 sensor noise
+  raw_noise: float = 0.004             # std of raw capture sensor noise
+  raw_blur: float = 0.4                # raw capture blur (Gaussian sigma, px)
+  max_disparity_fraction: float = 0.22  # nearest surface disparity <= this * size
+
+  def resolved(self) -> "SynthConfig":
+    """A copy with every domain default filled in, validated."""
+    require(self.domain in DOMAINS, f"unknown synthetic domain {self.domain!r}; "
+            f"expected one of {DOMAINS}")
+    require(self.size >= 16, f"synthetic image size must be >= 16 px, got {self.size}")
+    obj = self.domain == "objects"
+    code = self.code or ("binary" if obj else "gray")
+    require(code in codes.CODES, f"unknown code {code!r}; expected one of {codes.CODES}")
+    t = self.t if self.t is not None else (8 if code == "binary" else 9)
+    require(1 <= t <= 12, f"number of patterns t must be in 1..12, got {t}")
+    require(self.views_per_object >= 1, "views_per_object must be >= 1")
+    pick = lambda v, a, b: v if v is not None else (a if obj else b)  # noqa: E731
+    return dataclasses.replace(
+        self, code=code, t=t, baseline_m=pick(self.baseline_m, 0.012, 0.005),
+        num_ellipsoids=pick(self.num_ellipsoids, 7, 8),
+        texture_amplitude=pick(self.texture_amplitude, 0.05, 1.0),
+        specular=pick(self.specular, 0.0, 0.25),
+        projector_fov_deg=pick(self.projector_fov_deg, 70.0, 90.0))
+
+  @property
+  def focal(self) -> float:
+    """Focal length in pixels."""
+    return self.focal_factor * self.size
+
+
+@dataclasses.dataclass
+class SyntheticScene(Scene):
+  """A rendered Scene plus exact per-pixel extras (not part of the on-disk format).
+
+  occ0: bool HxW, left pixels whose surface point the right camera cannot see (occluded or out
+  of its frame); occ1 the same for the right view. depth0/depth1: Z in metres. proj_col0/1:
+  continuous projector column lighting the pixel's point (NaN where the projector cannot).
+  """
+  occ0: np.ndarray | None = None
+  occ1: np.ndarray | None = None
+  depth0: np.ndarray | None = None
+  depth1: np.ndarray | None = None
+  proj_col0: np.ndarray | None = None
+  proj_col1: np.ndarray | None = None
+
+
+# ----------------------------------------------------------------------------------------------
+# Random scene description (inside jit).
+
+
+def _unit_rows(v: jax.Array) -> jax.Array:
+  """Rows scaled to unit length (small parameter arrays)."""
+  return v / jnp.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def _rotation(key: jax.Array, n: int) -> jax.Array:
+  """n uniformly random rotation matrices (columns = rotated axes)."""
+  q = _unit_rows(jax.random.normal(key, (n, 4)))
+  w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+  return jnp.stack([
+      jnp.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+      jnp.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+      jnp.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1)], -2)
+
+
+def _axis_rotation(axis: int, angle: jax.Array) -> jax.Array:
+  """Rotation by angle (radians) about a coordinate axis (right-handed)."""
+  c, s = jnp.cos(angle), jnp.sin(angle)
+  i, j = [(1, 2), (2, 0), (0, 1)][axis]
+  m = jnp.eye(3)
+  return m.at[i, i].set(c).at[j, j].set(c).at[i, j].set(-s).at[j, i].set(s)
+
+
+def _support(centres, rots, axes, v):
+  """Support function of each ellipsoid in direction v: max over the ellipsoid of p . v."""
+  return centres @ v + jnp.linalg.norm(axes * jnp.einsum("kji,j->ki", rots, v), axis=-1)
+
+
+def _waves(key, n: int, wavelength_lo: float, wavelength_hi: float):
+  """Random 3D plane waves (wave vectors, phases) for smooth solid textures."""
+  k1, k2, k3 = jax.random.split(key, 3)
+  direction = _unit_rows(jax.random.normal(k1, (n, 3)))
+  lam = jax.random.uniform(k2, (n,), minval=wavelength_lo, maxval=wavelength_hi)
+  return direction * (2 * jnp.pi / lam)[:, None], jax.random.uniform(k3, (n,)) * 2 * jnp.pi
+
+
+def _solid_texture(p, waves):
+  """Smooth zero-mean texture in about [-1, 1] at points p (3, N)."""
+  k, phase = waves
+  total = 0.0
+  for j in range(k.shape[0]):  # written out: tiny reductions do not fuse on CPU
+    total = total + jnp.sin(p[0] * k[j, 0] + p[1] * k[j, 1] + p[2] * k[j, 2] + phase[j])
+  return total * (1.0 / math.sqrt(k.shape[0]))
+
+
+def _sample_objects(key_shape, key_view, cfg: SynthConfig) -> dict[str, Any]:
+  """Podium, object (union of ellipsoids) and a viewpoint looking at the object's centre."""
+  ks = jax.random.split(key_shape, 8)
+  n = cfg.num_ellipsoids
+  size = jax.random.uniform(ks[0], (), minval=cfg.object_size_m[0], maxval=cfg.object_size_m[1])
+  s = 0.5 * size
+  body = jnp.concatenate([jnp.ones(1), jax.random.uniform(ks[1], (2,), minval=0.55, maxval=0.9)])
+  sat = jax.random.uniform(ks[2], (n - 1, 3), minval=0.22, maxval=0.55)
+  axes = s * jnp.concatenate([body[None], sat], 0)
+  rots = _rotation(ks[3], n)
+  frames = rots / axes[:, None, :]  # (p - c) @ frames[k] lies in the unit ball
+  u = _unit_rows(jax.random.normal(ks[4], (n - 1, 3)))
+  r_body = 1.0 / jnp.linalg.norm(u @ frames[0], axis=-1)  # body surface along u
+  depth = jax.random.uniform(ks[5], (n - 1,), minval=0.55, maxval=0.95)
+  centres = jnp.concatenate([jnp.zeros((1, 3)), u * (r_body * depth)[:, None]], 0)
+  # Rest on the podium: the lowest point sinks 2 mm into its top.
+  low = -_support(centres, rots, axes, jnp.array([0.0, 0.0, -1.0])).max()
+  centres = centres + jnp.array([0.0, 0.0, 1.0]) * (cfg.podium_height_m - 0.002 - low)
+  hi = jnp.stack([_support(centres, rots, axes, e).max() for e in jnp.eye(3)])
+  lo = jnp.stack([-_support(centres, rots, axes, -e).max() for e in jnp.eye(3)])
+  aim = 0.5 * (lo + hi)
+  r_obj = jnp.max(jnp.linalg.norm(centres - aim, axis=-1) + axes.max(-1))
+  podium_r = jnp.clip(jax.random.uniform(ks[6], (), minval=0.5, maxval=0.9) * s, 0.012, 0.05)
+  tex_scale = size * jax.random.uniform(ks[7], (), minval=0.5, maxval=1.2)
+
+  kv = jax.random.split(key_view, 4)
+  f, b = cfg.focal, cfg.baseline_m
+  azimuth = jax.random.uniform(kv[0], (), maxval=2 * jnp.pi)
+  elevation = jnp.deg2rad(jax.random.uniform(kv[1], (), minval=10.0, maxval=45.0))
+  rho = jax.random.uniform(kv[2], (), minval=0.22, maxval=0.38) * cfg.size
+  dist = jnp.maximum(f * s / rho, r_obj + f * b / (cfg.max_disparity_fraction * cfg.size))
+  return dict(
+      frames=frames, centres=centres, podium_r=podium_r, aim=aim, dist=dist,
+      azimuth=azimuth, elevation=elevation, size=size,
+      waves_obj=_waves(jax.random.fold_in(key_shape, 100), 4, tex_scale, 2.5 * tex_scale),
+      waves_room=_waves(jax.random.fold_in(key_shape, 101), 4, 0.2, 0.6),
+      waves_vessel=_waves(jax.random.fold_in(key_shape, 102), 3, 0.01, 0.02))
+
+
+def _sample_tissue(key_shape, key_view, cfg: SynthConfig) -> dict[str, Any]:
+  """Overlapping flattened lobes on a table and a viewpoint from above."""
+  ks = jax.random.split(key_shape, 8)
+  n = cfg.num_ellipsoids
+  f, b = cfg.focal, cfg.baseline_m
+  kv = jax.random.split(key_view, 4)
+  # The cluster is sized for a nominal 9.5 cm view; per-view distances vary around it.
+  half = 0.095 * (cfg.size / 2) / f
+  spread = jax.random.uniform(ks[0], (), minval=0.7, maxval=1.0) * half
+  radius = spread * 0.6 * jnp.sqrt(jax.random.uniform(ks[1], (n,)))
+  angle = jax.random.uniform(ks[2], (n,), maxval=2 * jnp.pi)
+  axes_xy = spread * jax.random.uniform(ks[3], (n, 2), minval=0.35, maxval=0.6)
+  axes_z = axes_xy.min(-1) * jax.random.uniform(ks[4], (n,), minval=0.3, maxval=0.6)
+  axes = jnp.concatenate([axes_xy, axes_z[:, None]], -1)
+  yaw = jax.random.uniform(ks[5], (n,), maxval=2 * jnp.pi)
+  tilt = jnp.deg2rad(jax.random.uniform(ks[6], (n, 2), minval=-15.0, maxval=15.0))
+  rots = jax.vmap(lambda a, bx, by: _axis_rotation(2, a) @ _axis_rotation(0, bx)
+                  @ _axis_rotation(1, by))(yaw, tilt[:, 0], tilt[:, 1])
+  sink = jax.random.uniform(ks[7], (n,), minval=0.1, maxval=0.4) * axes_z
+  centres = jnp.stack([radius * jnp.cos(angle), radius * jnp.sin(angle), -sink], -1)
+  frames = rots / axes[:, None, :]
+  top = _support(centres, rots, axes, jnp.array([0.0, 0.0, 1.0])).max()
+  dist = jax.random.uniform(kv[0], (), minval=0.075, maxval=0.115)
+  dist = jnp.maximum(dist, top + f * b / (cfg.max_disparity_fraction * cfg.size))
+  aim = jnp.concatenate([jax.random.uniform(kv[1], (2,), minval=-0.2, maxval=0.2) * spread,
+                         jnp.zeros(1)])
+  return dict(
+      frames=frames, centres=centres, podium_r=jnp.zeros(()), aim=aim, dist=dist,
+      azimuth=jax.random.uniform(kv[2], (), maxval=2 * jnp.pi),
+      elevation=jnp.deg2rad(jax.random.uniform(kv[3], (), minval=55.0, maxval=85.0)),
+      size=2 * spread,
+      waves_obj=_waves(jax.random.fold_in(key_shape, 100), 4, 0.02, 0.05),
+      waves_room=_waves(jax.random.fold_in(key_shape, 101), 4, 0.05, 0.15),
+      waves_vessel=_waves(jax.random.fold_in(key_shape, 102), 3, 0.012, 0.03))
+
+
+# ----------------------------------------------------------------------------------------------
+# Rendering (inside jit).
+
+
+def _camera(desc, cfg: SynthConfig):
+  """Left camera centre and rotation (columns: x right, y down, z forward in world axes)."""
+  el, az = desc["elevation"], desc["azimuth"]
+  offset = jnp.stack([jnp.cos(el) * jnp.cos(az), jnp.cos(el) * jnp.sin(az), jnp.sin(el)])
+  centre = desc["aim"] + desc["dist"] * offset
+  z = -offset
+  x = geo.normalize(jnp.cross(z, jnp.array([0.0, 0.0, 1.0])))
+  y = jnp.cross(z, x)
+  return centre, jnp.stack([x, y, z], axis=1)
+
+
+def _cast(origin, d, d_local, desc, cfg: SynthConfig):
+  """First hit of rays from one origin: (t, point, normal, surface id 0 room/1 podium/2 object)."""
+  o = origin[:, None]
+  t_room, n_room = geo.ray_box_exit(o, d, ROOM_LO, ROOM_HI)
+  e0, _ = geo.ellipsoid_roots(origin, d_local, desc["frames"], desc["centres"])
+  t_obj, k = geo.first_hit(jnp.where(e0 > 0, e0, jnp.inf))
+  if cfg.domain == "objects":
+    t_pod, n_pod = geo.ray_podium(o, d, desc["podium_r"], cfg.podium_height_m)
+  else:
+    t_pod, n_pod = jnp.full_like(t_room, jnp.inf), n_room
+  t = jnp.minimum(jnp.minimum(t_room, t_pod), t_obj)
+  sid = jnp.where(t_obj <= t, 2, jnp.where(t_pod <= t, 1, 0))
+  p = o + t * d
+  n_obj = geo.ellipsoid_normal(p, k, desc["frames"], desc["centres"])
+  normal = geo.select(sid, [n_room, n_pod, n_obj])
+  return t, p, normal, sid
+
+
+def _blocked(origin, p, desc, cfg: SynthConfig, eps: float = 1e-4):
+  """Whether the open segment origin -> p crosses an object or the podium (room cannot)."""
+  v = p - origin[:, None]
+  v_local = geo.to_frames(v, desc["frames"])
+  hit = geo.segments_hit_ellipsoids(origin, v_local, desc["frames"], desc["centres"], eps)
+  if cfg.domain == "objects":
+    t_pod, _ = geo.ray_podium(origin[:, None], v, desc["podium_r"], cfg.podium_height_m,
+                              t_min=eps)
+    hit = hit | (t_pod < 1.0 - eps)
+  return hit
+
+
+def _albedo(p, sid, desc, cfg: SynthConfig):
+  """RGB albedo (3, N) at points p (3, N) of surface ids sid."""
+  amp = cfg.texture_amplitude
+  tex = _solid_texture(p, desc["waves_obj"])
+  room_tex = _solid_texture(p, desc["waves_room"])
+  if cfg.domain == "objects":
+    obj = 0.6 * (1.0 + amp * tex)
+    pod = 0.7 * (1.0 + amp * room_tex)
+    room = 0.5 * (1.0 + amp * room_tex)
+    grey = jnp.where(sid == 2, obj, jnp.where(sid == 1, pod, room))
+    return jnp.stack([grey, grey, grey])
+  # Tissue: reddish, mottled, with dark vessel lines along the zero sets of a smooth field.
+  vessel = jnp.exp(-(_solid_texture(p, desc["waves_vessel"]) / 0.08) ** 2)
+  mottle = 1.0 + 0.12 * amp * tex
+  dark = jnp.clip(0.55 * amp, 0.0, 1.0) * vessel
+  tissue = [base * mottle * (1.0 - dark * v)
+            for base, v in zip((0.75, 0.33, 0.28), (0.4, 0.8, 0.7))]
+  table = [base * (1.0 + 0.1 * room_tex) for base in (0.22, 0.36, 0.38)]
+  return jnp.stack([jnp.where(sid == 2, a, b) for a, b in zip(tissue, table)])
+
+
+def _stripe_columns(cfg: SynthConfig) -> np.ndarray:
+  """Width in projector columns of the stripes of each pattern (coarsest first)."""
+  t = cfg.t
+  if cfg.code == "binary":
+    return np.array([2 ** (t - 1 - k) for k in range(t)], np.float32)
+  # Gray: the coarsest pattern has one edge; pattern k >= 1 has stripes 2^(t-k) columns wide.
+  return np.array([2 ** (t - 1)] + [2 ** (t - k) for k in range(1, t)], np.float32)
+
+
+def _resolved_bits(col, cfg: SynthConfig):
+  """(H, W, t) bool: whether each pattern's stripes are at least min_stripe_px wide here.
+
+  The local column rate |grad col| (px^-1) uses the smaller one-sided difference along each image
+  axis, so a depth edge next to the pixel does not count; finer stripes alias (a real camera
+  cannot resolve them) and are unknown.
+  """
+  def rate(axis):
+    fwd = jnp.abs(jnp.diff(col, axis=axis, append=jnp.nan))
+    bwd = jnp.abs(jnp.diff(col, axis=axis, prepend=jnp.nan))
+    fwd = jnp.where(jnp.isnan(fwd), jnp.inf, fwd)
+    bwd = jnp.where(jnp.isnan(bwd), jnp.inf, bwd)
+    return jnp.minimum(fwd, bwd)
+  g = jnp.sqrt(rate(1) ** 2 + rate(0) ** 2)
+  return (jnp.asarray(_stripe_columns(cfg)) >= cfg.min_stripe_px * g[..., None])
+
+
+def _blur(img, sigma: float):
+  """Separable Gaussian blur of (..., H, W) images with edge replication."""
+  r = max(1, int(math.ceil(3 * sigma)))
+  w = np.exp(-0.5 * (np.arange(-r, r + 1) / sigma) ** 2)
+  w = w / w.sum()
+  pad = [(0, 0)] * (img.ndim - 2)
+  x = jnp.pad(img, pad + [(0, 0), (r, r)], mode="edge")
+  img = sum(float(w[i]) * x[..., :, i:i + img.shape[-1]] for i in range(2 * r + 1))
+  x = jnp.pad(img, pad + [(r, r), (0, 0)], mode="edge")
+  return sum(float(w[i]) * x[..., i:i + img.shape[-2], :] for i in range(2 * r + 1))
+
+
+def _render(seed, index, cfg: SynthConfig, raw: bool):
+  """Renders scene `index` of `seed` into a dict of arrays (see render_scene)."""
+  root = jax.random.PRNGKey(seed)
+  group = index // cfg.views_per_object
+  key_shape = jax.random.fold_in(jax.random.fold_in(root, 0), group)
+  key_view = jax.random.fold_in(jax.random.fold_in(root, 1), index)
+  key_noise = jax.random.fold_in(jax.random.fold_in(root, 2), index)
+  sample = _sample_objects if cfg.domain == "objects" else _sample_tissue
+  desc = sample(key_shape, key_view, cfg)
+
+  h = w = cfg.size
+  f, baseline = cfg.focal, cfg.baseline_m
+  c = (cfg.size - 1) / 2.0
+  cam_l, rot = _camera(desc, cfg)
+  cam_r = cam_l + baseline * rot[:, 0]
+  ys, xs = jnp.meshgrid(jnp.arange(h, dtype=jnp.float32), jnp.arange(w, dtype=jnp.float32),
+                        indexing="ij")
+  d_cam = jnp.stack([(xs - c) / f, (ys - c) / f, jnp.ones_like(xs)]).reshape(3, -1)
+  d = geo.matvec(rot, d_cam)  # z component in camera axes is 1, so t is the depth Z
+  d_local = geo.to_frames(d, desc["frames"])
+
+  rot_p = rot @ _axis_rotation(0, jnp.deg2rad(cfg.projector_rotation_deg[0])) \
+      @ _axis_rotation(1, jnp.deg2rad(cfg.projector_rotation_deg[1])) \
+      @ _axis_rotation(2, jnp.deg2rad(cfg.projector_rotation_deg[2]))
+  proj = cam_l + rot @ jnp.array(cfg.projector_translation_m)
+  width_p = 2 ** cfg.t
+  tan_half = math.tan(math.radians(cfg.projector_fov_deg) / 2)
+  f_p = (width_p / 2) / tan_half
+
+  def view(origin, other, sign):
+    # Barriers make XLA materialise these once: otherwise it fuses (recomputes) the whole
+    # intersection chain into each of their many consumers, several times slower on CPU.
+    t, p, normal, sid = jax.lax.optimization_barrier(_cast(origin, d, d_local, desc, cfg))
+    to_p = proj[:, None] - p
+    cos_p = geo.dot(normal, geo.normalize(to_p))
+    # One pass tests the segments to the projector (the rig light sits there, so its shadows
+    # are the projector's) and to the other camera (exact occlusion between the views).
+    blocked = jax.lax.optimization_barrier(
+        [_blocked(proj, p, desc, cfg), _blocked(other, p, desc, cfg)])
+    lit = (cos_p > 0) & ~blocked[0]
+    q = geo.matvec(rot_p.T, p - proj[:, None])
+    qz = jnp.maximum(q[2], 1e-9)
+    col = f_p * q[0] / qz + width_p / 2
+    in_fov = (q[2] > 0) & (col >= 0) & (col < width_p) & (jnp.abs(q[1]) <= tan_half * qz)
+    reach = lit & in_fov
+    x_other = xs.reshape(-1) + sign * (baseline * f / t)
+    seen = ((x_other > -0.5) & (x_other < w - 0.5)
+            & (geo.dot(normal, other[:, None] - p) > 0) & ~blocked[1])
+    albedo = _albedo(p, sid, desc, cfg)
+    grey = _LUMA[0] * albedo[0] + _LUMA[1] * albedo[1] + _LUMA[2] * albedo[2]
+    irradiance = cfg.projector_power * jnp.maximum(cos_p, 0.0) * reach
+    known = reach & (grey * irradiance >= cfg.min_contrast)
+    shade = cfg.ambient + cfg.light * jnp.maximum(cos_p, 0.0) * lit
+    image = albedo * shade
+    if cfg.specular > 0:
+      half_vec = geo.normalize(geo.normalize(to_p) + geo.normalize(origin[:, None] - p))
+      spec = cfg.specular * lit * jnp.maximum(geo.dot(normal, half_vec), 0.0) ** 40
+      image = image + spec
+    col_int = jnp.clip(jnp.floor(col), 0, width_p - 1).astype(jnp.int32)
+    bits = codes.encode(col_int, cfg.code, cfg.t, xp=jnp).astype(jnp.float32)
+    resolved = _resolved_bits(jnp.where(reach, col, jnp.nan).reshape(h, w), cfg)
+    return dict(
+        depth=t.reshape(h, w), disp=(baseline * f / t).reshape(h, w),
+        image=jnp.moveaxis(image.reshape(3, h, w), 0, -1), sl=jnp.where(known.reshape(h, w, 1) & resolved,
+                                                       bits.reshape(h, w, -1), jnp.nan),
+        mask=(sid >= (2 if cfg.domain == "tissue" else 1)).reshape(h, w),
+        occ=(~seen).reshape(h, w), col=jnp.where(reach, col, jnp.nan).reshape(h, w),
+        grey=grey.reshape(h, w), irradiance=irradiance.reshape(h, w),
+        bits=jnp.moveaxis(bits.reshape(h, w, -1), -1, 0))
+
+  views = [view(cam_l, cam_r, -1.0), view(cam_r, cam_l, 1.0)]
+  vs = jax.tree.map(lambda a, b: jnp.stack([a, b]), *views)
+
+  k_img, k_raw = jax.random.split(key_noise)
+  images = jnp.stack([v["image"] for v in views])
+  images = images + cfg.image_noise * jax.random.normal(k_img, images.shape)
+  out = dict(
+      im0=jnp.clip(images[0], 0, 1), im1=jnp.clip(images[1], 0, 1),
+      disp0=views[0]["disp"], disp1=views[1]["disp"], depth0=views[0]["depth"],
+      depth1=views[1]["depth"], sl0=views[0]["sl"], sl1=views[1]["sl"],
+      mask0=views[0]["mask"], occ0=views[0]["occ"], occ1=views[1]["occ"],
+      col0=views[0]["col"], col1=views[1]["col"], cam=cam_l, dist=desc["dist"],
+      size=desc["size"], azimuth=desc["azimuth"], elevation=desc["elevation"])
+  if raw:
+    grey = vs["grey"][:, None]       # (2, 1, H, W)
+    signal = grey * vs["irradiance"][:, None]
+    bits = vs["bits"]  # (2, t, H, W)
+    black = grey * cfg.raw_ambient
+    stack = jnp.concatenate([black + signal, black, black + signal * bits,
+                             black + signal * (1.0 - bits)], axis=1)
+    stack = _blur(stack, cfg.raw_blur) if cfg.raw_blur > 0 else stack
+    stack = stack + cfg.raw_noise * jax.random.normal(k_raw, stack.shape)
+    out["raw"] = jnp.clip(stack, 0, 1)
+  return out
+
+
+@functools.lru_cache(maxsize=None)
+def _compiled(cfg: SynthConfig, raw: bool):
+  return jax.jit(functools.partial(_render, cfg=cfg, raw=raw))
+
+
+def raw_keys(t: int) -> list[str]:
+  """Raw capture names in the order the renderer stacks them."""
+  return (["white", "black"] + [f"p{k:03d}" for k in range(t)]
+          + [f"i{k:03d}" for k in range(t)])
+
+
+def calib_for(cfg: SynthConfig, vmin: float | None = None, vmax: float | None = None) -> Calib:
+  """The rig's Middlebury calibration (baseline in mm, doffs 0)."""
+  cfg = cfg.resolved()
+  c = (cfg.size - 1) / 2.0
+  k = np.array([[cfg.focal, 0, c], [0, cfg.focal, c], [0, 0, 1]], np.float64)
+  ndisp = max(cfg.size // 4, int(math.ceil(vmax or 0)) + 1)
+  return Calib(cam0=k, cam1=k.copy(), doffs=0.0, baseline=cfg.baseline_m * 1000.0,
+               width=cfg.size, height=cfg.size, ndisp=ndisp, vmin=vmin, vmax=vmax)
+
+
+def render_scene(index: int, seed: int, config: SynthConfig = SynthConfig(), raw: bool = False
+                 ) -> SyntheticScene:
+  """Renders scene `index` of dataset `seed` (depends on (seed, index) only)."""
+  cfg = config.resolved()
+  require(int(index) >= 0, f"synthetic scene index must be >= 0, got {index}")
+  out = jax.device_get(_compiled(cfg, bool(raw))(jnp.uint32(seed), jnp.uint32(index)))
+  disp0 = np.asarray(out["disp0"], np.float32)
+  group = int(index) // cfg.views_per_object
+  meta = {
+      "group": f"{cfg.domain}-s{int(seed)}-g{group:05d}", "domain": cfg.domain,
+      "code": cfg.code, "patterns": cfg.t, "generator": "sljax.synthetic", "seed": int(seed),
+      "index": int(index), "view": int(index) % cfg.views_per_object,
+      "size_m": round(float(out["size"]), 5), "camera_distance_m": round(float(out["dist"]), 5),
+      "azimuth_deg": round(math.degrees(float(out["azimuth"])), 3),
+      "elevation_deg": round(math.degrees(float(out["elevation"])), 3),
+      "focal_px": cfg.focal, "baseline_m": cfg.baseline_m,
+      "projector_width": 2 ** cfg.t, "projector_fov_deg": cfg.projector_fov_deg,
+      "projector_translation_m": list(cfg.projector_translation_m),
+      "projector_rotation_deg": list(cfg.projector_rotation_deg),
+      "texture_amplitude": cfg.texture_amplitude, "specular": cfg.specular,
+  }
+  scene = SyntheticScene(
+      name=f"{cfg.domain}_s{int(seed)}_{int(index):06d}",
+      im0=np.asarray(out["im0"], np.float32), im1=np.asarray(out["im1"], np.float32),
+      disp0=disp0, disp1=np.asarray(out["disp1"], np.float32),
+      mask0=np.asarray(out["mask0"], bool), sl0=np.asarray(out["sl0"], np.float32),
+      sl1=np.asarray(out["sl1"], np.float32),
+      calib=calib_for(cfg, float(disp0.min()), float(disp0.max())), meta=meta,
+      occ0=np.asarray(out["occ0"], bool), occ1=np.asarray(out["occ1"], bool),
+      depth0=np.asarray(out["depth0"], np.float32), depth1=np.asarray(out["depth1"], np.float32),
+      proj_col0=np.asarray(out["col0"], np.float32), proj_col1=np.asarray(out["col1"], np.float32))
+  if raw:
+    stack = np.asarray(out["raw"], np.float32)
+    names = raw_keys(cfg.t)
+    scene.raw0 = {k: stack[0, i] for i, k in enumerate(names)}
+    scene.raw1 = {k: stack[1, i] for i, k in enumerate(names)}
+  return scene
+
+
+class SyntheticSource:
+  """An endless-on-demand source of rendered scenes: len(), src[i] -> Scene, group(i)."""
+
+  def __init__(self, n: int, seed: int = 0, config: SynthConfig = SynthConfig(),
+               raw: bool = False):
+    require(int(n) >= 1, f"a synthetic source needs n >= 1 scenes, got {n}")
+    self.n = int(n)
+    self.seed = int(seed)
+    self.config = config.resolved()
+    self.raw = bool(raw)
+
+  def __len__(self) -> int:
+    return self.n
+
+  def _index(self, i: int) -> int:
+    i = int(i)
+    if i < 0:
+      i += self.n
+    if not 0 <= i < self.n:
+      raise IndexError(f"synthetic scene index {i} out of range 0..{self.n - 1}")
+    return i
+
+  def __getitem__(self, i: int) -> SyntheticScene:
+    return render_scene(self._index(i), self.seed, self.config, self.raw)
+
+  def group(self, i: int) -> str:
+    """Group id of scene i without rendering it."""
+    g = self._index(i) // self.config.views_per_object
+    return f"{self.config.domain}-s{self.seed}-g{g:05d}"
+
+  def name(self, i: int) -> str:
+    """Scene name of scene i."""
+    return f"{self.config.domain}_s{self.seed}_{self._index(i):06d}"
+
+  @property
+  def code(self) -> str:
+    """Structured-light code of the patterns."""
+    return self.config.code
+
+  @property
+  def num_patterns(self) -> int:
+    """Number of patterns t."""
+    return self.config.t

@@ -1,0 +1,375 @@
+"""Speed of sljax's networks on this machine beside same-shaped PyTorch layer stacks.
+
+Prints two tables: per-layer 3D convolution micro benchmarks (sljax fast path, plain
+lax.conv_general_dilated, PyTorch) and whole models (UNet, PSMNet, the multi-task twin) at
+SIZE x SIZE, maxdisp 96, batch 1, forward (evaluation mode) and forward+backward (training
+mode), with JAX/PyTorch time ratios. Times are the minimum over --repeats runs after one
+warm-up (compilation excluded).
+
+PyTorch is imported only here (pip install "sljax[torch]"); its stacks below mirror the
+shapes and layer types of sljax's models, written for this benchmark.
+
+  python benchmarks/bench_nets.py                 # everything
+  python benchmarks/bench_nets.py --part micro    # layers only
+  python benchmarks/bench_nets.py --part models --models psmnet --with-lax
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from sljax.nets import build_model
+from sljax.nets import conv3d as c3
+
+
+def best_time(fn: Callable[[], object], repeats: int) -> float:
+  """Minimum wall time of fn() over `repeats` runs after one warm-up."""
+  fn()
+  best = float("inf")
+  for _ in range(repeats):
+    t0 = time.perf_counter()
+    fn()
+    best = min(best, time.perf_counter() - t0)
+  return best
+
+
+# ------------------------------------------------------------------------- PyTorch stacks
+def torch_models():
+  """PyTorch modules with the shapes of sljax's models (imported lazily)."""
+  import torch
+  from torch import nn
+  import torch.nn.functional as F
+
+  def cbn2(cin, cout, k=3, s=1, p=1, d=1):
+    return nn.Sequential(nn.Conv2d(cin, cout, k, s, p, d, bias=False), nn.BatchNorm2d(cout))
+
+  def cbn3(cin, cout, s=1):
+    return nn.Sequential(nn.Conv3d(cin, cout, 3, s, 1, bias=False), nn.BatchNorm3d(cout))
+
+  def up3(cin, cout):
+    return nn.Sequential(nn.ConvTranspose3d(cin, cout, 3, 2, 1, 1, bias=False),
+                         nn.BatchNorm3d(cout))
+
+  class Res(nn.Module):
+    def __init__(self, cin, cout, s, d):
+      super().__init__()
+      self.a, self.b = cbn2(cin, cout, 3, s, d, d), cbn2(cout, cout, 3, 1, d, d)
+      self.skip = cbn2(cin, cout, 1, s, 0) if (s != 1 or cin != cout) else None
+
+    def forward(self, x):
+      y = self.b(F.relu(self.a(x)))
+      return y + (self.skip(x) if self.skip is not None else x)
+
+  class Features(nn.Module):
+    def __init__(self, cin):
+      super().__init__()
+      self.stem = nn.Sequential(cbn2(cin, 32, s=2), nn.ReLU(), cbn2(32, 32), nn.ReLU(),
+                                cbn2(32, 32), nn.ReLU())
+      stages, c = [], 32
+      for cout, n, s, d in ((32, 3, 1, 1), (64, 16, 2, 1), (128, 3, 1, 1), (128, 3, 1, 2)):
+        stages.append(nn.Sequential(*[Res(c if i == 0 else cout, cout, s if i == 0 else 1, d)
+                                      for i in range(n)]))
+        c = cout
+      self.stages = nn.ModuleList(stages)
+      self.pools = (64, 32, 16, 8)
+      self.branches = nn.ModuleList([nn.Sequential(cbn2(128, 32, 1, 1, 0), nn.ReLU())
+                                     for _ in self.pools])
+      for b in self.branches:
+        b.is_spp_branch = True
+      self.fuse = nn.Sequential(cbn2(320, 128), nn.ReLU(), nn.Conv2d(128, 32, 1, bias=False))
+
+    def forward(self, x):
+      x = self.stem(x)
+      x = self.stages[0](x)
+      raw = self.stages[1](x)
+      skip = self.stages[3](self.stages[2](raw))
+      size = skip.shape[2:]
+      pyr = [F.interpolate(b(F.avg_pool2d(skip, min(k, size[0]))), size=size, mode="bilinear")
+             for k, b in zip(self.pools, self.branches)]
+      return self.fuse(torch.cat([raw, skip] + pyr[::-1], 1))
+
+  class Hourglass(nn.Module):
+    def __init__(self):
+      super().__init__()
+      self.c1, self.c2 = cbn3(32, 64, 2), cbn3(64, 64)
+      self.c3, self.c4 = cbn3(64, 64, 2), cbn3(64, 64)
+      self.c5, self.c6 = up3(64, 64), up3(64, 32)
+
+    def forward(self, x, pre_in, post_in):
+      pre = self.c2(F.relu(self.c1(x)))
+      pre = F.relu(pre + post_in) if post_in is not None else F.relu(pre)
+      y = F.relu(self.c4(F.relu(self.c3(pre))))
+      post = F.relu(self.c5(y) + (pre_in if pre_in is not None else pre))
+      return self.c6(post), pre, post
+
+  class Stack(nn.Module):
+    def __init__(self):
+      super().__init__()
+      self.d0 = nn.Sequential(cbn3(64, 32), nn.ReLU(), cbn3(32, 32), nn.ReLU())
+      self.d1 = nn.Sequential(cbn3(32, 32), nn.ReLU(), cbn3(32, 32))
+      self.hg = nn.ModuleList([Hourglass() for _ in range(3)])
+
+    def forward(self, cost):
+      c0 = self.d0(cost)
+      c0 = self.d1(c0) + c0
+      o1, p1, q1 = self.hg[0](c0, None, None)
+      o1 = o1 + c0
+      o2, _, q2 = self.hg[1](o1, p1, q1)
+      o2 = o2 + c0
+      o3, _, _ = self.hg[2](o2, p1, q2)
+      return o1, o2, o3 + c0
+
+  def head():
+    return nn.Sequential(cbn3(32, 32), nn.ReLU(), nn.Conv3d(32, 1, 3, 1, 1, bias=False))
+
+  def volume(fl, fr, nd):
+    w = fl.shape[-1]
+    right = torch.stack([F.pad(fr, (d, 0))[..., :w] for d in range(nd)], 2)
+    mask = (torch.arange(w)[None, :] >= torch.arange(nd)[:, None]).to(fl.dtype)
+    return torch.cat([fl.unsqueeze(2).expand_as(right) * mask[:, None], right], 1)
+
+  class PSM(nn.Module):
+    def __init__(self, maxdisp, t=None):
+      super().__init__()
+      self.maxdisp = maxdisp
+      self.features = Features(3)
+      self.stack = Stack()
+      self.heads = nn.ModuleList([head() for _ in range(3)])
+      self.t = t
+      if t is not None:
+        self.sl_stack, self.sl_cbn = Stack(), cbn3(32, 32)
+        self.sl_att = nn.Conv3d(32, 1, 3, 1, 1, bias=False)
+        self.sl_up = nn.ModuleList([nn.Sequential(cbn2(33, 32), nn.ReLU()),
+                                    nn.Sequential(cbn2(32, 32), nn.ReLU())])
+        self.sl_out = nn.Conv2d(32, t, 1)
+
+    def regress(self, c, h, w):
+      c = F.interpolate(c, [self.maxdisp, h, w], mode="trilinear")[:, 0]
+      d = torch.arange(self.maxdisp, dtype=c.dtype)[None, :, None, None]
+      return (F.softmax(c, 1) * d).sum(1)
+
+    def forward(self, left, right):
+      h, w = left.shape[2:]
+      cost = volume(self.features(left), self.features(right), self.maxdisp // 4)
+      outs = self.stack(cost)
+      costs, acc = [], 0
+      for o, hd in zip(outs, self.heads):
+        acc = hd(o) + acc
+        costs.append(acc)
+      preds = ([self.regress(c, h, w) for c in costs] if self.training
+               else [self.regress(costs[-1], h, w)])
+      res = {"disparities": preds}
+      if self.t is not None:
+        x = F.relu(self.sl_cbn(self.sl_stack(cost)[2]))
+        p = F.softmax(self.sl_att(x), 2)
+        nd = x.shape[2]
+        ex = (p * torch.arange(nd, dtype=x.dtype)[None, None, :, None, None]).sum(2) / nd
+        x = torch.cat([(p * x).sum(2), ex], 1)
+        for size, up in zip(((h // 2, w // 2), (h, w)), self.sl_up):
+          x = up(F.interpolate(x, size=size, mode="bilinear"))
+        res["sl"] = self.sl_out(x)
+      return res
+
+  class UNet(nn.Module):
+    def __init__(self, out, depth=4, base=32):
+      super().__init__()
+      dc = lambda i, o: nn.Sequential(cbn2(i, o), nn.ReLU(), cbn2(o, o), nn.ReLU())
+      widths = [base * 2 ** i for i in range(depth + 1)]
+      self.down = nn.ModuleList([dc(6 if i == 0 else widths[i - 1], widths[i])
+                                 for i in range(depth)])
+      self.mid = dc(widths[-2], widths[-1])
+      self.ups = nn.ModuleList([nn.ConvTranspose2d(widths[i + 1], widths[i], 2, 2)
+                                for i in range(depth)])
+      self.upc = nn.ModuleList([dc(2 * widths[i], widths[i]) for i in range(depth)])
+      self.out = nn.Conv2d(base, out, 1)
+
+    def forward(self, left, right):
+      x = torch.cat([left, right], 1)
+      skips = []
+      for d in self.down:
+        x = d(x)
+        skips.append(x)
+        x = F.max_pool2d(x, 2)
+      x = self.mid(x)
+      for i in reversed(range(len(self.ups))):
+        x = self.upc[i](torch.cat([skips[i], self.ups[i](x)], 1))
+      return {"out": self.out(x)}
+
+  return torch, PSM, UNet
+
+
+def torch_time(torch, model, size, repeats, train):
+  """PyTorch forward (eval, no grad) or forward+backward (train) time."""
+  g = torch.Generator().manual_seed(0)
+  left = torch.rand(1, 3, size, size, generator=g)
+  right = torch.rand(1, 3, size, size, generator=g)
+  if not train:
+    model.eval()
+
+    def fwd():
+      with torch.no_grad():
+        model(left, right)
+    return best_time(fwd, repeats)
+  model.train()
+  # PyTorch refuses batch statistics over one value (the 1x1 map of the 64x64 SPP pool at
+  # batch 1); those tiny BN layers run with running statistics instead (negligible time).
+  for m in model.modules():
+    if getattr(m, "is_spp_branch", False):
+      m.eval()
+
+  def step():
+    model.zero_grad(set_to_none=True)
+    out = model(left, right)
+    loss = sum(v.mean() if not isinstance(v, list) else sum(p.mean() for p in v)
+               for v in out.values())
+    loss.backward()
+  return best_time(step, repeats)
+
+
+def jax_time(name, size, maxdisp, repeats, train, impl=None):
+  """sljax forward (eval) or forward+backward (train) time; impl sets SLJAX_CONV3D."""
+  old = os.environ.get("SLJAX_CONV3D")
+  if impl is not None:
+    os.environ["SLJAX_CONV3D"] = impl  # read when the model is traced
+  try:
+    model = build_model(name, maxdisp=maxdisp)
+    rng = np.random.RandomState(0)
+    left = jnp.asarray(rng.rand(1, size, size, 3).astype(np.float32))
+    right = jnp.asarray(rng.rand(1, size, size, 3).astype(np.float32))
+    variables = jax.jit(model.init)(jax.random.PRNGKey(0), left, right)
+    if not train:
+      f = jax.jit(lambda v, l, r: model.apply(v, l, r, train=False))
+      return best_time(lambda: jax.block_until_ready(f(variables, left, right)), repeats)
+
+    def loss(params, l, r):
+      out, _ = model.apply({**variables, "params": params}, l, r, train=True,
+                           mutable=["batch_stats"])
+      total = 0.0
+      for k, v in out.items():
+        if k == "disparity" and "disparities" in out:
+          continue
+        for a in (v if isinstance(v, tuple) else (v,)):
+          total = total + jnp.mean(a)
+      return total
+    g = jax.jit(jax.grad(loss))
+    return best_time(lambda: jax.block_until_ready(g(variables["params"], left, right)), repeats)
+  finally:
+    if impl is not None:
+      if old is None:
+        os.environ.pop("SLJAX_CONV3D", None)
+      else:
+        os.environ["SLJAX_CONV3D"] = old
+
+
+# ------------------------------------------------------------------------- micro benchmarks
+MICRO = [  # (label, kind, D, H, W, cin, cout, stride) at 256x256, maxdisp 96 (1/4 resolution)
+    ("dres0 conv 64->32", "conv", 24, 64, 64, 64, 32, 1),
+    ("conv 32->32", "conv", 24, 64, 64, 32, 32, 1),
+    ("classifier 32->1", "conv", 24, 64, 64, 32, 1, 1),
+    ("hg conv1 32->64 s2", "conv", 24, 64, 64, 32, 64, 2),
+    ("hg conv2 64->64 (1/8)", "conv", 12, 32, 32, 64, 64, 1),
+    ("hg conv3 64->64 s2", "conv", 12, 32, 32, 64, 64, 2),
+    ("hg conv5 T 64->64", "convT", 6, 16, 16, 64, 64, 2),
+    ("hg conv6 T 64->32", "convT", 12, 32, 32, 64, 32, 2),
+]
+
+
+def micro(repeats, with_lax):
+  """Per-layer table: fast / lax / torch, forward and forward+backward (ms)."""
+  import torch
+  import torch.nn.functional as F
+  rows = []
+  rng = np.random.RandomState(0)
+  for label, kind, d, h, w, cin, cout, s in MICRO:
+    x = jnp.asarray(rng.randn(1, d, h, w, cin).astype(np.float32))
+    k = jnp.asarray(rng.randn(3, 3, 3, cin, cout).astype(np.float32) * 0.05)
+    res = {}
+    for impl in ("fast", "lax") if with_lax else ("fast",):
+      if kind == "conv":
+        f = lambda x, k, impl=impl: c3.conv3d(x, k, (s,) * 3, ((1, 1),) * 3, impl=impl)
+      else:
+        f = lambda x, k, impl=impl: c3.conv_transpose3d(
+            x, k, (2, 2, 2), c3.transpose_padding((3, 3, 3), 1, 1), impl=impl)
+      fj = jax.jit(f)
+      gj = jax.jit(jax.grad(lambda x, k, f=f: jnp.sum(f(x, k) ** 2), argnums=(0, 1)))
+      res[impl] = (best_time(lambda: jax.block_until_ready(fj(x, k)), repeats),
+                   best_time(lambda: jax.block_until_ready(gj(x, k)), repeats))
+    xt = torch.tensor(np.asarray(x).transpose(0, 4, 1, 2, 3).copy(), requires_grad=True)
+    if kind == "conv":
+      kt = torch.tensor(np.asarray(k).transpose(4, 3, 0, 1, 2).copy(), requires_grad=True)
+      tf = lambda: F.conv3d(xt, kt, stride=s, padding=1)
+    else:
+      kt = torch.tensor(np.asarray(k).transpose(3, 4, 0, 1, 2).copy(), requires_grad=True)
+      tf = lambda: F.conv_transpose3d(xt, kt, stride=2, padding=1, output_padding=1)
+
+    def tfb():
+      xt.grad = kt.grad = None
+      (tf() ** 2).sum().backward()
+    with torch.no_grad():
+      t_f = best_time(tf, repeats)
+    res["torch"] = (t_f, best_time(tfb, repeats))
+    rows.append((label, res))
+    print_micro_row(label, res, with_lax)
+  return rows
+
+
+def print_micro_row(label, res, with_lax):
+  """One line of the micro table."""
+  tf, tb = res["torch"]
+  cells = [f"{label:24s}"]
+  for impl in ("fast", "lax") if with_lax else ("fast",):
+    a, b = res[impl]
+    cells.append(f"{impl} {a * 1e3:7.1f} {b * 1e3:7.1f} ({a / tf:4.2f}x {b / tb:4.2f}x)")
+  cells.append(f"torch {tf * 1e3:7.1f} {tb * 1e3:7.1f}")
+  print(" | ".join(cells), flush=True)
+
+
+def main() -> None:
+  """Runs the selected parts and prints the tables."""
+  ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  ap.add_argument("--part", choices=("all", "micro", "models"), default="all")
+  ap.add_argument("--models", default="unet-sl,psmnet,psmnet-mtl")
+  ap.add_argument("--size", type=int, default=256)
+  ap.add_argument("--maxdisp", type=int, default=96)
+  ap.add_argument("--repeats", type=int, default=3)
+  ap.add_argument("--with-lax", action="store_true",
+                  help="also time the plain lax 3D convolution (slow: minutes)")
+  args = ap.parse_args()
+  import torch
+  print(f"jax {jax.__version__} backend {jax.default_backend()} ({os.cpu_count()} CPUs), "
+        f"torch {torch.__version__} ({torch.get_num_threads()} threads); conv3d auto -> "
+        f"{c3.conv_impl()}")
+  if args.part in ("all", "micro"):
+    print(f"\n3D convolution layers, {args.size}x{args.size} maxdisp {args.maxdisp} shapes: "
+          "fwd ms, fwd+bwd ms (ratio to torch)")
+    micro(args.repeats, args.with_lax)
+  if args.part in ("all", "models"):
+    torch_, PSM, UNet = torch_models()
+    torch_.manual_seed(0)
+    stacks = {"unet-sl": lambda: UNet(16), "unet-disp": lambda: UNet(1),
+              "psmnet": lambda: PSM(args.maxdisp), "psmnet-mtl": lambda: PSM(args.maxdisp, 8)}
+    print(f"\nModels at {args.size}x{args.size}, maxdisp {args.maxdisp}, batch 1 (seconds)")
+    print(f"{'model':12s} {'mode':8s} {'sljax':>8s} {'torch':>8s} {'ratio':>6s}"
+          + (f" {'lax':>8s} {'ratio':>6s}" if args.with_lax else ""))
+    for name in args.models.split(","):
+      tm = stacks[name]()
+      for train in (False, True):
+        mode = "fwd+bwd" if train else "fwd"
+        tj = jax_time(name, args.size, args.maxdisp, args.repeats, train)
+        tt = torch_time(torch_, tm, args.size, args.repeats, train)
+        line = f"{name:12s} {mode:8s} {tj:8.3f} {tt:8.3f} {tj / tt:6.2f}"
+        if args.with_lax and name.startswith("psmnet"):
+          tl = jax_time(name, args.size, args.maxdisp, max(1, args.repeats - 2), train, "lax")
+          line += f" {tl:8.3f} {tl / tt:6.2f}"
+        print(line, flush=True)
+
+
+if __name__ == "__main__":
+  main()

@@ -1,0 +1,145 @@
+"""The fast 3D convolutions equal lax.conv_general_dilated, forward and gradients."""
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax import lax
+
+from sljax.nets import conv3d as c3
+
+DIMS = ("NDHWC", "DHWIO", "NDHWC")
+
+
+def _data(seed, x_shape, k_shape):
+  rng = np.random.RandomState(seed)
+  return (jnp.asarray(rng.randn(*x_shape).astype(np.float32)),
+          jnp.asarray(rng.randn(*k_shape).astype(np.float32)))
+
+
+def _assert_close(a, b, rtol=2e-5):
+  a, b = np.asarray(a), np.asarray(b)
+  assert a.shape == b.shape
+  scale = max(np.abs(b).max(), 1e-6)
+  np.testing.assert_allclose(a / scale, b / scale, atol=rtol)
+
+
+def _check_against(ref, fast, x, k, seed):
+  """Compares outputs and both gradients of fast vs ref, each side compiled once."""
+  w = jnp.asarray(np.random.RandomState(seed).randn(*jax.eval_shape(ref, x, k).shape),
+                  jnp.float32)
+
+  def value_and_grads(f):
+    def run(x, k):
+      y, vjp = jax.vjp(f, x, k)
+      return (y,) + vjp(w)
+    return jax.jit(run)(x, k)
+
+  for a, b in zip(value_and_grads(fast), value_and_grads(ref)):
+    _assert_close(a, b)
+
+
+# (x shape, kernel shape, strides, padding): PSMNet's cases first, then odd ones.
+CONV_CASES = [
+    ((1, 6, 8, 8, 6), (3, 3, 3, 6, 4), (1, 1, 1), ((1, 1),) * 3),     # convbn_3d
+    ((1, 6, 8, 8, 4), (3, 3, 3, 4, 1), (1, 1, 1), ((1, 1),) * 3),     # classifier 32 -> 1
+    ((2, 6, 8, 8, 3), (3, 3, 3, 3, 5), (2, 2, 2), ((1, 1),) * 3),     # hourglass stride 2
+    ((1, 5, 7, 9, 3), (3, 3, 3, 3, 2), (2, 2, 2), ((1, 1),) * 3),     # odd sizes
+    ((1, 5, 6, 7, 2), (3, 2, 3, 2, 3), (2, 1, 2), ((0, 2), (1, 0), (2, 1))),
+    ((1, 5, 6, 7, 2), (3, 3, 3, 2, 3), (2, 2, 2), "SAME"),
+]
+
+
+@pytest.mark.parametrize("x_shape,k_shape,strides,padding", CONV_CASES)
+def test_conv3d_forward_and_grads_equal_lax(x_shape, k_shape, strides, padding):
+  x, k = _data(0, x_shape, k_shape)
+
+  def ref(x, k):
+    return lax.conv_general_dilated(x, k, strides, padding, dimension_numbers=DIMS)
+
+  def fast(x, k):
+    return c3.conv3d(x, k, strides, padding, impl="fast")
+
+  _check_against(ref, fast, x, k, seed=1)
+
+
+TRANSPOSE_CASES = [
+    # PSMNet's hourglass conv5 / conv6 first.
+    ((1, 3, 4, 4, 4), (3, 3, 3, 4, 3), (2, 2, 2), c3.transpose_padding((3, 3, 3), 1, 1)),
+    ((2, 3, 4, 5, 3), (3, 3, 3, 3, 2), (2, 2, 2), c3.transpose_padding((3, 3, 3), 1, 0)),
+    ((1, 3, 4, 5, 3), (4, 3, 2, 3, 2), (2, 3, 2), ((0, 1), (2, 2), (1, 0))),
+]
+
+
+@pytest.mark.parametrize("x_shape,k_shape,strides,padding", TRANSPOSE_CASES)
+def test_conv_transpose3d_forward_and_grads_equal_lax(x_shape, k_shape, strides, padding):
+  x, k = _data(2, x_shape, k_shape)
+
+  def ref(x, k):
+    return lax.conv_general_dilated(x, k, (1, 1, 1), padding, lhs_dilation=strides,
+                                    dimension_numbers=DIMS)
+
+  def fast(x, k):
+    return c3.conv_transpose3d(x, k, strides, padding, impl="fast")
+
+  _check_against(ref, fast, x, k, seed=3)
+
+
+def _naive_torch_conv_transpose(x, w_torch, stride, padding, output_padding):
+  """PyTorch ConvTranspose3d semantics by scattering: x NDHWC, w (cin, cout, kd, kh, kw)."""
+  n, d, h, wd, _ = x.shape
+  _, cout, kd, kh, kw = w_torch.shape
+  op = output_padding
+  full = np.zeros((n, (d - 1) * stride + kd + op, (h - 1) * stride + kh + op,
+                   (wd - 1) * stride + kw + op, cout))
+  for i in range(d):
+    for j in range(h):
+      for l in range(wd):
+        contrib = np.einsum("nc,cokpq->nkpqo", x[:, i, j, l], w_torch)
+        full[:, i * stride:i * stride + kd, j * stride:j * stride + kh,
+             l * stride:l * stride + kw] += contrib
+  out = [(s - 1) * stride - 2 * padding + k + op for s, k in ((d, kd), (h, kh), (wd, kw))]
+  p = padding
+  return full[:, p:p + out[0], p:p + out[1], p:p + out[2]]
+
+
+@pytest.mark.parametrize("impl", ["lax", "fast"])
+def test_conv_transpose_module_matches_pytorch_semantics(impl):
+  rng = np.random.RandomState(4)
+  x = rng.randn(1, 3, 4, 5, 3)
+  w_torch = rng.randn(3, 2, 3, 3, 3)  # PyTorch layout (cin, cout, kd, kh, kw)
+  kernel = np.flip(w_torch, (2, 3, 4)).transpose(2, 3, 4, 0, 1)
+  module = c3.ConvTranspose3D(2, impl=impl)
+  y = module.apply({"params": {"kernel": jnp.asarray(kernel, jnp.float32)}},
+                   jnp.asarray(x, jnp.float32))
+  expected = _naive_torch_conv_transpose(x, w_torch, 2, 1, 1)
+  assert y.shape == (1, 6, 8, 10, 2)
+  np.testing.assert_allclose(np.asarray(y), expected, rtol=1e-4, atol=1e-4)
+
+
+def test_modules_have_flax_parameters_and_outputs():
+  x, _ = _data(5, (1, 4, 6, 6, 3), (1,))
+  key = jax.random.PRNGKey(0)  # only traced (eval_shape): flax's init compiles slowly
+  for ours, theirs in [
+      (c3.Conv3D(4, strides=2, padding=1, use_bias=True, impl="fast"),
+       nn.Conv(4, (3, 3, 3), strides=2, padding=((1, 1),) * 3)),
+      (c3.ConvTranspose3D(4, use_bias=True, impl="fast"),
+       nn.ConvTranspose(4, (3, 3, 3), strides=(2, 2, 2), padding=((1, 2),) * 3)),
+  ]:
+    shapes = jax.eval_shape(theirs.init, key, x)
+    assert jax.tree.map(jnp.shape, jax.eval_shape(ours.init, key, x)) == \
+        jax.tree.map(jnp.shape, shapes)
+    rng = np.random.RandomState(6)
+    v = jax.tree.map(lambda s: jnp.asarray(rng.randn(*s.shape), jnp.float32), shapes)
+    _assert_close(jax.jit(ours.apply)(v, x), jax.jit(theirs.apply)(v, x))
+
+
+def test_impl_selection(monkeypatch):
+  assert c3.conv_impl("lax") == "lax"
+  monkeypatch.setenv("SLJAX_CONV3D", "lax")
+  assert c3.conv_impl() == "lax"
+  monkeypatch.setenv("SLJAX_CONV3D", "auto")
+  assert c3.conv_impl() == ("fast" if jax.default_backend() == "cpu" else "lax")
+  with pytest.raises(ValueError):
+    c3.conv_impl("bogus")

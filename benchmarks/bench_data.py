@@ -1,4 +1,4 @@
-"""Scene loading throughput: load_scene and iterate_batches on a temporary 256x256 dataset.
+"""Scene loading throughput: load_scene and iterate_batches on a temporary dataset (256x256).
 
 Run: JAX_PLATFORMS=cpu python benchmarks/bench_data.py [--scenes 32] [--size 256]
 """
@@ -15,6 +15,7 @@ from sljax.data.scene import Scene, load_scene, write_scene
 
 
 def _make(root: Path, n: int, size: int, t: int) -> None:
+  """Writes n random scenes of size x size with t patterns per view, four per group."""
   rng = np.random.default_rng(0)
   for k in range(n):
     sl = rng.integers(0, 2, (size, size, t)).astype(np.float32)
@@ -42,8 +43,9 @@ def main() -> None:
     for p in src.paths:
       load_scene(p)
     rows.append(("load_scene (all parts)", (time.perf_counter() - t0) / a.scenes * 1e3, "ms/scene"))
-    for label, kw in [("batches native", {}), ("batches resize 128", {"size": 128}),
-                      ("batches crop 128", {"size": 128, "mode": "crop"})]:
+    half = a.size // 2
+    for label, kw in [("batches native", {}), (f"batches resize {half}", {"size": half}),
+                      (f"batches crop {half}", {"size": half, "mode": "crop"})]:
       t0 = time.perf_counter()
       nb = 0
       for b in iterate_batches(src, range(len(src)), a.batch, seed=0, epoch=0, **kw):

@@ -210,7 +210,10 @@ def test_ground_truth_patterns_of_synthetic_scene_give_its_disparity():
   scene = render_scene(0, 0, SynthConfig(size=128, domain="tissue"))
   disp, _ = corr.sl_disparity(scene.sl0, scene.sl1, window=17)
   assert disp.shape == scene.disp0.shape
-  valid = (np.isfinite(scene.disp0) & ~scene.occ0 & ~np.isnan(scene.sl0).any(axis=-1))
+  # Valid: known ground truth, seen by both cameras, lit by the projector. The finest patterns
+  # alias on steep surfaces and are NaN there (read as 0 by the correlation), so projector
+  # shadow is judged on the coarsest pattern, which is known wherever any light falls.
+  valid = np.isfinite(scene.disp0) & ~scene.occ0 & ~np.isnan(scene.sl0[..., 0])
   assert valid.mean() > 0.5
   assert (np.abs(disp - scene.disp0)[valid] <= 1).mean() >= 0.95
 

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from sljax import cli
+from sljax.data.pfm import read_pfm
 from sljax.errors import SljaxError
 from sljax.sl import codes
 from sljax.sl.decode import DecodeConfig, column_from_bits, decode_captures
@@ -198,8 +199,6 @@ def _read_patterns(folder):
 
 
 def test_cli_decode_writes_refuses_then_overwrites(tmp_path, scene, capsys):
-  pfm = pytest.importorskip("sljax.data.pfm")
-  pytest.importorskip("sljax.data.dataset")
   root = tmp_path / "ds"
   sdir = _write_scene_folder(root, "a", scene, meta={"code": "gray", "group": "g"})
   assert cli.main(["decode", str(root)]) == 0
@@ -212,7 +211,7 @@ def test_cli_decode_writes_refuses_then_overwrites(tmp_path, scene, capsys):
     assert (sl == truth).all(axis=-1)[lit].mean() >= 0.99  # 8-bit quantisation of the captures
     # 8-bit rounding adds to the noise: nearly all of the strip stays below the threshold.
     assert (sl[v["shadow_strip"]] == 128).all(axis=-1).mean() >= 0.99
-    disp = pfm.read_pfm(sdir / f"disp{cam}.pfm")
+    disp = read_pfm(sdir / f"disp{cam}.pfm")
     assert np.isinf(disp[v["shadow_strip"]]).all()
     assert (_abs_err(disp, v["disp"])[np.isfinite(v["disp"])] <= 1.0).mean() >= 0.95
   # A second run refuses to overwrite and names the file.
@@ -225,19 +224,44 @@ def test_cli_decode_writes_refuses_then_overwrites(tmp_path, scene, capsys):
   assert (sdir / "disp0.pfm").read_bytes() == before
 
 
+def _one_line_error(capsys, *needles):
+  """The CLI printed exactly one line on stderr, holding every needle, and no traceback."""
+  out, err = capsys.readouterr()
+  assert len(err.strip().splitlines()) == 1 and "Traceback" not in out + err
+  for n in needles:
+    assert n in err, (n, err)
+
+
 def test_cli_decode_errors(tmp_path, scene, capsys):
-  pytest.importorskip("sljax.data.dataset")
   root = tmp_path / "ds"
+  # Another, valid scene sorted first: a refusal must not leave it half decoded.
+  _write_scene_folder(root, "0ok", scene, meta={"code": "gray"})
   # No code anywhere.
   sdir = _write_scene_folder(root, "a", scene)
   assert cli.main(["decode", str(root)]) == 2
-  assert "code" in capsys.readouterr().err
+  _one_line_error(capsys, "code", "a")
   # Different pattern counts in the two views.
   (sdir / "raw1" / f"p{T - 1:03d}.png").unlink()
   (sdir / "raw1" / f"i{T - 1:03d}.png").unlink()
   assert cli.main(["decode", str(root), "--code", "gray"]) == 2
-  err = capsys.readouterr().err
-  assert "raw0" in err and "raw1" in err and str(sdir.name) in err
+  _one_line_error(capsys, "raw0", "raw1", str(sdir))
+  # A missing white capture.
+  (sdir / "raw0" / "white.png").unlink()
+  assert cli.main(["decode", str(root), "--code", "gray"]) == 2
+  _one_line_error(capsys, str(sdir), "raw0/white.png", "missing")
+  # One view's captures absent altogether.
+  for f in (sdir / "raw1").iterdir():
+    f.unlink()
+  (sdir / "raw1").rmdir()
+  assert cli.main(["decode", str(root), "--code", "gray"]) == 2
+  _one_line_error(capsys, str(sdir), "raw1/", "missing")
+  assert not (root / "0ok" / "sl0").exists() and not (root / "0ok" / "disp0.pfm").exists()
+
+
+def test_cli_defaults_mirror_decode_config():
+  from sljax.commands import decode as decode_cmd
+  assert decode_cmd._DEFAULT_SHADOW / 255.0 == DecodeConfig().shadow_threshold
+  assert decode_cmd._DEFAULT_BIT / 255.0 == DecodeConfig().bit_threshold
 
 
 def test_column_from_bits_probabilities_and_nan(scene):

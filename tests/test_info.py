@@ -1,10 +1,13 @@
 import json
 
+import cv2
 import numpy as np
 import pytest
 
 from sljax import cli
-from sljax.data.scene import Scene, write_scene
+from sljax.data.calib import Calib, write_calib
+from sljax.data.scene import Scene, load_scene, write_scene
+from sljax.errors import SljaxError
 
 H, W = 6, 10
 
@@ -43,7 +46,7 @@ def test_info_summary(dataset, capsys):
   assert f"{lo:.2f}..{hi:.2f} px" in out
   # 3 groups (obj0, obj1, obj2): one group is held out; 2 or 1 scenes depending on which.
   split = next(l for l in out.splitlines() if l.startswith("split"))
-  assert "/ 2 groups" in split and "/ 1 groups" in split
+  assert "/ 2 groups" in split and split.rstrip().endswith("/ 1 group")
   assert "set/s3" in out and "obj1" in out  # per-scene table
 
 
@@ -71,3 +74,48 @@ def test_info_empty_dataset(tmp_path, capsys):
   assert cli.main(["info", str(tmp_path)]) == 2
   err = capsys.readouterr().err
   assert len(err.strip().splitlines()) == 1 and str(tmp_path) in err and "empty dataset" in err
+
+
+def _drop_im1(d):
+  (d / "im1.png").unlink()
+
+
+def _resize_im1(d):
+  cv2.imwrite(str(d / "im1.png"), np.zeros((H, W + 3, 3), np.uint8))
+
+
+def _bad_pfm_header(d):
+  (d / "disp0.pfm").write_bytes(b"Pf\n10 six\n-1\n" + bytes(4 * H * W))
+
+
+def _calib_without_ndisp(d):
+  cam = np.array([[50.0, 0, 5], [0, 50, 3], [0, 0, 1]])
+  write_calib(d / "calib.txt", Calib(cam0=cam, cam1=cam, doffs=0.0, baseline=10.0, width=W,
+                                     height=H, ndisp=8))
+  text = (d / "calib.txt").read_text()
+  (d / "calib.txt").write_text("".join(l + "\n" for l in text.splitlines()
+                                       if not l.startswith("ndisp")))
+
+
+def _fewer_right_patterns(d):
+  (d / "sl1" / "003.png").unlink()
+
+
+# Issue 2, item 6: each bad input names the scene and the file, in the library and on the CLI.
+@pytest.mark.parametrize("damage, file", [
+    (_drop_im1, "im1.png"), (_resize_im1, "im1.png"), (_bad_pfm_header, "disp0.pfm"),
+    (_calib_without_ndisp, "calib.txt"), (_fewer_right_patterns, "sl1"),
+], ids=["missing file", "view sizes", "pfm header", "calib key", "pattern counts"])
+def test_bad_input_names_scene_and_file(tmp_path, capsys, damage, file):
+  root = tmp_path / "data"
+  write_scene(root / "good", _scene(0))
+  write_scene(root / "broken", _scene(1))
+  damage(root / "broken")
+  with pytest.raises(SljaxError, match=rf"broken.*{file}") as e:
+    load_scene(root / "broken")
+  assert "\n" not in str(e.value)
+  assert cli.main(["info", str(root)]) == 1
+  out, err = capsys.readouterr()
+  problems = out.split("problems (1):\n")[1].splitlines()
+  assert len(problems) == 1 and "broken" in problems[0] and file in problems[0]
+  assert "Traceback" not in out + err

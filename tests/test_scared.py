@@ -50,10 +50,32 @@ def _matrix_yaml(name, m):
           f"   data: [ {values} ]\n")
 
 
-def _plane_points(k, rays_in_left=np.eye(3), origin=np.zeros(3)):
-  """Intersections of the pixel rays of intrinsics k (camera pose given in the left frame)."""
+def _undistort(xd, yd, dist):
+  """Ideal normalised coordinates whose Brown-Conrady distortion (k1 k2 p1 p2 k3) gives
+  (xd, yd): a fixed-point iteration, converged to float64 precision for mild distortion."""
+  k1, k2, p1, p2, k3 = dist
+  x, y = xd.copy(), yd.copy()
+  for _ in range(100):
+    r2 = x * x + y * y
+    radial = 1 + k1 * r2 + k2 * r2 ** 2 + k3 * r2 ** 3
+    x = (xd - (2 * p1 * x * y + p2 * (r2 + 2 * x * x))) / radial
+    y = (yd - (p1 * (r2 + 2 * y * y) + 2 * p2 * x * y)) / radial
+  r2 = x * x + y * y
+  radial = 1 + k1 * r2 + k2 * r2 ** 2 + k3 * r2 ** 3
+  resid = np.hypot(x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) - xd,
+                   y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y - yd)
+  assert resid.max() < 1e-12
+  return np.stack([x, y], -1)
+
+
+def _plane_points(k, dist=None, rays_in_left=np.eye(3), origin=np.zeros(3)):
+  """Intersections of the pixel rays of intrinsics k and lens distortion dist (camera pose
+  given in the left frame)."""
   u, v = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
-  rays = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(k).T @ rays_in_left.T
+  rays = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(k).T
+  if dist is not None:
+    rays[..., :2] = _undistort(rays[..., 0], rays[..., 1], dist)
+  rays = rays @ rays_in_left.T
   s = (C_PLANE - origin @ N_PLANE) / (rays @ N_PLANE)
   return origin + s[..., None] * rays
 
@@ -63,15 +85,22 @@ def _texture(p):
   return 0.5 + 0.25 * np.sin(p[..., 0] * 0.9) + 0.2 * np.cos(p[..., 1] * 0.7 + p[..., 0] * 0.3)
 
 
-@pytest.fixture(scope="module")
-def keyframe(tmp_path_factory):
+# Barrel distortion of a wide endoscope lens (k1, k2, p1, p2, k3), or none.
+DISTORTION = {"pinhole": (np.zeros(5), np.zeros(5)),
+              "distorted": (np.array([-0.12, 0.03, 0.001, -0.0015, 0.0]),
+                            np.array([-0.09, 0.02, -0.001, 0.001, 0.0]))}
+
+
+@pytest.fixture(scope="module", params=list(DISTORTION))
+def keyframe(tmp_path_factory, request):
+  d1, d2 = DISTORTION[request.param]
   kf = tmp_path_factory.mktemp("scared") / "dataset_3" / "keyframe_2"
   kf.mkdir(parents=True)
-  xyz = _plane_points(M1)
+  xyz = _plane_points(M1, d1)
   cv2.imwrite(str(kf / "Left_Image.png"), np.round(_texture(xyz) * 255).astype(np.uint8))
   # Right camera: X_right = R X_left + T, so in the left frame its centre is -R^T T and its
   # axes are the rows of R.
-  right = _plane_points(M2, rays_in_left=R.T, origin=-R.T @ T)
+  right = _plane_points(M2, d2, rays_in_left=R.T, origin=-R.T @ T)
   gray = np.round(_texture(right) * 255).astype(np.uint8)
   cv2.imwrite(str(kf / "Right_Image.png"), np.stack([gray] * 3, -1))
   unknown = xyz.copy()
@@ -79,8 +108,8 @@ def keyframe(tmp_path_factory):
   unknown[:, STRIP[1] // 2 + 17:STRIP[1]] = np.nan
   _write_float_tiff(kf / "left_depth_map.tiff", unknown.astype(np.float32))
   yaml = "%YAML:1.0\n---\n" + "".join(
-      _matrix_yaml(n, m) for n, m in [("M1", M1), ("D1", np.zeros(5)), ("M2", M2),
-                                      ("D2", np.zeros(5)), ("R", R), ("T", T[:, None])])
+      _matrix_yaml(n, m) for n, m in [("M1", M1), ("D1", d1), ("M2", M2), ("D2", d2),
+                                      ("R", R), ("T", T[:, None])])
   (kf / "endoscope_calibration.yaml").write_text(yaml)
   out = kf.parent / "scene"
   import_scared(kf, out)

@@ -7,6 +7,7 @@ import pytest
 
 from sljax import cli
 from sljax.corr import uncertainty as unc
+from sljax.corr.correlation import sl_disparity
 from sljax.data.scene import Scene, write_scene
 from sljax.errors import SljaxError
 
@@ -101,6 +102,10 @@ def test_cli_writes_metrics_and_pictures(tmp_path, capsys, with_disparity):
   assert metrics["disparity_source"] == ("npz" if with_disparity else "correlation")
   if with_disparity:  # the uncertain half is exactly the wrong half
     assert metrics["pearson"] > 0.9 and metrics["mae"] == pytest.approx(3 * 12 / 22)
+  else:  # the command passes --window and --max-disp on and scores where disp0 is known
+    with np.load(pred) as z:
+      disp, _ = sl_disparity(z["p_left"], z["p_right"], 4, 3)
+    assert metrics["mae"] == pytest.approx(float(np.abs(disp[:, 2:] - 2.0).mean()))
   for name in ("uncertainty_hist.png", "uncertainty_maps.png"):
     assert (out / name).stat().st_size > 1000
   assert "pearson" in capsys.readouterr().out
@@ -114,3 +119,13 @@ def test_cli_bad_prediction_file_is_one_line_error(tmp_path, capsys):
   assert cli.main(argv) == 2
   err = capsys.readouterr().err
   assert "p_right" in err and "bad.npz" in err
+
+
+@pytest.mark.parametrize("flag, value", [("--window", "4"), ("--max-disp", "-1")])
+def test_cli_bad_option_is_one_line_error(tmp_path, capsys, flag, value):
+  pred, scene = _scene_and_pred(tmp_path, False)
+  argv = ["uncertainty", "--pred", str(pred), "--gt", str(scene), "--out", str(tmp_path / "o"),
+          flag, value]
+  assert cli.main(argv) == 2
+  err = capsys.readouterr().err
+  assert flag in err and len(err.strip().splitlines()) == 1

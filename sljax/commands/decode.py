@@ -33,7 +33,6 @@ def register(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
   """Decodes every scene with raw captures; returns 0 on success."""
   import sys
-  from pathlib import Path
 
   import numpy as np
   from tqdm import tqdm
@@ -50,22 +49,29 @@ def run(args: argparse.Namespace) -> int:
   config = DecodeConfig(shadow_threshold=args.shadow_threshold / 255.0,
                         bit_threshold=args.bit_threshold / 255.0)
   src = FolderSource(args.dataset)
-  todo = [i for i, path in enumerate(src.paths)
-          if (path / "raw0").is_dir() and (path / "raw1").is_dir()]
-  require(todo, f"{src.root}: no scene holds both raw0/ and raw1/ (raw captures to decode)")
+  todo = []
+  for i, path in enumerate(src.paths):
+    has = [(path / f"raw{cam}").is_dir() for cam in (0, 1)]
+    if has[0] != has[1]:
+      raise SljaxError(f"scene {path}: raw{has.index(False)}/: missing (raw{has.index(True)}/ "
+                       "is present; both views' captures are needed)")
+    if has[0]:
+      todo.append(i)
+  require(todo, f"{src.root}: no scene holds raw0/ and raw1/ (raw captures to decode)")
 
   # Check every scene before writing anything, so a refusal never leaves a partial run.
   codes = {}
   for i in todo:
-    meta = src.get(i, parts=set()).meta  # views and meta.json only
-    code = args.code or meta.get("code") or src.info.get("code")
+    code = args.code or src.meta(i).get("code") or src.info.get("code")
     require(code in ("binary", "gray"),
             f"scene {src.paths[i]}: unknown code {code!r}: set 'code' in meta.json or "
             "dataset.json, or pass --code binary|gray")
     codes[i] = code
-    # Pattern counts from the file names alone (cheap); decoding reads the pixels later.
-    names = [dict.fromkeys(p.stem for p in (src.paths[i] / f"raw{cam}").glob("*.png"))
-             for cam in (0, 1)]
+    # Capture names alone (cheap); decoding reads the pixels later.
+    names = [{p.stem: None for p in (src.paths[i] / f"raw{cam}").glob("*.png")} for cam in (0, 1)]
+    for cam, n in enumerate(names):
+      for key in ("white", "black"):
+        require(key in n, f"scene {src.paths[i]}: raw{cam}/{key}.png: missing")
     counts = [count_patterns(n, f"scene {src.paths[i]}: raw{cam}") for cam, n in enumerate(names)]
     differ = sorted(set(names[0]) ^ set(names[1]))
     require(not differ, f"scene {src.paths[i]}: raw0 holds {counts[0]} patterns, raw1 holds "
@@ -78,26 +84,22 @@ def run(args: argparse.Namespace) -> int:
           raise SljaxError(f"scene {src.paths[i]}: {folder}/{existing[0].name} exists "
                            "(use --overwrite to replace it)")
 
-  written_disp, kept_disp, coverage = 0, [], []
+  written_disp, kept_disp, coverage, disp_known = 0, [], [], []
   for i in tqdm(todo, desc="decode", unit="scene", file=sys.stderr, disable=None):
     path = src.paths[i]
-    scene = src.get(i, parts={"raw"})
-    code = codes[i]
-    require(scene.raw1 is not None, f"scene {path}: raw1: missing")
-    t0 = count_patterns(scene.raw0, f"scene {path}: raw0")
-    t1 = count_patterns(scene.raw1, f"scene {path}: raw1")
-    require(t0 == t1, f"scene {path}: raw0 holds {t0} patterns, raw1 holds {t1}")
-    dec = [decode_captures(raw, code, t0, config, where=f"scene {path}: raw{cam}")
+    scene = src.get(i, parts={"raw"})  # load_scene checks sizes and that raw0, raw1 agree
+    dec = [decode_captures(raw, codes[i], None, config, where=f"scene {path}: raw{cam}")
            for cam, raw in enumerate((scene.raw0, scene.raw1))]
     for cam, d in enumerate(dec):
       write_patterns(path / f"sl{cam}", d.bits, overwrite=args.overwrite)
     coverage.append(float(np.mean([np.isfinite(d.column).mean() for d in dec])))
     if args.no_disparity:
       continue
-    targets = [Path(path / f"disp{cam}.pfm") for cam in (0, 1)]
+    targets = [path / f"disp{cam}.pfm" for cam in (0, 1)]
     absent = [not p.exists() for p in targets]
     if any(absent):
       disps = disparity_from_codes(dec[0].column, dec[1].column)
+      disp_known.append(float(np.isfinite(disps[0]).mean()))
       for p, missing, disp in zip(targets, absent, disps):
         if missing:
           write_pfm(p, disp)
@@ -105,8 +107,10 @@ def run(args: argparse.Namespace) -> int:
     kept_disp += [str(p) for p, missing in zip(targets, absent) if not missing]
 
   print(f"decoded {len(todo)} scene(s) of {len(src)} below {src.root}: sl0/ and sl1/ written; "
-        f"decoded pixels {100 * np.mean(coverage):.1f}% on average")
+        f"pixels with a decoded code: {np.mean(coverage):.1%} on average")
   if not args.no_disparity:
-    print(f"disparity files written: {written_disp}; kept existing: {len(kept_disp)}"
+    known = (f" (left disparity known on {np.mean(disp_known):.1%} of pixels on average)"
+             if disp_known else "")
+    print(f"disparity files written: {written_disp}{known}; kept existing: {len(kept_disp)}"
           + (f" (e.g. {kept_disp[0]}; delete to recompute)" if kept_disp else ""))
   return 0

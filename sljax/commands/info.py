@@ -100,6 +100,11 @@ def _scene_row(path: Path, problems: list[str], name: str, group: str) -> dict:
   return row
 
 
+def _plural(n: int, noun: str) -> str:
+  """'1 scene', '2 scenes'."""
+  return f"{n} {noun}{'' if n == 1 else 's'}"
+
+
 def _disp_text(r) -> str:
   if r is None:
     return "no valid"
@@ -125,7 +130,7 @@ def run(args: argparse.Namespace) -> int:
   rows = [r for r in rows if "size" in r]
   n = len(src)
   title = src.info.get("name", Path(os.path.abspath(args.dataset)).name)
-  print(f"dataset {title}: {n} scene{'s' if n != 1 else ''} in {args.dataset}")
+  print(f"dataset {title}: {_plural(n, 'scene')} in {args.dataset}")
 
   sizes = collections.Counter(f"{r['size'][0]}x{r['size'][1]} {r['kind']}" for r in rows)
   print("views:   " + ", ".join(f"{k} ({v})" for k, v in sizes.most_common()))
@@ -136,11 +141,11 @@ def run(args: argparse.Namespace) -> int:
 
   patterns = collections.Counter(r.get("sl0") for r in rows if "sl0" in r)
   if patterns or src.num_patterns:
-    found = ", ".join(f"{t} patterns ({v} scenes)" for t, v in sorted(patterns.items()))
+    found = ", ".join(f"{t} patterns ({_plural(v, 'scene')})" for t, v in sorted(patterns.items()))
     print(f"patterns: code {src.code or 'unknown'}; {found or f'{src.num_patterns} declared'}")
   raw = collections.Counter(r.get("raw0") for r in rows if "raw0" in r)
   if raw:
-    print("raw:     " + ", ".join(f"{t} pattern captures ({v} scenes)"
+    print("raw:     " + ", ".join(f"{t} pattern captures ({_plural(v, 'scene')})"
                                    for t, v in sorted(raw.items())))
 
   for f in ("disp0.pfm", "disp1.pfm"):
@@ -148,15 +153,18 @@ def run(args: argparse.Namespace) -> int:
     if ranges:
       lo, hi = min(r[0] for r in ranges), max(r[1] for r in ranges)
       known = sum(r[2] for r in ranges) / len(ranges)
-      print(f"{f[:5]}:   {lo:.2f}..{hi:.2f} px over {len(ranges)} scenes, "
+      print(f"{f[:5]}:   {lo:.2f}..{hi:.2f} px over {_plural(len(ranges), 'scene')}, "
             f"{known:.0%} of pixels known on average")
 
   train, test = split_indices(src, test_fraction=args.test_fraction, seed=args.seed)
   groups = lambda idx: len({src.group(i) for i in idx})
   how = ("explicit (dataset.json)" if src.splits else
          f"by group hash, seed {args.seed}, {args.test_fraction:g} of groups for test")
-  print(f"split:   {how}: train {len(train)} scenes / {groups(train)} groups, "
-        f"test {len(test)} scenes / {groups(test)} groups")
+  print(f"split:   {how}: train {_plural(len(train), 'scene')} / "
+        f"{_plural(groups(train), 'group')}, test {_plural(len(test), 'scene')} / "
+        f"{_plural(groups(test), 'group')}"
+        + ("" if test or src.splits else " (a single group cannot be split: give scenes "
+           "meta.json groups or dataset.json splits)"))
 
   if n <= args.rows:
     header = ["scene", "size", "group"] + [_SHORT[f] for f in _FILES] + ["disp0 px (known)"]

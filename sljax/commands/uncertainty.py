@@ -67,6 +67,10 @@ def run(args) -> int:
   from sljax.data.scene import load_scene
   from sljax.errors import require
 
+  require(args.window >= 1 and args.window % 2 == 1,
+          f"--window must be a positive odd number, got {args.window}")
+  require(args.max_disp is None or args.max_disp >= 0,
+          f"--max-disp must be >= 0, got {args.max_disp}")
   pred = _load_pred(Path(args.pred))
   parts = {"disp", "mask"} if args.mask else {"disp"}
   scene = load_scene(args.gt, parts=parts)

@@ -6,7 +6,6 @@ reads scene folders lazily, the synthetic generator provides another.
 
 import fractions
 import hashlib
-import json
 import os
 from collections.abc import Iterator, Sequence
 from pathlib import Path
@@ -15,7 +14,7 @@ from typing import Any, Protocol
 import cv2
 import numpy as np
 
-from sljax.data.scene import Scene, load_scene, to_gray
+from sljax.data.scene import Scene, load_scene, read_json_object, to_gray
 from sljax.errors import SljaxError
 
 BATCH_PARTS = ("left", "right", "disp", "disp_right", "sl", "sl_right", "mask")
@@ -37,7 +36,8 @@ class Source(Protocol):
 
   def __getitem__(self, i: int) -> Scene: ...
 
-  def group(self, i: int) -> str: ...
+  def group(self, i: int) -> str:
+    """Group id of scene i for group-level splits."""
 
 
 def find_scenes(root: str | os.PathLike) -> list[Path]:
@@ -84,12 +84,7 @@ class FolderSource:
     path = self.root / "dataset.json"
     if not path.exists():
       return {}
-    try:
-      info = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError) as e:
-      raise SljaxError(f"{path}: not valid JSON ({e})") from None
-    if not isinstance(info, dict):
-      raise SljaxError(f"{path}: must hold a JSON object")
+    info = read_json_object(path, str(path))
     splits = info.get("splits")
     if splits is not None and not (
         isinstance(splits, dict) and set(splits) <= {"train", "test"}
@@ -102,18 +97,16 @@ class FolderSource:
     return info
 
   def _meta_of(self, i: int) -> dict[str, Any]:
+    """Scene i's meta.json ({} when absent), read once."""
     if i not in self._meta:
       path = self.paths[i] / "meta.json"
-      meta = {}
-      if path.exists():
-        try:
-          meta = json.loads(path.read_text(encoding="utf-8"))
-        except (OSError, ValueError) as e:
-          raise SljaxError(f"scene {self.paths[i]}: meta.json: not valid JSON ({e})") from None
-        if not isinstance(meta, dict):
-          raise SljaxError(f"scene {self.paths[i]}: meta.json: must hold a JSON object")
-      self._meta[i] = meta
+      self._meta[i] = (read_json_object(path, f"scene {self.paths[i]}: meta.json")
+                       if path.exists() else {})
     return self._meta[i]
+
+  def meta(self, i: int) -> dict[str, Any]:
+    """A copy of scene i's meta.json ({} when absent), without loading its images."""
+    return dict(self._meta_of(self._index(i)))
 
   def __len__(self) -> int:
     return len(self.paths)
@@ -129,7 +122,7 @@ class FolderSource:
     scene = load_scene(self.paths[i], gray=self.gray if gray is None else gray, parts=parts)
     scene.name = self._names[i]
     if parts is None or "meta" not in parts:
-      scene.meta = dict(self._meta_of(i))
+      scene.meta = self.meta(i)
     return scene
 
   def __getitem__(self, i: int) -> Scene:

@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 
 from sljax.data.calib import Calib
-from sljax.data.scene import Scene, write_scene
+from sljax.data.scene import Scene, image_to_float, write_scene
 from sljax.errors import SljaxError
 
 LEFT, RIGHT = "Left_Image.png", "Right_Image.png"
@@ -72,20 +72,13 @@ def read_scared_points(path: str | os.PathLike) -> np.ndarray:
 
 
 def _read_view(path: Path) -> np.ndarray:
+  """The raw 8/16-bit view as OpenCV decodes it (remapped before conversion to float)."""
   if not path.exists():
     raise SljaxError(f"{path}: missing")
   img = cv2.imread(os.fspath(path), cv2.IMREAD_UNCHANGED)
   if img is None or img.dtype not in (np.uint8, np.uint16):
     raise SljaxError(f"{path}: not an 8- or 16-bit image")
   return img
-
-
-def _to_float_rgb(bgr: np.ndarray) -> np.ndarray:
-  scale = 255.0 if bgr.dtype == np.uint8 else 65535.0
-  img = bgr if bgr.ndim == 3 else bgr[..., None]
-  if img.shape[2] >= 3:
-    img = img[..., 2::-1]
-  return img.astype(np.float32) / np.float32(scale)
 
 
 def rectified_disparity(xyz: np.ndarray, r1: np.ndarray, p1: np.ndarray, baseline: float,
@@ -168,7 +161,8 @@ def import_scared(keyframe_dir: str | os.PathLike, out_dir: str | os.PathLike,
   group = f"{kf.resolve().parent.name}/{kf.resolve().name}"
   meta = {"group": group, "source": "SCARED", "keyframe": kf.resolve().name,
           "rectify_alpha": RECTIFY_ALPHA, "known_pixels": int(finite.size)}
-  scene = Scene(name=out.name, im0=_to_float_rgb(im0), im1=_to_float_rgb(im1), disp0=disp,
+  scene = Scene(name=out.name, im0=image_to_float(im0, str(kf / LEFT)),
+                im1=image_to_float(im1, str(kf / RIGHT)), disp0=disp,
                 calib=calib, meta=meta)
   write_scene(out, scene, overwrite=overwrite, bit_depth=8 if left.dtype == np.uint8 else 16)
   return out

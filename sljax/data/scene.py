@@ -76,12 +76,22 @@ def read_image(path: str | os.PathLike, gray: bool | None = None) -> np.ndarray:
   if raw is None:
     reason = "missing" if not os.path.exists(path) else "not a readable image"
     raise SljaxError(f"{path}: {reason}")
+  img = image_to_float(raw, path)
+  if gray is True:
+    img = to_gray(img)
+  elif gray is False and img.shape[2] == 1:
+    img = np.repeat(img, 3, axis=2)
+  return np.ascontiguousarray(img)
+
+
+def image_to_float(raw: np.ndarray, where: str = "image") -> np.ndarray:
+  """An OpenCV-decoded 8/16-bit array (HxW or BGR(A)) -> float32 HxWxC RGB in [0, 1]."""
   if raw.dtype == np.uint8:
     scale = 255.0
   elif raw.dtype == np.uint16:
     scale = 65535.0
   else:
-    raise SljaxError(f"{path}: expected an 8- or 16-bit image, got {raw.dtype}")
+    raise SljaxError(f"{where}: expected an 8- or 16-bit image, got {raw.dtype}")
   if raw.ndim == 2:
     img = raw[..., None]
   elif raw.shape[2] == 1:
@@ -89,13 +99,8 @@ def read_image(path: str | os.PathLike, gray: bool | None = None) -> np.ndarray:
   elif raw.shape[2] in (3, 4):
     img = raw[..., 2::-1]  # BGR(A) -> RGB
   else:
-    raise SljaxError(f"{path}: unsupported channel count {raw.shape[2]}")
-  img = img.astype(np.float32) / np.float32(scale)
-  if gray is True:
-    img = to_gray(img)
-  elif gray is False and img.shape[2] == 1:
-    img = np.repeat(img, 3, axis=2)
-  return np.ascontiguousarray(img)
+    raise SljaxError(f"{where}: unsupported channel count {raw.shape[2]}")
+  return img.astype(np.float32) / np.float32(scale)
 
 
 def write_image(path: str | os.PathLike, image: np.ndarray, bit_depth: int = 8) -> None:
@@ -131,6 +136,17 @@ def patterns_from_png(values: np.ndarray) -> np.ndarray:
   out = (v > 127).astype(np.float32)
   out[v == UNKNOWN_PATTERN] = np.nan
   return out
+
+
+def read_json_object(path: str | os.PathLike, where: str) -> dict[str, Any]:
+  """Reads a JSON file that must hold an object; errors start with `where` (scene, file)."""
+  try:
+    value = json.loads(Path(path).read_text(encoding="utf-8"))
+  except (OSError, ValueError) as e:
+    raise SljaxError(f"{where}: not valid JSON ({e})") from None
+  if not isinstance(value, dict):
+    raise SljaxError(f"{where}: must hold a JSON object")
+  return value
 
 
 def _numbered_files(folder: Path, pattern: re.Pattern) -> list[Path]:
@@ -176,7 +192,7 @@ def write_patterns(folder: str | os.PathLike, patterns: np.ndarray,
     raise SljaxError(f"{folder}: patterns must be HxWxt, got shape {p.shape}")
   existing = _numbered_files(folder, _PATTERN_FILE) if folder.is_dir() else []
   if existing and not overwrite:
-    raise SljaxError(f"{existing[0]}: exists (use overwrite)")
+    raise SljaxError(f"{existing[0]}: exists (use --overwrite / overwrite=True to replace it)")
   folder.mkdir(parents=True, exist_ok=True)
   for old in existing:  # a shorter sequence must not leave stale planes behind
     old.unlink()
@@ -214,7 +230,7 @@ def write_raw(folder: str | os.PathLike, raw: dict[str, np.ndarray], bit_depth: 
       raise SljaxError(f"{folder}: raw capture key {key!r} is not white, black, pNNN or iNNN")
   existing = _numbered_files(folder, _RAW_FILE) if folder.is_dir() else []
   if existing and not overwrite:
-    raise SljaxError(f"{existing[0]}: exists (use overwrite)")
+    raise SljaxError(f"{existing[0]}: exists (use --overwrite / overwrite=True to replace it)")
   folder.mkdir(parents=True, exist_ok=True)
   for old in existing:
     old.unlink()
@@ -317,13 +333,7 @@ def load_scene(path: str | os.PathLike, gray: bool | None = None,
   if "calib" in parts and need("calib.txt"):
     scene.calib = read_calib(scene_dir / "calib.txt")
   if "meta" in parts and need("meta.json"):
-    try:
-      meta = json.loads((scene_dir / "meta.json").read_text(encoding="utf-8"))
-    except (OSError, ValueError) as e:
-      raise _fail(scene_dir, "meta.json", f"not valid JSON ({e})") from None
-    if not isinstance(meta, dict):
-      raise _fail(scene_dir, "meta.json", "must hold a JSON object")
-    scene.meta = meta
+    scene.meta = read_json_object(scene_dir / "meta.json", f"scene {scene_dir}: meta.json")
   return scene
 
 
@@ -361,13 +371,13 @@ def write_scene(path: str | os.PathLike, scene: Scene, overwrite: bool = False,
   if not overwrite:
     for f in targets:
       if (scene_dir / f).exists():
-        raise _fail(scene_dir, f, "exists (use overwrite)")
+        raise _fail(scene_dir, f, "exists (use --overwrite / overwrite=True to replace it)")
     for folder, pattern in (("sl0", _PATTERN_FILE), ("sl1", _PATTERN_FILE),
                             ("raw0", _RAW_FILE), ("raw1", _RAW_FILE)):
       if getattr(scene, folder) is not None and (scene_dir / folder).is_dir():
         existing = _numbered_files(scene_dir / folder, pattern)
         if existing:
-          raise _fail(scene_dir, f"{folder}/{existing[0].name}", "exists (use overwrite)")
+          raise _fail(scene_dir, f"{folder}/{existing[0].name}", "exists (use --overwrite / overwrite=True to replace it)")
 
   scene_dir.mkdir(parents=True, exist_ok=True)
   write_image(scene_dir / "im0.png", scene.im0, bit_depth)

@@ -103,7 +103,9 @@ def _figure(path: Path, label: str, scene, out: dict[str, np.ndarray], title: st
                           vmin=0.0, vmax=1.0))
     if "confidence" in out:
       panels.append(Panel("confidence", out["confidence"], cmap="viridis", vmin=0.0, vmax=1.0))
-  save_panels(path, panels, ncols=4, title=f"{label} - {title}")
+  # Disparity models fit one row (inputs, truth, prediction, error); SL models wrap at 4.
+  save_panels(path, panels, ncols=len(panels) if len(panels) <= 5 else 4,
+              title=f"{label} - {title}")
 
 
 def _uncertainty(out: dict[str, np.ndarray]) -> np.ndarray:
@@ -154,8 +156,9 @@ def evaluate(predictor, source, indices: list[int] | None = None, *, out_dir: Pa
         if pred_key not in out or gt is None:
           continue
         if gt.shape != out[pred_key].shape:
-          pattern_notes.add(f"pattern accuracy ({view}) skipped where the dataset's patterns "
-                            f"{gt.shape[-1]} differ from the model's {out[pred_key].shape[-1]}")
+          pattern_notes.add(f"pattern accuracy ({view} view) skipped: the dataset has "
+                            f"{gt.shape[-1]} patterns per view, the model predicts "
+                            f"{out[pred_key].shape[-1]}")
           continue
         one = metrics.PatternAccumulator()
         one.add(out[pred_key], gt)

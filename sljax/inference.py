@@ -18,11 +18,16 @@ and "confidence" (HxW in [0, 1], higher is surer: the correlation's peak-ratio c
 unet-sl, whose disparity is the windowed correlation of its predicted patterns, and the mean
 pattern certainty |2p - 1| for psmnet-mtl).
 
-The network runs in one jitted function; jax caches one compilation per model-input shape
-(in resize mode that is always the training size). `Predictor.traces` counts the traces.
+The network runs in one jitted function shared by every predictor of an equal model (flax
+modules compare by their fields), so jax keeps one compilation per model and model-input shape
+(in resize mode that is always the training size) for the whole process: both resolution
+modes, or several checkpoints of one configuration, reuse it. `Predictor.traces` counts the
+traces of the predictor's model.
 """
 
+import collections
 import dataclasses
+import functools
 import os
 from typing import Any
 
@@ -146,6 +151,31 @@ def _tree_diff(expected: Any, got: Any, path: str = "") -> str | None:
   return None if es == gs else f"{path}: expected shape {es}, got {gs}"
 
 
+_TRACES: collections.Counter = collections.Counter()  # model -> traces (compilations)
+
+
+def _forward(model, variables, left, right) -> dict:
+  """Eval-mode outputs: float32 disparity and pattern probabilities (sigmoid of the logits)."""
+  import jax
+  _TRACES[model] += 1  # runs only while tracing: counts compilations
+  out = model.apply(variables, left, right, train=False)
+  res = {}
+  if "disparity" in out:
+    res["disparity"] = out["disparity"].astype("float32")
+  if "sl_logits" in out:
+    res["patterns"] = jax.nn.sigmoid(out["sl_logits"])
+  if "sl_logits_right" in out:
+    res["patterns_right"] = jax.nn.sigmoid(out["sl_logits_right"])
+  return res
+
+
+@functools.cache
+def _jitted_forward():
+  """`_forward` jitted with the model static, so equal models share compilations."""
+  import jax
+  return jax.jit(_forward, static_argnums=0)
+
+
 @dataclasses.dataclass(frozen=True)
 class ModelSpec:
   """What the predictor learnt about a model from an abstract run of it."""
@@ -194,6 +224,11 @@ class Predictor:
 
     if mode not in MODES:
       raise SljaxError(f"mode must be one of {MODES}, got {mode!r}")
+    try:
+      hash(model)  # the shared compiled function takes the model as a static argument
+    except TypeError:
+      raise SljaxError(f"{model_name}: the model must be hashable (a flax module whose fields "
+                       "are hashable)") from None
     self.model_name = model_name
     self.model_kwargs = dict(model_kwargs or {})
     self.mode = mode
@@ -209,22 +244,13 @@ class Predictor:
     desc = f"{model_name}({', '.join(f'{k}={v!r}' for k, v in self.model_kwargs.items())})"
     self.spec = _probe(model, variables, guess, probe_size, self.name, desc)
     self.channels = self.spec.channels
-    self.traces = 0
+    self.model = model
     self.train_config: dict[str, Any] = {}  # set by load(): the run's training config
 
-    def core(v, left, right):
-      self.traces += 1  # runs only while tracing: counts compilations
-      out = model.apply(v, left, right, train=False)
-      res = {}
-      if "disparity" in out:
-        res["disparity"] = out["disparity"].astype("float32")
-      if "sl_logits" in out:
-        res["patterns"] = jax.nn.sigmoid(out["sl_logits"])
-      if "sl_logits_right" in out:
-        res["patterns_right"] = jax.nn.sigmoid(out["sl_logits_right"])
-      return res
-
-    self._core = jax.jit(core)
+  @property
+  def traces(self) -> int:
+    """How often this predictor's model was traced (compiled) in this process."""
+    return _TRACES[self.model]
 
   @property
   def is_sl(self) -> bool:
@@ -254,7 +280,7 @@ class Predictor:
       th, tw = self.train_size
       lin = np.stack([resize_image(x, (th, tw)) for x in lf])
       rin = np.stack([resize_image(x, (th, tw)) for x in rf])
-    raw = self._core(self.variables, lin, rin)
+    raw = _jitted_forward()(self.model, self.variables, lin, rin)
     out = {k: np.asarray(v, dtype=np.float32) for k, v in raw.items()}
 
     if self.mode == "pad":

@@ -179,5 +179,5 @@ def test_bad_inputs(tmp_path, monkeypatch, capsys):
   monkeypatch.setitem(sys.modules, "torch", None)  # as if PyTorch were not installed
   with pytest.raises(SljaxError, match=r"pip install \"sljax\[torch\]\""):
     convert.read_state_dict(ckpt)
-  with pytest.raises(SljaxError, match="not a converted model"):
+  with pytest.raises(SljaxError, match="not a checkpoint.*converted PSMNet"):
     convert.load_converted(tmp_path)

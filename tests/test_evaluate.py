@@ -127,6 +127,10 @@ def test_image_pair_of_different_sizes_names_the_file(tmp_path, capsys):
 def test_missing_checkpoint_is_an_error(dataset, tmp_path, capsys):
   rc = cli.main(["evaluate", str(tmp_path / "nope"), str(dataset), "--out", str(tmp_path / "o")])
   assert rc == 2 and "nope" in capsys.readouterr().err
+  # A folder that is no checkpoint (here the dataset itself) says what a checkpoint is.
+  rc = cli.main(["evaluate", str(dataset), str(dataset), "--out", str(tmp_path / "o")])
+  err = capsys.readouterr().err
+  assert rc == 2 and str(dataset) in err and "not a checkpoint" in err and "workdir" in err
 
 
 class ToySL(nn.Module):

@@ -114,19 +114,29 @@ def test_rgb_model_gets_gray_input_repeated():
   np.testing.assert_allclose(pred(left, right)["disparity"], 10.0 * left + 0.5, rtol=1e-6)
 
 
-def test_compiled_once_per_shape(resize_predictor):
-  p = _toy("pad")
-  a = _pair(21, 33, seed=5)
-  p(*a)
+class ToyCount(ToyDisp):
+  """ToyDisp under another name: a model no other test compiles, so its trace count starts at 0."""
+
+
+def test_compiled_once_per_shape_and_shared_between_predictors():
+  variables = {"params": {"bias": jnp.array([0.5], jnp.float32)}}
+  p = inference.Predictor(ToyCount(), variables, model_name="count", mode="pad")
+  assert p.traces == 0
+  p(*_pair(21, 33, seed=5))
   p(*_pair(21, 33, seed=6))
   assert p.traces == 1
   p(*_pair(40, 33, seed=6))  # pads to another shape: one more trace
   assert p.traces == 2
-  # Resize mode: the network always sees the training size.
-  before = resize_predictor.traces
-  resize_predictor(*_pair(17, 19))
-  resize_predictor(*_pair(60, 90))
-  assert resize_predictor.traces - before <= 1
+  # Resize mode: the network always sees the training size (32x64, compiled above), and an
+  # equal model in another predictor reuses the compilation.
+  r = inference.Predictor(ToyCount(), variables, model_name="count", mode="resize",
+                          train_size=(32, 64))
+  r(*_pair(17, 19))
+  r(*_pair(60, 90))
+  assert r.traces == p.traces == 2
+  left, right = _pair(17, 19)
+  r(np.stack([left, left])[..., None], np.stack([right, right])[..., None])  # batch 2: new shape
+  assert r.traces == 3
 
 
 def test_bad_inputs(pad_predictor):
@@ -291,3 +301,64 @@ def test_mtl_style_model_confidence_is_mean_pattern_certainty():
   p = 1.0 / (1.0 + np.exp(-4.0 * (left.astype(np.float64) - 0.5)))
   np.testing.assert_allclose(out["patterns"], p, rtol=1e-5)
   np.testing.assert_allclose(out["confidence"], np.abs(2 * p - 1).mean(axis=-1), atol=1e-5)
+
+
+# PSMNet and the twin, tiny (32x32 model input, maxdisp 16) and randomly initialised; one
+# compilation each, shared by the predictors of both modes.
+PSM_KW = {"maxdisp": 16, "t": 3, "in_channels": 3}
+
+
+@pytest.fixture(scope="module")
+def mtl_predictor():
+  variables = random_variables("psmnet-mtl", PSM_KW, 12, hw=(32, 32))
+  return inference.make_predictor("psmnet-mtl", PSM_KW, variables, train_size=(32, 32),
+                                  mode="pad")
+
+
+def test_psmnet_mtl_pad_mode_odd_size(mtl_predictor):
+  rng = np.random.default_rng(13)
+  left = rng.integers(0, 256, (30, 27, 3), dtype=np.uint8)
+  right = rng.integers(0, 256, (30, 27, 3), dtype=np.uint8)
+  out = mtl_predictor(left, right)
+  assert mtl_predictor.is_sl and mtl_predictor.channels == 3
+  assert set(out) == {"disparity", "patterns", "confidence"}
+  assert out["disparity"].shape == (30, 27) and out["patterns"].shape == (30, 27, 3)
+  d = out["disparity"]
+  assert np.isfinite(d).all() and d.min() >= 0 and d.max() <= 15  # soft-argmax over 0..15
+  p = out["patterns"].astype(np.float64)
+  assert ((p >= 0) & (p <= 1)).all()
+  np.testing.assert_allclose(out["confidence"], np.abs(2 * p - 1).mean(axis=-1), atol=1e-6)
+
+
+def test_psmnet_mtl_resize_mode_is_pad_at_training_size_resized_back(mtl_predictor):
+  from sljax.nets import build_model
+  rng = np.random.default_rng(14)
+  left, right = rng.uniform(0, 1, (2, 40, 36, 3)).astype(np.float32)
+  resize = inference.Predictor(
+      build_model("psmnet-mtl", **PSM_KW), mtl_predictor.variables, model_name="psmnet-mtl",
+      train_size=(32, 32), mode="resize")
+  traces = mtl_predictor.traces
+  out = resize(left, right)
+  assert resize.traces == traces  # the same model at the same input shape: no recompilation
+  # Reference: the network at the training size (32x32 needs no padding), outputs resized
+  # back bilinearly by OpenCV, disparity scaled by the width ratio 36 / 32.
+  small = mtl_predictor(resize_image(left, (32, 32)), resize_image(right, (32, 32)))
+  back = lambda a: cv2.resize(a, (36, 40), interpolation=cv2.INTER_LINEAR)
+  np.testing.assert_allclose(out["disparity"], back(small["disparity"]) * 36 / 32,
+                             rtol=1e-5, atol=1e-5)
+  np.testing.assert_allclose(out["patterns"], back(small["patterns"]), atol=1e-6)
+  np.testing.assert_allclose(out["confidence"], back(small["confidence"]), atol=1e-6)
+
+
+def test_detached_psmnet_predicts_the_twins_disparity(mtl_predictor):
+  from sljax.nets import detach_sl
+  plain = inference.make_predictor("psmnet", {"maxdisp": 16, "in_channels": 3},
+                                   detach_sl(mtl_predictor.variables), mode="pad")
+  assert not plain.is_sl
+  rng = np.random.default_rng(13)
+  left = rng.integers(0, 256, (30, 27, 3), dtype=np.uint8)
+  right = rng.integers(0, 256, (30, 27, 3), dtype=np.uint8)
+  out = plain(left, right)
+  assert set(out) == {"disparity"}
+  np.testing.assert_allclose(out["disparity"], mtl_predictor(left, right)["disparity"],
+                             rtol=1e-5, atol=1e-5)

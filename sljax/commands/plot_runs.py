@@ -103,6 +103,7 @@ def plot(runs: list[dict[str, Any]], out: str | os.PathLike, title: str = "Valid
   import matplotlib
   matplotlib.use("Agg")
   import matplotlib.pyplot as plt
+  from matplotlib.ticker import MaxNLocator
 
   fig, ax = plt.subplots(figsize=(6.4, 4.2))
   for r in runs:
@@ -110,6 +111,7 @@ def plot(runs: list[dict[str, Any]], out: str | os.PathLike, title: str = "Valid
     if pts:
       xs, ys = zip(*pts)
       ax.plot(xs, ys, marker="o", markersize=3, label=r["label"])
+  ax.xaxis.set_major_locator(MaxNLocator(integer=True))  # epochs are whole numbers
   ax.set_xlabel("epoch")
   ax.set_ylabel("validation MAE (px)")
   if log:

@@ -200,8 +200,10 @@ def is_converted(path: str | Path) -> bool:
 def load_converted(path: str | Path) -> tuple[str, dict, dict]:
   """Reads a converted directory -> (model_name, model_kwargs, variables as numpy arrays)."""
   path = Path(path)
-  require(is_converted(path), f"{path} is not a converted model (needs {CONFIG_FILE} and "
-          f"{VARIABLES_FILE})")
+  # Also reached for any folder given where a checkpoint is expected, so name every kind.
+  require(is_converted(path), f"{path}: not a checkpoint (expected a training workdir with "
+          f"config.json and checkpoints/, its checkpoints folder, or a converted PSMNet folder "
+          f"with {CONFIG_FILE} and {VARIABLES_FILE})")
   try:
     config = json.loads((path / CONFIG_FILE).read_text())
   except json.JSONDecodeError as e:

@@ -5,6 +5,7 @@ import pytest
 
 from sljax import cli
 from sljax.data import synth_geometry as geo
+from sljax.data import synthetic as synth
 from sljax.data.synthetic import SynthConfig, SyntheticSource, render_scene
 from sljax.sl import codes
 from sljax.sl.decode import decode_captures
@@ -114,6 +115,36 @@ def test_primitives_match_brute_force():
   both = fin & np.isfinite(t_pod)
   assert np.all(t_pod[both] <= want_pod[both] + 1e-6)
   assert np.mean(want_pod[both] - t_pod[both] <= step + 1e-6) > 0.98
+
+
+def test_normals_match_numeric_gradients():
+  rng = np.random.default_rng(1)
+  frames = np.stack([np.linalg.qr(rng.normal(size=(3, 3)))[0] / rng.uniform(0.02, 0.06, 3)
+                     for _ in range(3)]).astype(np.float32)
+  centres = rng.normal(0, 0.02, (3, 3)).astype(np.float32)
+  k = rng.integers(0, 3, 50)
+  p = (centres[k] + rng.normal(0, 0.03, (50, 3))).astype(np.float32)
+  got = np.stack(geo.ellipsoid_normal(p.T, k, frames, centres), -1)
+
+  def g(q):  # |(q - c) A|^2 in float64
+    return np.sum(np.einsum("ni,nij->nj", q - centres[k], frames[k].astype(np.float64)) ** 2, -1)
+
+  h = 1e-6
+  num = np.stack([(g(p + h * e) - g(p - h * e)) / (2 * h) for e in np.eye(3)], -1)
+  unit = lambda v: v / np.linalg.norm(v, axis=-1, keepdims=True)  # noqa: E731
+  np.testing.assert_allclose(unit(got), unit(num), atol=1e-4)
+  # Box: the inward normal of the exit wall; podium: radial side, top facing the ray.
+  d = np.float32([[0.3, -0.9, 0.1], [-0.2, 0.1, 0.05], [0.1, 0.2, -1.0]]).T
+  t, axis = geo.ray_box_exit(np.zeros((3, 1), np.float32), d, (-0.5, -0.5, 0.0), (0.5, 0.5, 1.0))
+  np.testing.assert_array_equal(np.asarray(axis), [1, 0, 2])
+  np.testing.assert_allclose(np.asarray(t), [0.5 / 0.9, 2.5, 0.0], atol=1e-6)
+  n = np.stack(geo.box_normal(axis, d), -1)
+  np.testing.assert_array_equal(n, [[0, 1, 0], [1, 0, 0], [0, 0, 1]])
+  p_side = np.float32([[0.03, 0.04, 0.05]]).T
+  n_side = np.stack(geo.podium_normal(p_side, np.array([False]), 0.05, d[:, :1]), -1)
+  np.testing.assert_allclose(n_side, [[0.6, 0.8, 0.0]], atol=1e-6)
+  n_top = np.stack(geo.podium_normal(p_side, np.array([True]), 0.05, d[:, 2:]), -1)
+  np.testing.assert_allclose(n_top, [[0.0, 0.0, 1.0]])
 
 
 # ----------------------------------------------------------------------------------------------
@@ -248,3 +279,76 @@ def test_make_data_and_show(tmp_path, objects, capsys):
   png2 = tmp_path / "scene.png"
   assert cli.main(["show", str(scene_dir), "--out", str(png2)]) == 0 and png2.exists()
   assert cli.main(["show", str(out), "--out", str(png), "--index", "5"]) == 2
+
+
+# ----------------------------------------------------------------------------------------------
+# Sensor noise and raw-capture formation against NumPy references.
+
+
+def _hash32_np(x):
+  x = x.astype(np.uint64)
+  x ^= x >> 16
+  x = (x * 0x21F0AAAD) & 0xFFFFFFFF
+  x ^= x >> 15
+  x = (x * 0x735A2D97) & 0xFFFFFFFF
+  return x ^ (x >> 15)
+
+
+def test_noise_is_counter_hash_and_nearly_gaussian():
+  import jax
+  from math import erf, sqrt
+  key = jax.random.PRNGKey(5)
+  shape = (2, 3, 64, 64)
+  z = np.asarray(synth._noise(key, shape))
+  np.testing.assert_array_equal(z, np.asarray(synth._noise(key, shape)))  # deterministic
+  # NumPy reference of the documented construction: hash(hash(i ^ k0) ^ k1), sum of its bytes.
+  k0, k1 = (int(v) for v in np.asarray(jax.random.bits(key, (2,), np.uint32)))
+  x = _hash32_np(_hash32_np(np.arange(z.size, dtype=np.uint64) ^ k0) ^ k1)
+  total = sum((x >> s) & 255 for s in (0, 8, 16, 24)).astype(np.float64)
+  want = (total - 510.0) / sqrt(4 * (256 ** 2 - 1) / 12)
+  np.testing.assert_allclose(z.ravel(), want, atol=1e-5)
+  assert abs(z.mean()) < 0.02 and abs(z.std() - 1) < 0.02 and np.abs(z).max() < 3.5
+  flat = z.ravel()
+  assert abs(np.corrcoef(flat[:-1], flat[1:])[0, 1]) < 0.02  # neighbours independent
+  # Close to a standard normal: Kolmogorov-Smirnov distance against its CDF.
+  s = np.sort(flat)
+  cdf = 0.5 * (1 + np.vectorize(erf)(s / sqrt(2)))
+  assert np.max(np.abs(cdf - np.arange(1, s.size + 1) / s.size)) < 0.015
+  other = np.asarray(synth._noise(jax.random.PRNGKey(6), shape))
+  assert abs(np.corrcoef(flat, other.ravel())[0, 1]) < 0.02
+
+
+def _blur_np(img, sigma):
+  """Naive separable Gaussian blur with edge replication (float64), radius ceil(3 sigma)."""
+  r = max(1, int(np.ceil(3 * sigma)))
+  w = np.exp(-0.5 * (np.arange(-r, r + 1) / sigma) ** 2)
+  w /= w.sum()
+  out = img.astype(np.float64)
+  for axis in (-1, -2):
+    pad = [(0, 0)] * out.ndim
+    pad[axis] = (r, r)
+    x = np.pad(out, pad, mode="edge")
+    n = out.shape[axis]
+    out = sum(w[i] * np.take(x, np.arange(i, i + n), axis=axis) for i in range(2 * r + 1))
+  return out
+
+
+def test_raw_captures_match_direct_formation():
+  cfg = SynthConfig(size=24, t=5, raw_noise=0.0, raw_blur=0.7).resolved()
+  rng = np.random.default_rng(2)
+  col = rng.uniform(0, 32, (2, 24, 24)).astype(np.float32)
+  col[rng.random(col.shape) < 0.2] = np.nan
+  grey = rng.uniform(0.1, 0.9, col.shape).astype(np.float32)
+  irr = np.where(np.isnan(col), 0, rng.uniform(0, 0.7, col.shape)).astype(np.float32)
+  import jax
+  rig = {"key_noise": jax.random.PRNGKey(0)}
+  got = np.asarray(synth._stage_raw(rig, *synth._stage_raw_rows(col, grey, irr, cfg), cfg))
+  # Direct formation of every capture, then blur each one.
+  bits = codes.encode(np.nan_to_num(col).astype(int), "binary", 5).astype(np.float64)
+  black = grey * cfg.raw_ambient
+  white = black + grey * irr
+  caps = [white, black] + [black + grey * irr * bits[..., k] for k in range(5)] + [
+      black + grey * irr * (1 - bits[..., k]) for k in range(5)]
+  want = np.clip(_blur_np(np.stack(caps, 1), cfg.raw_blur), 0, 1)
+  assert got.shape == (2, 12, 24, 24)
+  np.testing.assert_allclose(got, want, atol=1e-5)

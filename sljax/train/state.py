@@ -1,0 +1,59 @@
+"""Training state (params, batch_stats, opt_state, step) and its creation."""
+
+import functools
+from typing import Any
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import optax
+from flax import struct
+
+from sljax.losses.weighting import UNCERTAINTY_KEY, init_uncertainty
+
+
+class TrainState(struct.PyTreeNode):
+  """Everything a step updates; a plain pytree so it can be donated, sharded and checkpointed."""
+  step: jax.Array
+  params: Any
+  batch_stats: Any
+  opt_state: Any
+
+
+def make_optimizer(lr: float) -> optax.GradientTransformation:
+  """Adam with a fixed learning rate (paper: 1e-4, betas 0.9/0.999)."""
+  return optax.adam(lr, b1=0.9, b2=0.999)
+
+
+# Initialisation runs once: compile it without XLA's backend optimisations (2-3x faster to
+# compile on CPU). Always the same options, so initial values stay deterministic in the seed.
+INIT_COMPILER_OPTIONS = {"xla_backend_optimization_level": 0,
+                         "xla_llvm_disable_expensive_passes": True}
+
+
+@functools.lru_cache(maxsize=8)
+def _init_fn(model: nn.Module, height: int, width: int, channels: int):
+  x = jnp.zeros((1, height, width, channels), jnp.float32)
+  return jax.jit(lambda key: model.init(key, x, x, train=False),
+                 compiler_options=INIT_COMPILER_OPTIONS)
+
+
+def init_variables(model: nn.Module, seed: int, height: int, width: int,
+                   channels: int) -> dict[str, Any]:
+  """Model variables from a batch-1 dummy input, deterministic in seed (compiled once per
+  model and shape in a process)."""
+  return dict(_init_fn(model, height, width, channels)(jax.random.PRNGKey(seed)))
+
+
+def net_params(params: dict[str, Any]) -> dict[str, Any]:
+  """The network's parameters without the strategy's own (uncertainty log sigmas)."""
+  return {k: v for k, v in params.items() if k != UNCERTAINTY_KEY}
+
+
+def create_state(variables: dict[str, Any], tx: optax.GradientTransformation) -> TrainState:
+  """Fresh state. The unc strategy's log sigmas always join the parameter tree (Adam leaves
+  them at their initial value under the other strategies, whose gradient for them is 0)."""
+  params = dict(variables["params"])
+  params[UNCERTAINTY_KEY] = init_uncertainty()
+  return TrainState(step=jnp.zeros((), jnp.int32), params=params,
+                    batch_stats=dict(variables.get("batch_stats", {})), opt_state=tx.init(params))

@@ -1,0 +1,186 @@
+"""The jitted training step: every strategy and both UNets overfit one batch; unc's log-sigma
+update; the sharded step equals the single-device step (8 forced host devices)."""
+
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from sljax.losses import weighting as wt
+from sljax.nets import build_model
+from sljax.train import state as st
+from sljax.train import step as stp
+
+ROOT = Path(__file__).resolve().parents[1]
+H = W = 16
+MAXDISP = 16
+T = 3
+LR = 2e-3
+# Tests compile without XLA backend optimisations: compiling dominates, the steps are tiny.
+FAST = st.INIT_COMPILER_OPTIONS
+
+
+def _batch(b: int = 2) -> dict[str, np.ndarray]:
+  """An easy batch to memorise: textured views, constant GT with unknown / out-of-range parts."""
+  rng = np.random.default_rng(0)
+  left = rng.random((b, H, W, 3)).astype(np.float32)
+  disp = np.full((b, H, W), 6.0, np.float32)
+  disp[:, :2] = np.inf        # unknown
+  disp[:, 2:4] = 40.0         # beyond maxdisp: masked out
+  sl = np.zeros((b, H, W, T), np.float32)
+  sl[..., 0] = 1.0
+  sl[:, :, :3] = np.nan       # projector shadow
+  return {"left": left, "right": np.roll(left, -6, axis=2), "disp": disp, "sl": sl,
+          "sl_right": sl.copy()}
+
+
+def _fresh(variables, tx, mesh):
+  # create_state shares the variables' buffers and steps donate the state: copy first. Placing
+  # it replicated like the step's output keeps one compilation for every call.
+  state = st.create_state(jax.tree.map(jnp.copy, variables), tx)
+  return jax.device_put(state, stp.shardings(mesh)[0])
+
+
+def _overfit(step, state, batch, weights, n):
+  first = None
+  for _ in range(n):
+    state, m = step(state, batch, weights)
+    m = jax.device_get(m)
+    first = first or m
+  return state, first, m
+
+
+@pytest.fixture(scope="module")
+def twin():
+  model = build_model("psmnet-mtl", maxdisp=MAXDISP, t=T, in_channels=3)
+  return model, st.init_variables(model, 0, H, W, 3)
+
+
+@pytest.fixture(scope="module")
+def mesh():
+  return stp.make_mesh()
+
+
+STEPS = 12  # both task losses fall > 10x within ~10 steps at LR
+
+
+@pytest.fixture(scope="module")
+def twin_runs(twin, mesh):
+  """Overfits one batch with one compiled step under every strategy (the strategy is an input)."""
+  model, variables = twin
+  tx = st.make_optimizer(LR)
+  step = stp.make_train_step(model, net="psmnet-mtl", maxdisp=MAXDISP, disp_loss="l2", tx=tx,
+                             mesh=mesh, compiler_options=FAST)
+  batch = stp.put_batch({k: v for k, v in _batch().items() if k != "sl_right"}, mesh)
+  out = {}
+  history = [(0.8, 9.0), (0.5, 8.0)]  # a DWA history giving unequal weights
+  for name in wt.STRATEGIES:
+    w = jnp.asarray(wt.step_weights(name, history))
+    state = _fresh(variables, tx, mesh)
+    metrics = []
+    for i in range(STEPS):
+      state, m = step(state, batch, w)
+      metrics.append(jax.device_get(m))
+      if i == 0:
+        after_one = jax.device_get(state.params["uncertainty"])
+    out[name] = (metrics, np.asarray(w), after_one)
+  assert step._cache_size() == 1  # one compilation for all five strategies
+  return out
+
+
+@pytest.mark.parametrize("name", wt.STRATEGIES)
+def test_twin_overfits_one_batch(twin_runs, name):
+  metrics, w, _ = twin_runs[name]
+  first, last = metrics[0], metrics[-1]
+  assert last["loss_disp"] * 10 <= first["loss_disp"], (first, last)
+  if name == "stl":
+    assert last["loss_sl"] > 0.1  # SL path untrained under stl weights
+  else:
+    assert last["loss_sl"] * 10 <= first["loss_sl"], (first, last)
+  if name != "unc":
+    np.testing.assert_allclose([last["w_sl"], last["w_disp"]], w[:2])
+    np.testing.assert_allclose(first["loss"], w[0] * first["loss_sl"] + w[1] * first["loss_disp"],
+                               rtol=1e-5)
+    assert last["sigma_sl"] == 1.0 and last["sigma_disp"] == 1.0  # zero gradient: untouched
+  assert np.isfinite(last["grad_norm"]) and last["grad_norm"] > 0
+
+
+def test_twin_unc_weights_and_log_sigma_gradient(twin_runs):
+  metrics, _, after_one = twin_runs["unc"]
+  m0 = metrics[0]
+  # Initial sigmas 1: weights 0.5 / 2 and 1 / 2, total = 0.25 L_sl + 0.5 L_disp + 0.
+  np.testing.assert_allclose([m0["sigma_sl"], m0["sigma_disp"], m0["w_sl"], m0["w_disp"]],
+                             [1, 1, 0.25, 0.5], rtol=1e-6)
+  np.testing.assert_allclose(m0["loss"], 0.25 * m0["loss_sl"] + 0.5 * m0["loss_disp"], rtol=1e-5)
+  # Adam's first update is -lr * sign(grad); d total / d log sigma = -2 w L + 1 (hand-derived).
+  g_sl = -2 * 0.25 * m0["loss_sl"] + 1
+  g_d = -2 * 0.5 * m0["loss_disp"] + 1
+  np.testing.assert_allclose([after_one["log_sigma_sl"], after_one["log_sigma_disp"]],
+                             [-LR * np.sign(g_sl), -LR * np.sign(g_d)], rtol=1e-3)
+  last = metrics[-1]
+  sig = np.exp([np.log(last["sigma_sl"]), np.log(last["sigma_disp"])])
+  np.testing.assert_allclose([last["w_sl"], last["w_disp"]], [0.25 / sig[0]**2, 0.5 / sig[1]**2],
+                             rtol=1e-5)
+
+
+@pytest.mark.parametrize("net", ["unet-sl", "unet-disp"])
+def test_unets_overfit_one_batch(net, mesh):
+  model = build_model(net, t=T, in_channels=3, depth=2, base_width=8)
+  variables = st.init_variables(model, 0, H, W, 3)
+  tx = st.make_optimizer(2e-2)
+  step = stp.make_train_step(model, net=net, maxdisp=MAXDISP, disp_loss="l2", tx=tx, mesh=mesh,
+                             compiler_options=FAST)
+  batch = stp.put_batch({k: v for k, v in _batch().items() if k in stp.BATCH_PARTS[net]}, mesh)
+  w = jnp.asarray([1.0, 0.0, 0.0] if net == "unet-sl" else [0.0, 1.0, 0.0])
+  _, first, last = _overfit(step, _fresh(variables, tx, mesh), batch, w, 60)
+  key = "loss_sl" if net == "unet-sl" else "loss_disp"
+  assert last[key] * 10 <= first[key], (first, last)
+  assert last["loss"] == pytest.approx(last[key])
+
+
+_SHARDED = textwrap.dedent("""
+    import jax, jax.numpy as jnp, numpy as np
+    assert jax.device_count() == 8, jax.devices()
+    from sljax.nets import build_model
+    from sljax.train import state as st, step as stp
+    model = build_model("unet-disp", in_channels=3, depth=2, base_width=8)
+    v = st.init_variables(model, 0, 32, 32, 3)
+    tx = st.make_optimizer(1e-3)
+    rng = np.random.default_rng(1)
+    left = rng.random((8, 32, 32, 3)).astype(np.float32)
+    disp = (rng.random((8, 32, 32)) * 20).astype(np.float32)
+    disp[:, :3] = np.inf
+    host = {"left": left, "right": np.roll(left, -2, 2), "disp": disp}
+    res = []
+    for devices in (jax.devices()[:1], jax.devices()):
+      mesh = stp.make_mesh(devices)
+      step = stp.make_train_step(model, net="unet-disp", maxdisp=16, disp_loss="l2", tx=tx,
+                                 mesh=mesh, compiler_options=st.INIT_COMPILER_OPTIONS)
+      s = jax.device_put(st.create_state(jax.tree.map(jnp.copy, v), tx),
+                         stp.shardings(mesh)[0])
+      b = stp.put_batch(host, mesh)
+      assert len(b["left"].sharding.device_set) == len(devices)
+      for _ in range(2):
+        s, m = step(s, b, jnp.asarray([0.0, 1.0, 0.0]))
+      res.append(jax.device_get((s.params, s.batch_stats, m)))
+    (p1, b1, m1), (p8, b8, m8) = res
+    for a, b in zip(jax.tree.leaves((p1, b1)), jax.tree.leaves((p8, b8))):
+      np.testing.assert_allclose(a, b, rtol=2e-4, atol=2e-6)
+    for k in m1:
+      np.testing.assert_allclose(m1[k], m8[k], rtol=2e-4, atol=1e-6)
+    print("SHARDED_OK", len(jax.tree.leaves(p1)), float(m1["loss"]))
+""")
+
+
+def test_sharded_step_equals_single_device():
+  env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=8",
+             JAX_PLATFORMS="cpu", PYTHONPATH=str(ROOT))
+  r = subprocess.run([sys.executable, "-c", _SHARDED], env=env, cwd=ROOT, capture_output=True,
+                     text=True, timeout=600)
+  assert r.returncode == 0 and "SHARDED_OK" in r.stdout, r.stdout + r.stderr[-3000:]

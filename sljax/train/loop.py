@@ -518,11 +518,12 @@ def validate_split(eval_step, state, rows: RowCache, val_idx: Sequence[int], con
   For unet-sl the disparity comes from the predicted patterns by correlation (SPEC 2).
   """
   # pylint: disable=import-outside-toplevel
-  from sljax.losses.disparity import masked_mae
   from sljax.losses.sl import sl_loss
+  from sljax.metrics import DisparityAccumulator
   from sljax.train import step as stp
   b = config.batch_size
-  mae_sum, mae_n, sl_sum, sl_n = 0.0, 0.0, 0.0, 0
+  disp_metrics = DisparityAccumulator()  # the same metrics as `sljax evaluate`
+  sl_sum, sl_n = 0.0, 0
   rows_slice = stp.process_rows(b)
   for start in range(0, len(val_idx), b):
     idx = list(val_idx[start:start + b])
@@ -546,12 +547,14 @@ def validate_split(eval_step, state, rows: RowCache, val_idx: Sequence[int], con
         from sljax.corr.correlation import sl_disparity
         sig = lambda z: 1.0 / (1.0 + np.exp(-z))
         pred = np.asarray(sl_disparity(sig(out["sl_logits"]), sig(out["sl_logits_right"]))[0])
-      s, n = masked_mae(pred, host["disp"][:n_real], config.maxdisp)
-      mae_sum += float(s)
-      mae_n += float(n)
+      gt = host["disp"][:n_real]
+      # Scored where the training loss is: finite ground truth in [0, maxdisp).
+      disp_metrics.add(pred, gt, mask=(gt >= 0) & (gt < config.maxdisp), name="validation")
   res = {}
-  if mae_n:
-    res["val_mae"] = mae_sum / mae_n
+  if disp_metrics.n_pixels:
+    m = disp_metrics.result()
+    res["val_mae"] = m["mae"]
+    res["val_bad_3"] = m["bad_3"]
   if sl_n:
     res["val_sl"] = sl_sum / sl_n
   return res

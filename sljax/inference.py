@@ -33,11 +33,11 @@ from typing import Any
 
 import numpy as np
 
+from sljax.data.scene import to_gray
 from sljax.errors import SljaxError
 
 PAD_MULTIPLE = 32
 MODES = ("pad", "resize")
-_LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32)
 
 
 def _to_float(image: np.ndarray, what: str) -> np.ndarray:
@@ -102,7 +102,7 @@ def convert_channels(images: np.ndarray, channels: int) -> np.ndarray:
   if c == channels:
     return images
   if channels == 1:
-    return (images @ _LUMA)[..., None].astype(np.float32)
+    return to_gray(images)
   if channels == 3:
     return np.repeat(images, 3, axis=-1)
   raise SljaxError(f"cannot convert {c}-channel images to {channels} channels")

@@ -1,4 +1,5 @@
 import json
+import math
 
 import numpy as np
 import pytest
@@ -352,3 +353,26 @@ def test_raw_captures_match_direct_formation():
   want = np.clip(_blur_np(np.stack(caps, 1), cfg.raw_blur), 0, 1)
   assert got.shape == (2, 12, 24, 24)
   np.testing.assert_allclose(got, want, atol=1e-5)
+
+
+def test_projector_pose_defaults_match_the_paper(objects):
+  """proj_col0 is the column of a pinhole projector at [0.02, 0, 0.02] m in left-camera axes,
+  rotated 1.5 deg about y (SPEC 6), recomputed here from depth0 in float64."""
+  assert SynthConfig().projector_translation_m == (0.02, 0.0, 0.02)
+  assert SynthConfig().projector_rotation_deg == (0.0, 1.5, 0.0)
+  cfg = OBJ.resolved()
+  for s in objects:
+    h, w = s.depth0.shape
+    c = (w - 1) / 2
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
+    z = s.depth0.astype(np.float64)
+    pts = np.stack([(xs - c) * z / cfg.focal, (ys - c) * z / cfg.focal, z], -1)
+    a = np.radians(1.5)
+    rot_y = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+    q = (pts - np.array([0.02, 0.0, 0.02])) @ rot_y  # rot_y^T (p - t), row vectors
+    width_p = 2 ** cfg.t
+    f_p = (width_p / 2) / math.tan(math.radians(cfg.projector_fov_deg) / 2)
+    col = f_p * q[..., 0] / q[..., 2] + width_p / 2
+    lit = np.isfinite(s.proj_col0)
+    assert lit.mean() > 0.3
+    np.testing.assert_allclose(s.proj_col0[lit], col[lit], atol=2e-3 * width_p)

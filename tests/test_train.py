@@ -1,7 +1,9 @@
 """train.py / sljax.train.loop: CLI bad input (before any compilation), workdir safety, exact
 resume after kill -9, checkpoints for inference."""
 
+import functools
 import json
+import math
 import os
 import signal
 import subprocess
@@ -9,7 +11,9 @@ import sys
 import time
 from pathlib import Path
 
+import flax.linen as nn
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -277,3 +281,81 @@ def test_resume_uses_the_saved_config(tmp_path):
   assert workdir == Path("runs/psmnet-unc-0") and "no accelerator" in note
   config, _, _ = cli.resolve(cli.build_parser().parse_args([]), "gpu")
   assert config.preset == "paper" and config.size == (256, 256) and config.epochs == 120
+
+
+class _TinyTwin(nn.Module):
+  """A stand-in for the PSMNet twin with the same outputs (compiles in a second)."""
+  maxdisp: int
+  t: int
+
+  @nn.compact
+  def __call__(self, left, right, train: bool = False):
+    h = nn.Conv(4, (3, 3))(jnp.concatenate([left, right], -1))
+    h = nn.relu(nn.BatchNorm(use_running_average=not train)(h))
+    d = self.maxdisp * nn.sigmoid(nn.Conv(3, (1, 1))(h))
+    out = {"disparity": d[..., 2], "sl_logits": nn.Conv(self.t, (1, 1))(h)}
+    if train:
+      out["disparities"] = (d[..., 0], d[..., 1], d[..., 2])
+    return out
+
+
+@functools.lru_cache(maxsize=None)
+def _tiny_steps(net, kwargs, maxdisp, disp_loss, lr, mesh):
+  from sljax.train import step as stp
+  model = _TinyTwin(maxdisp=maxdisp, t=dict(kwargs)["t"])
+  tx = train_state.make_optimizer(lr)
+  opts = train_state.INIT_COMPILER_OPTIONS
+  return (model, tx,
+          stp.make_train_step(model, net=net, maxdisp=maxdisp, disp_loss=disp_loss, tx=tx,
+                              mesh=mesh, compiler_options=opts),
+          stp.make_eval_step(model, net=net, mesh=mesh, compiler_options=opts))
+
+
+def test_epr_loop_uses_dwa_of_epoch_mean_training_losses_and_resumes_exactly(
+    data_full, tmp_path, monkeypatch):
+  """The loop feeds the step DWA weights that are constant within an epoch, 1 for the first two
+  epochs, then computed by hand from the two previous epochs' mean training losses; a run
+  stopped mid-epoch (partial epoch sums in its checkpoint) resumes bit-identically."""
+  monkeypatch.setattr(loop, "compiled_steps", _tiny_steps)
+  cfg = loop.TrainConfig(strategy="epr", data=str(data_full), size=(32, 32), maxdisp=16,
+                         epochs=5, batch_size=2, lr=3e-2, save_every=3, max_val=2, preset="quick")
+  quiet = dict(log=lambda line: None, progress=False)
+  loop.train(cfg, tmp_path / "full", **quiet)
+  steps = [json.loads(l) for l in (tmp_path / "full" / "metrics.jsonl").read_text().splitlines()]
+  epochs = [json.loads(l) for l in (tmp_path / "full" / "epochs.jsonl").read_text().splitlines()]
+  assert len(epochs) == 5
+  spe = len(steps) // 5
+  for e, rec in enumerate(epochs):
+    rows = [r for r in steps if r["epoch"] == e + 1]
+    assert len(rows) == spe
+    # Epoch means of the (unweighted) training task losses, not of validation.
+    np.testing.assert_allclose(rec["loss_sl"], np.mean([r["loss_sl"] for r in rows]), rtol=1e-9)
+    np.testing.assert_allclose(rec["loss_disp"], np.mean([r["loss_disp"] for r in rows]),
+                               rtol=1e-9)
+    w = {(r["w_sl"], r["w_disp"]) for r in rows}
+    assert len(w) == 1, w  # constant within the epoch
+    if e < 2:
+      want = [1.0, 1.0]
+    else:
+      r_sl = epochs[e - 1]["loss_sl"] / epochs[e - 2]["loss_sl"]
+      r_d = epochs[e - 1]["loss_disp"] / epochs[e - 2]["loss_disp"]
+      z = math.exp(2 * r_sl) + math.exp(2 * r_d)
+      want = [2 * math.exp(2 * r_sl) / z, 2 * math.exp(2 * r_d) / z]
+    np.testing.assert_allclose(list(w.pop()), want, rtol=1e-6)
+  assert epochs[2]["w_sl"] != epochs[3]["w_sl"]  # the weights do move
+
+  # Stop one step after a mid-epoch checkpoint of epoch 3 or later, then resume.
+  ckpt_at = next(s for s in range(2 * spe + 1, 5 * spe) if s % 3 == 0 and s % spe
+                 and (s + 1) % spe)
+  part = tmp_path / "part"
+  loop.train(cfg, part, stop_after=ckpt_at + 1, **quiet)
+  assert _latest(part / "checkpoints") == ckpt_at
+  loop.train(cfg, part, resume=True, **quiet)
+  trees = []
+  for wd in (tmp_path / "full", part):
+    m = ckpt.make_manager(wd / "checkpoints", read_only=True)
+    trees.append(ckpt.restore(m, m.latest_step())[0])
+    m.close()
+  for a, b in zip(jax.tree.leaves(trees[0]), jax.tree.leaves(trees[1]), strict=True):
+    np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+  assert ((part / "metrics.jsonl").read_text() == (tmp_path / "full" / "metrics.jsonl").read_text())

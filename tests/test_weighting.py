@@ -82,3 +82,7 @@ def test_combined_loss_matches_each_strategy_and_zero_sigma_gradient():
   ref_total, ref_eff = wt.uncertainty_loss(l_sl, l_d, 0.3, -0.2)
   np.testing.assert_allclose(total, ref_total, rtol=1e-6)
   np.testing.assert_allclose(eff, ref_eff, rtol=1e-6)
+  # The step differentiates combined_loss: its log-sigma gradient must be unc's (hand formula).
+  g = jax.grad(lambda a, b: wt.combined_loss(l_sl, l_d, w, a, b)[0], argnums=(0, 1))(0.3, -0.2)
+  np.testing.assert_allclose(g, [-2 * 0.25 * math.exp(-0.6) * l_sl + 1,
+                                 -2 * 0.5 * math.exp(0.4) * l_d + 1], rtol=1e-5)

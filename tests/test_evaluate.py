@@ -6,7 +6,6 @@ import cv2
 import numpy as np
 import pytest
 
-import flax.linen as nn
 import jax.numpy as jnp
 
 from sljax import cli, inference, metrics
@@ -16,6 +15,7 @@ from sljax.data.pfm import read_pfm
 from sljax.data.scene import Scene, write_scene
 from sljax.evaluate import evaluate
 from sljax.data.dataset import FolderSource
+from toys import ToySL
 
 
 def textured_scene(name, seed, h=48, w=80, d_back=6, d_front=12, with_gt=True):
@@ -131,16 +131,6 @@ def test_missing_checkpoint_is_an_error(dataset, tmp_path, capsys):
   rc = cli.main(["evaluate", str(dataset), str(dataset), "--out", str(tmp_path / "o")])
   err = capsys.readouterr().err
   assert rc == 2 and str(dataset) in err and "not a checkpoint" in err and "workdir" in err
-
-
-class ToySL(nn.Module):
-  """Pattern logits = +-20 from the views themselves (t = channels), both views."""
-
-  @nn.compact
-  def __call__(self, left, right, train=False):
-    gain = self.param("gain", nn.initializers.ones, ())
-    return {"sl_logits": 20.0 * gain * (2.0 * left - 1.0),
-            "sl_logits_right": 20.0 * gain * (2.0 * right - 1.0)}
 
 
 def test_sl_model_pattern_accuracy_and_figures(tmp_path):

@@ -7,6 +7,7 @@ import pytest
 from sljax import inference
 from sljax.data.dataset import resize_image
 from sljax.errors import SljaxError
+from toys import ToySL
 
 
 class ToyDisp(nn.Module):
@@ -16,16 +17,6 @@ class ToyDisp(nn.Module):
   def __call__(self, left, right, train=False):
     bias = self.param("bias", nn.initializers.zeros, (left.shape[-1],))
     return {"disparity": 10.0 * left[..., 0] + bias[0] + 0.0 * right[..., 0]}
-
-
-class ToySL(nn.Module):
-  """Pattern logits = +-20 from the views themselves (t = channels), both views."""
-
-  @nn.compact
-  def __call__(self, left, right, train=False):
-    gain = self.param("gain", nn.initializers.ones, ())
-    return {"sl_logits": 20.0 * gain * (2.0 * left - 1.0),
-            "sl_logits_right": 20.0 * gain * (2.0 * right - 1.0)}
 
 
 def _toy(mode, channels=1, train_size=(32, 48)):

@@ -61,10 +61,8 @@ def read_run(workdir: str | os.PathLike) -> dict[str, Any]:
   config: dict[str, Any] = {}
   cfg_path = workdir / CONFIG_FILE
   if cfg_path.is_file():
-    try:
-      config = json.loads(cfg_path.read_text(encoding="utf-8"))
-    except json.JSONDecodeError as e:
-      raise SljaxError(f"{cfg_path}: not valid JSON ({e.msg})") from None
+    from sljax.data.scene import read_json_object  # pylint: disable=import-outside-toplevel
+    config = read_json_object(cfg_path, str(cfg_path))
   return {"workdir": str(workdir), "label": run_label(config, workdir), "records": records}
 
 

@@ -204,11 +204,9 @@ def load_converted(path: str | Path) -> tuple[str, dict, dict]:
   require(is_converted(path), f"{path}: not a checkpoint (expected a training workdir with "
           f"config.json and checkpoints/, its checkpoints folder, or a converted PSMNet folder "
           f"with {CONFIG_FILE} and {VARIABLES_FILE})")
-  try:
-    config = json.loads((path / CONFIG_FILE).read_text())
-  except json.JSONDecodeError as e:
-    raise SljaxError(f"{path / CONFIG_FILE} is not valid JSON: {e}") from e
-  require(isinstance(config, dict) and "model" in config,
+  from sljax.data.scene import read_json_object  # pylint: disable=import-outside-toplevel
+  config = read_json_object(path / CONFIG_FILE, str(path / CONFIG_FILE))
+  require("model" in config,
           f"{path / CONFIG_FILE} has no 'model' entry")
   with np.load(path / VARIABLES_FILE) as z:
     flat = {tuple(k.split("/")): z[k] for k in z.files}

@@ -12,7 +12,7 @@ from typing import Any
 import orbax.checkpoint as ocp
 from orbax.checkpoint.checkpoint_managers import preservation_policy as pp
 
-from sljax.errors import SljaxError, require
+from sljax.errors import require
 
 CHECKPOINT_DIR = "checkpoints"
 CONFIG_FILE = "config.json"
@@ -59,13 +59,10 @@ def restore(manager: ocp.CheckpointManager, step: int,
 
 def read_config(workdir: str | os.PathLike) -> dict[str, Any]:
   """The resolved training config saved in a workdir."""
+  from sljax.data.scene import read_json_object  # pylint: disable=import-outside-toplevel
   path = Path(workdir) / CONFIG_FILE
-  try:
-    return json.loads(path.read_text())
-  except FileNotFoundError:
-    raise SljaxError(f"{path}: missing (not a training workdir)") from None
-  except json.JSONDecodeError as e:
-    raise SljaxError(f"{path}: not valid JSON ({e})") from None
+  require(path.is_file(), f"{path}: missing (not a training workdir)")
+  return read_json_object(path, str(path))
 
 
 def _is_workdir(path: Path) -> bool:

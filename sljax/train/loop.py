@@ -545,8 +545,8 @@ def validate_split(eval_step, state, rows: RowCache, val_idx: Sequence[int], con
         pred = out["disparity"]
       else:  # unet-sl: disparity from the predicted patterns by correlation (SPEC 2)
         from sljax.corr.correlation import sl_disparity
-        sig = lambda z: 1.0 / (1.0 + np.exp(-z))
-        pred = np.asarray(sl_disparity(sig(out["sl_logits"]), sig(out["sl_logits_right"]))[0])
+        probs = [np.asarray(jax.nn.sigmoid(out[k])) for k in ("sl_logits", "sl_logits_right")]
+        pred = sl_disparity(*probs)[0]
       gt = host["disp"][:n_real]
       # Scored where the training loss is: finite ground truth in [0, maxdisp).
       disp_metrics.add(pred, gt, mask=(gt >= 0) & (gt < config.maxdisp), name="validation")

@@ -23,6 +23,7 @@ Gradients come from autodiff through these formulations (tests compare them with
 
 from __future__ import annotations
 
+import functools
 import os
 from collections.abc import Sequence
 from typing import Any, Callable
@@ -116,28 +117,240 @@ def _conv2d(x: jax.Array, kernel: jax.Array, strides: Sequence[int], padding) ->
                                   dimension_numbers=("NHWC", "HWIO", "NHWC"))
 
 
+# Output planes are computed in blocks whose folded input holds about this many values (512 KiB
+# of float32, an L2 cache): XLA:CPU's 2D convolutions and, above all, their kernel gradients
+# run several times faster on such blocks than on the whole folded volume at once (measured
+# at PSMNet's shapes with benchmarks/bench_nets.py --part micro). One (batch, depth) plane
+# is the smallest block; blocks run in a loop, so the program stays small.
+BLOCK_VALUES = 1 << 17
+
+
+def _pad_depth(x: jax.Array, pad: tuple[int, int]) -> jax.Array:
+  # Negative padding crops; lax.pad handles both signs.
+  return lax.pad(x, jnp.zeros((), x.dtype), ((0, 0, 0), (*pad, 0), (0, 0, 0), (0, 0, 0), (0, 0, 0)))
+
+
+def _block_shape(n: int, do: int, plane_values: int) -> tuple[int, int]:
+  """(batch, depth) planes per block: whole depths of several batch items, or depth chunks."""
+  per = max(1, BLOCK_VALUES // max(1, plane_values))
+  if per >= do:
+    return max(d for d in range(1, n + 1) if n % d == 0 and d * do <= per), do
+  return 1, per
+
+
+def _blocked(n: int, do: int, plane_values: int, body: Callable, init):
+  """Runs body(n0, z0, nb, tz, carry) over all blocks (a loop when there are several)."""
+  nb, tz = _block_shape(n, do, plane_values)
+  zblocks = -(-do // tz)
+  count = (n // nb) * zblocks
+  if count == 1:
+    return body(0, 0, nb, tz, init)
+  return lax.fori_loop(0, count, lambda i, c: body((i // zblocks) * nb, (i % zblocks) * tz,
+                                                   nb, tz, c), init)
+
+
+def _taps(xp: jax.Array, n0, z0, nb: int, tz: int, kd: int, sd: int) -> list[jax.Array]:
+  """The kd depth taps of a block, each [nb * tz, H, W, C]: planes sd*z + a."""
+  size = (nb, sd * (tz - 1) + kd) + xp.shape[2:]
+  xin = lax.dynamic_slice(xp, (n0, sd * z0, 0, 0, 0), size)
+  return [lax.slice_in_dim(xin, a, a + sd * (tz - 1) + 1, sd, axis=1).reshape((nb * tz,) + size[2:])
+          for a in range(kd)]
+
+
+def _depth_padded(x: jax.Array, padding, kd: int, sd: int, n: int) -> tuple[jax.Array, int, int]:
+  """x padded in depth, with zero planes added at the end so that every block is full."""
+  xp = _pad_depth(x, padding)
+  do = (xp.shape[1] - kd) // sd + 1
+  nb, tz = _block_shape(n, do, int(np.prod(xp.shape[2:])))
+  extra = (-(-do // tz) * tz - do) * sd
+  return (_pad_depth(xp, (0, extra)) if extra else xp), do, tz
+
+
+def _fold_forward(x: jax.Array, kernel: jax.Array, strides: tuple[int, int, int],
+                  padding: tuple[tuple[int, int], ...]) -> jax.Array:
+  n, (kd, sd) = x.shape[0], (kernel.shape[0], strides[0])
+  xp, do, tz = _depth_padded(x, padding[0], kd, sd, n)
+  out_hw = [(x.shape[2 + i] + sum(padding[1 + i]) - kernel.shape[1 + i]) // strides[1 + i] + 1
+            for i in range(2)]
+  out = jnp.zeros((n, -(-do // tz) * tz, *out_hw, kernel.shape[4]), x.dtype)
+
+  def body(n0, z0, nb, tz, out):
+    y = None
+    for a, xa in enumerate(_taps(xp, n0, z0, nb, tz, kd, sd)):
+      ya = _conv2d(xa, kernel[a], strides[1:], padding[1:])
+      y = ya if y is None else y + ya
+    return lax.dynamic_update_slice(out, y.reshape((nb, tz) + y.shape[1:]), (n0, z0, 0, 0, 0))
+
+  out = _blocked(n, do, int(np.prod(xp.shape[2:])), body, out)
+  return out[:, :do]
+
+
+def _conv2d_kernel_grad(x: jax.Array, dy: jax.Array, kernel_size: Sequence[int],
+                        strides: Sequence[int], padding,
+                        dilation: Sequence[int] = (1, 1)) -> jax.Array:
+  """dL/dk of conv2d(x, k) for output gradient dy, as one plain NHWC convolution.
+
+  k[i, j, c, o] = sum_{b,y,x} x_pad[b, s*y + d*i, s*x + d*j, c] dy[b, y, x, o]: a convolution
+  of x (channels as the batch, batch as the channels) with dy dilated by s as its kernel and
+  output stride d. XLA builds the same, but written out it stays a library convolution
+  inside loops (XLA leaves its own form to a slow generic kernel there).
+  """
+  xt = jnp.transpose(x, (3, 1, 2, 0))
+  dt = jnp.transpose(dy, (1, 2, 0, 3))
+  pads = [(lo, (k - 1) * d + s * (o - 1) + 1 - size - lo) for k, s, d, o, size, (lo, _) in
+          zip(kernel_size, strides, dilation, dy.shape[1:3], x.shape[1:3], padding)]
+  g = lax.conv_general_dilated(xt, dt, tuple(dilation), pads, rhs_dilation=tuple(strides),
+                               dimension_numbers=("NHWC", "HWIO", "NHWC"))
+  return jnp.transpose(g, (1, 2, 0, 3))
+
+
+def _input_grad_padding(kernel_shape, strides, padding, x_shape, y_shape):
+  """Padding of the s-dilated output gradient whose conv with the flipped kernel is dL/dx."""
+  pads = []
+  for i in range(3):
+    k, s, lo = kernel_shape[i], strides[i], padding[i][0]
+    lo_t = k - 1 - lo
+    pads.append((lo_t, x_shape[1 + i] - (y_shape[1 + i] - 1) * s - 1 - lo_t + k - 1))
+  return tuple(pads)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(2, 3))
+def _fold(x, kernel, strides, padding):
+  return _fold_forward(x, kernel, strides, padding)
+
+
+def _fold_fwd(x, kernel, strides, padding):
+  return _fold_forward(x, kernel, strides, padding), (x, kernel)
+
+
+def _fold_bwd(strides, padding, res, dy):
+  x, kernel = res
+  # dL/dx: the transposed convolution, i.e. a convolution of the stride-dilated dy with the
+  # flipped kernel (in/out swapped); stride 1 is another folded conv, stride s the phases.
+  flipped = jnp.flip(kernel, (0, 1, 2)).swapaxes(3, 4)
+  pads = _input_grad_padding(kernel.shape, strides, padding, x.shape, dy.shape)
+  if strides == (1, 1, 1):
+    dx = _fold(dy, flipped, strides, pads)
+  else:
+    dx = phase_conv_transpose3d(dy, flipped, strides, pads)
+  # dL/dkernel: per depth tap, blocked 2D kernel gradients, summed.
+  n, kd, sd = x.shape[0], kernel.shape[0], strides[0]
+  xp, do, tz = _depth_padded(x, padding[0], kd, sd, n)
+  dyp = _pad_depth(dy, (0, -(-do // tz) * tz - do))
+
+  def body(n0, z0, nb, tz, dk):
+    dyb = lax.dynamic_slice(dyp, (n0, z0, 0, 0, 0), (nb, tz) + dy.shape[2:])
+    dyb = dyb.reshape((nb * tz,) + dy.shape[2:])
+    return tuple(g + _conv2d_kernel_grad(xa, dyb, kernel.shape[1:3], strides[1:], padding[1:])
+                 for g, xa in zip(dk, _taps(xp, n0, z0, nb, tz, kd, sd)))
+
+  dk = _blocked(n, do, int(np.prod(xp.shape[2:])), body,
+                tuple(jnp.zeros(kernel.shape[1:], kernel.dtype) for _ in range(kd)))
+  return dx, jnp.stack(dk)
+
+
+_fold.defvjp(_fold_fwd, _fold_bwd)
+
+
+def tap_products_conv3d(x: jax.Array, kernel: jax.Array, padding) -> jax.Array:
+  """Exact stride-1 3D conv for few outputs: all tap products in one matmul, then a shifted sum.
+
+  z[p, t] = x[p] . kernel[t] for the kd*kh*kw taps t (a [P, cin] x [cin, taps*cout] product),
+  y[o] = sum_t z[o + t - lo, t]. For PSMNet's 32 -> 1 classifiers z is smaller than x and
+  the whole layer, gradients included, runs several times faster than as convolutions with
+  one output channel.
+  """
+  kd, kh, kw, cin, cout = kernel.shape
+  n = x.shape[0]
+  taps = kd * kh * kw
+  z = jnp.dot(x.reshape(-1, cin), kernel.transpose(3, 0, 1, 2, 4).reshape(cin, taps * cout))
+  z = z.reshape(x.shape[:4] + (taps, cout))
+  zero = jnp.zeros((), x.dtype)
+  z = lax.pad(z, zero, ((0, 0, 0), *((lo, hi, 0) for lo, hi in padding), (0, 0, 0), (0, 0, 0)))
+  out = [z.shape[1 + i] - kernel.shape[i] + 1 for i in range(3)]
+  y = None
+  for t, (a, i, j) in enumerate(np.ndindex(kd, kh, kw)):
+    yt = lax.slice(z, (0, a, i, j, t, 0), (n, a + out[0], i + out[1], j + out[2], t + 1, cout))
+    y = yt if y is None else y + yt
+  return y.reshape((n, *out, cout))
+
+
 def fold_conv3d(x: jax.Array, kernel: jax.Array, strides: Sequence[int], padding) -> jax.Array:
   """Exact 3D conv as a sum over depth taps of 2D convs with depth folded into the batch.
 
-  y[:, z] = sum_a conv2d(x_padded[:, s*z + a], kernel[a]). XLA:CPU runs 2D convolutions
-  several times faster than 3D ones (and their gradients, notably for stride 2), so this
-  is the CPU path; slicing the depth of NDHWC data is contiguous, so the folding is cheap.
+  y[:, z] = sum_a conv2d(x_padded[:, s*z + a], kernel[a]), computed over blocks of output
+  planes (`BLOCK_VALUES`). XLA:CPU runs 2D convolutions several times faster than 3D ones,
+  and both on small blocks. The gradient is written out (custom VJP) so that it reuses the
+  same machinery: dL/dx is a folded convolution (or phases, for strides), dL/dkernel a sum
+  of blocked 2D kernel gradients.
   """
-  n, _, _, _, c = x.shape
-  kd = kernel.shape[0]
-  sd = strides[0]
+  strides = tuple(int(v) for v in strides)
   pad = _explicit_padding(padding, x.shape, kernel.shape[:3], strides)
-  # Negative padding crops; lax.pad handles both signs.
-  xp = lax.pad(x, jnp.zeros((), x.dtype), ((0, 0, 0), (*pad[0], 0), (0, 0, 0), (0, 0, 0),
-                                            (0, 0, 0)))
-  dp = xp.shape[1]
-  do = (dp - kd) // sd + 1
-  y = None
-  for a in range(kd):
-    xa = lax.slice_in_dim(xp, a, a + sd * (do - 1) + 1, sd, axis=1)
-    ya = _conv2d(xa.reshape((n * do,) + xa.shape[2:]), kernel[a], strides[1:], pad[1:])
-    y = ya if y is None else y + ya
-  return y.reshape((n, do) + y.shape[1:])
+  if strides == (1, 1, 1) and np.prod(kernel.shape[:3]) * kernel.shape[4] <= kernel.shape[3]:
+    return tap_products_conv3d(x, kernel, pad)
+  return _fold(x, kernel, strides, pad)
+
+
+def _conv2d_dilated(x, kernel, strides, padding, dilation):
+  return lax.conv_general_dilated(x, kernel, tuple(strides), tuple(padding),
+                                  rhs_dilation=tuple(dilation),
+                                  dimension_numbers=("NHWC", "HWIO", "NHWC"))
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(2, 3, 4))
+def _conv2d_blocked(x, kernel, strides, padding, dilation):
+  return _conv2d_dilated(x, kernel, strides, padding, dilation)
+
+
+def _conv2d_blocked_fwd(x, kernel, strides, padding, dilation):
+  return _conv2d_dilated(x, kernel, strides, padding, dilation), (x, kernel)
+
+
+def _conv2d_blocked_bwd(strides, padding, dilation, res, dy):
+  x, kernel = res
+  dx = jax.vjp(lambda x: _conv2d_dilated(x, kernel, strides, padding, dilation), x)[1](dy)[0]
+  # dL/dkernel over blocks of output rows (and whole images when they are small).
+  n, ho = dy.shape[:2]
+  kh, sh, dh = kernel.shape[0], strides[0], dilation[0]
+  zero = jnp.zeros((), x.dtype)
+  xp = lax.pad(x, zero, ((0, 0, 0), (*padding[0], 0), (*padding[1], 0), (0, 0, 0)))
+  row_values = xp.shape[2] * xp.shape[3]
+  _, rows = _block_shape(n, ho, row_values)
+  hb = -(-ho // rows) * rows
+  need = sh * (hb - 1) + (kh - 1) * dh + 1
+  xp = lax.pad(xp, zero, ((0, 0, 0), (0, max(0, need - xp.shape[1]), 0), (0, 0, 0), (0, 0, 0)))
+  dyp = lax.pad(dy, zero, ((0, 0, 0), (0, hb - ho, 0), (0, 0, 0), (0, 0, 0)))
+
+  def body(n0, r0, nb, rows, dk):
+    xin = lax.dynamic_slice(xp, (n0, sh * r0, 0, 0),
+                            (nb, sh * (rows - 1) + (kh - 1) * dh + 1) + xp.shape[2:])
+    dyb = lax.dynamic_slice(dyp, (n0, r0, 0, 0), (nb, rows) + dy.shape[2:])
+    return dk + _conv2d_kernel_grad(xin, dyb, kernel.shape[:2], strides, ((0, 0), (0, 0)),
+                                    dilation)
+
+  dk = _blocked(n, ho, row_values, body, jnp.zeros(kernel.shape, kernel.dtype))
+  return dx, dk
+
+
+_conv2d_blocked.defvjp(_conv2d_blocked_fwd, _conv2d_blocked_bwd)
+
+
+def conv2d(x: jax.Array, kernel: jax.Array, strides: Sequence[int] = (1, 1), padding=((1, 1),) * 2,
+           dilation: Sequence[int] = (1, 1), impl: str | None = None) -> jax.Array:
+  """NHWC 2D convolution equal to lax.conv_general_dilated; on CPU its kernel gradient is blocked.
+
+  The forward pass and dL/dx are XLA's own; dL/dkernel is summed over blocks of output rows
+  (`BLOCK_VALUES`), which XLA:CPU computes 1.3-1.6x faster than in one piece at PSMNet's
+  feature-extraction shapes.
+  """
+  strides, dilation = tuple(int(v) for v in strides), tuple(int(v) for v in dilation)
+  if isinstance(padding, str):
+    eff = [(k - 1) * d + 1 for k, d in zip(kernel.shape[:2], dilation)]
+    padding = lax.padtype_to_pads(x.shape[1:3], eff, strides, padding)
+  padding = tuple((int(lo), int(hi)) for lo, hi in padding)
+  if conv_impl(impl) == "lax":
+    return _conv2d_dilated(x, kernel, strides, padding, dilation)
+  return _conv2d_blocked(x, kernel, strides, padding, dilation)
 
 
 def _phase_selection(k: int, s: int, lo: int) -> tuple[np.ndarray, int]:
@@ -265,6 +478,35 @@ class ConvTranspose3D(nn.Module):
     kernel = self.param("kernel", self.kernel_init, ks + (cin, self.features), jnp.float32)
     y = conv_transpose3d(x.astype(self.dtype), kernel.astype(self.dtype), _triple(self.strides),
                          transpose_padding(ks, self.padding, self.output_padding), self.impl)
+    if self.use_bias:
+      bias = self.param("bias", self.bias_init, (self.features,), jnp.float32)
+      y = y + bias.astype(self.dtype)
+    return y
+
+
+class Conv2D(nn.Module):
+  """Drop-in for a 2D nn.Conv on NHWC input (same params): XLA's convolution, blocked kernel grad."""
+
+  features: int
+  kernel_size: Sequence[int] = (3, 3)
+  strides: int | Sequence[int] = (1, 1)
+  padding: PaddingLike = "SAME"
+  kernel_dilation: int | Sequence[int] = (1, 1)
+  use_bias: bool = True
+  kernel_init: Initializer = nn.initializers.lecun_normal()
+  bias_init: Initializer = nn.initializers.zeros_init()
+  dtype: Any = jnp.float32
+  impl: str | None = None
+
+  @nn.compact
+  def __call__(self, x: jax.Array) -> jax.Array:
+    """Applies the convolution to x (N, H, W, C)."""
+    ks = tuple(self.kernel_size)
+    pair = lambda v: (v, v) if isinstance(v, int) else tuple(v)
+    kernel = self.param("kernel", self.kernel_init, ks + (x.shape[-1], self.features), jnp.float32)
+    pad = self.padding if isinstance(self.padding, str) else resolve_padding(self.padding, ks)
+    y = conv2d(x.astype(self.dtype), kernel.astype(self.dtype), pair(self.strides), pad,
+               pair(self.kernel_dilation), self.impl)
     if self.use_bias:
       bias = self.param("bias", self.bias_init, (self.features,), jnp.float32)
       y = y + bias.astype(self.dtype)

@@ -135,7 +135,9 @@ def _block_shape(n: int, do: int, plane_values: int) -> tuple[int, int]:
   per = max(1, BLOCK_VALUES // max(1, plane_values))
   if per >= do:
     return max(d for d in range(1, n + 1) if n % d == 0 and d * do <= per), do
-  return 1, per
+  # Prefer a divisor of the depth (no padded planes); else the largest block that fits.
+  div = max(d for d in range(1, per + 1) if do % d == 0)
+  return 1, div if 2 * div > per else per
 
 
 def _blocked(n: int, do: int, plane_values: int, body: Callable, init):
@@ -233,23 +235,30 @@ def _fold_bwd(strides, padding, res, dy):
     dx = _fold(dy, flipped, strides, pads)
   else:
     dx = phase_conv_transpose3d(dy, flipped, strides, pads)
-  # dL/dkernel: per depth tap, blocked 2D kernel gradients, summed.
-  n, kd, sd = x.shape[0], kernel.shape[0], strides[0]
+  return dx, _fold_kernel_grad(x, dy, kernel.shape, strides, padding)
+
+
+_fold.defvjp(_fold_fwd, _fold_bwd)
+
+
+def _fold_kernel_grad(x: jax.Array, dy: jax.Array, kernel_shape: Sequence[int],
+                      strides: tuple[int, int, int], padding) -> jax.Array:
+  """dL/dkernel of the folded conv: per depth tap, blocked 2D kernel gradients, summed."""
+  n, kd, sd = x.shape[0], kernel_shape[0], strides[0]
   xp, do, tz = _depth_padded(x, padding[0], kd, sd, n)
   dyp = _pad_depth(dy, (0, -(-do // tz) * tz - do))
 
   def body(n0, z0, nb, tz, dk):
     dyb = lax.dynamic_slice(dyp, (n0, z0, 0, 0, 0), (nb, tz) + dy.shape[2:])
     dyb = dyb.reshape((nb * tz,) + dy.shape[2:])
-    return tuple(g + _conv2d_kernel_grad(xa, dyb, kernel.shape[1:3], strides[1:], padding[1:])
+    return tuple(g + _conv2d_kernel_grad(xa, dyb, kernel_shape[1:3], strides[1:], padding[1:])
                  for g, xa in zip(dk, _taps(xp, n0, z0, nb, tz, kd, sd)))
 
   dk = _blocked(n, do, int(np.prod(xp.shape[2:])), body,
-                tuple(jnp.zeros(kernel.shape[1:], kernel.dtype) for _ in range(kd)))
-  return dx, jnp.stack(dk)
+                tuple(jnp.zeros(tuple(kernel_shape[1:]), dy.dtype) for _ in range(kd)))
+  return jnp.stack(dk)
 
 
-_fold.defvjp(_fold_fwd, _fold_bwd)
 
 
 def tap_products_conv3d(x: jax.Array, kernel: jax.Array, padding) -> jax.Array:
@@ -332,6 +341,7 @@ def _conv2d_blocked_bwd(strides, padding, dilation, res, dy):
   return dx, dk
 
 
+
 _conv2d_blocked.defvjp(_conv2d_blocked_fwd, _conv2d_blocked_bwd)
 
 
@@ -368,16 +378,7 @@ def _phase_selection(k: int, s: int, lo: int) -> tuple[np.ndarray, int]:
   return sel, emin
 
 
-def phase_conv_transpose3d(x: jax.Array, kernel: jax.Array, strides: Sequence[int],
-                           padding: Sequence[tuple[int, int]]) -> jax.Array:
-  """Exact stride-s transposed conv via sub-pixel (phase) decomposition.
-
-  Equal to conv of the s-dilated input padded by `padding` with `kernel` (unflipped), but
-  never multiplies the inserted zeros: each of the s^3 output phases is a stride-1 conv of
-  the undilated input; all phases share one conv with s^3*cout output channels whose kernel
-  (over the union of input offsets) is gathered from `kernel` by 0/1 selection, then the
-  phases are interleaved (pixel shuffle) and the output cropped to its exact size.
-  """
+def _phase_forward(x, kernel, strides, padding):
   n, cout = x.shape[0], kernel.shape[4]
   sels, pads, lq, lengths = [], [], [], []
   for dim in range(3):
@@ -398,6 +399,51 @@ def phase_conv_transpose3d(x: jax.Array, kernel: jax.Array, strides: Sequence[in
   y = y.reshape(n, lq[0], lq[1], lq[2], sd, sh, sw, cout)
   y = y.transpose(0, 1, 4, 2, 5, 3, 6, 7).reshape(n, lq[0] * sd, lq[1] * sh, lq[2] * sw, cout)
   return y[:, :lengths[0], :lengths[1], :lengths[2]]
+
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(2, 3))
+def _phase(x, kernel, strides, padding):
+  return _phase_forward(x, kernel, strides, padding)
+
+
+def _phase_fwd(x, kernel, strides, padding):
+  return _phase_forward(x, kernel, strides, padding), (x, kernel)
+
+
+def _phase_bwd(strides, padding, res, dy):
+  # The transposed conv is the adjoint of the stride-s conv with the flipped, in/out-swapped
+  # kernel w; so dL/dx is that strided (folded) conv of dy and dL/dw its kernel gradient
+  # with dy as input and x as output gradient, both cheaper than differentiating the phases.
+  x, kernel = res
+  w = jnp.flip(kernel, (0, 1, 2)).swapaxes(3, 4)
+  pads = []
+  for i in range(3):
+    k, s, lo = kernel.shape[i], strides[i], padding[i][0]
+    front = k - 1 - lo
+    pads.append((front, s * (x.shape[1 + i] - 1) + k - front - dy.shape[1 + i]))
+  pads = tuple(pads)
+  dx = _fold(dy, w, strides, pads)
+  dw = _fold_kernel_grad(dy, x, w.shape, strides, pads)
+  return dx, jnp.flip(dw, (0, 1, 2)).swapaxes(3, 4)
+
+
+_phase.defvjp(_phase_fwd, _phase_bwd)
+
+
+def phase_conv_transpose3d(x: jax.Array, kernel: jax.Array, strides: Sequence[int],
+                           padding: Sequence[tuple[int, int]]) -> jax.Array:
+  """Exact stride-s transposed conv via sub-pixel (phase) decomposition.
+
+  Equal to conv of the s-dilated input padded by `padding` with `kernel` (unflipped), but
+  never multiplies the inserted zeros: each of the s^3 output phases is a stride-1 conv of
+  the undilated input; all phases share one conv with s^3*cout output channels whose kernel
+  (over the union of input offsets) is gathered from `kernel` by 0/1 selection, then the
+  phases are interleaved (pixel shuffle) and the output cropped to its exact size.
+  """
+  strides = tuple(int(v) for v in strides)
+  padding = tuple((int(lo), int(hi)) for lo, hi in padding)
+  return _phase(x, kernel, strides, padding)
 
 
 def conv3d(x: jax.Array, kernel: jax.Array, strides: Sequence[int] = (1, 1, 1),

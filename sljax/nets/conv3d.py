@@ -117,74 +117,92 @@ def _conv2d(x: jax.Array, kernel: jax.Array, strides: Sequence[int], padding) ->
                                   dimension_numbers=("NHWC", "HWIO", "NHWC"))
 
 
-# Output planes are computed in blocks whose folded input holds about this many values (512 KiB
-# of float32, an L2 cache): XLA:CPU's 2D convolutions and, above all, their kernel gradients
-# run several times faster on such blocks than on the whole folded volume at once (measured
+# Output planes are computed in blocks whose input holds about this many values (512 KiB of
+# float32, an L2 cache): XLA:CPU's 2D convolutions and, above all, their kernel gradients
+# run several times faster on such blocks than on a whole folded volume at once (measured
 # at PSMNet's shapes with benchmarks/bench_nets.py --part micro). One (batch, depth) plane
 # is the smallest block; blocks run in a loop, so the program stays small.
 BLOCK_VALUES = 1 << 17
 
 
-def _pad_depth(x: jax.Array, pad: tuple[int, int]) -> jax.Array:
-  # Negative padding crops; lax.pad handles both signs.
-  return lax.pad(x, jnp.zeros((), x.dtype), ((0, 0, 0), (*pad, 0), (0, 0, 0), (0, 0, 0), (0, 0, 0)))
+def _block_shape(n: int, count: int, plane_values: int) -> tuple[int, int]:
+  """(batch, plane) counts per block: whole ranges of several batch items, or plane chunks.
 
-
-def _block_shape(n: int, do: int, plane_values: int) -> tuple[int, int]:
-  """(batch, depth) planes per block: whole depths of several batch items, or depth chunks."""
+  Both divide their totals, so that every block has the same shape.
+  """
   per = max(1, BLOCK_VALUES // max(1, plane_values))
-  if per >= do:
-    return max(d for d in range(1, n + 1) if n % d == 0 and d * do <= per), do
-  # Prefer a divisor of the depth (no padded planes); else the largest block that fits.
-  div = max(d for d in range(1, per + 1) if do % d == 0)
-  return 1, div if 2 * div > per else per
+  if per >= count:
+    return max(d for d in range(1, n + 1) if n % d == 0 and d * count <= per), count
+  return 1, max(d for d in range(1, per + 1) if count % d == 0)
 
 
-def _blocked(n: int, do: int, plane_values: int, body: Callable, init):
+def _blocked(n: int, count: int, plane_values: int, body: Callable, init):
   """Runs body(n0, z0, nb, tz, carry) over all blocks (a loop when there are several)."""
-  nb, tz = _block_shape(n, do, plane_values)
-  zblocks = -(-do // tz)
-  count = (n // nb) * zblocks
-  if count == 1:
+  if count == 0:
+    return init
+  nb, tz = _block_shape(n, count, plane_values)
+  zblocks = count // tz
+  total = (n // nb) * zblocks
+  if total == 1:
     return body(0, 0, nb, tz, init)
-  return lax.fori_loop(0, count, lambda i, c: body((i // zblocks) * nb, (i % zblocks) * tz,
+  return lax.fori_loop(0, total, lambda i, c: body((i // zblocks) * nb, (i % zblocks) * tz,
                                                    nb, tz, c), init)
 
 
-def _taps(xp: jax.Array, n0, z0, nb: int, tz: int, kd: int, sd: int) -> list[jax.Array]:
-  """The kd depth taps of a block, each [nb * tz, H, W, C]: planes sd*z + a."""
-  size = (nb, sd * (tz - 1) + kd) + xp.shape[2:]
-  xin = lax.dynamic_slice(xp, (n0, sd * z0, 0, 0, 0), size)
+def _depth_plan(depth: int, kd: int, sd: int, padding: tuple[int, int]):
+  """Output planes split into those whose kd taps all lie inside the input and the others.
+
+  Output plane z reads input planes sd*z + a - lo, a < kd. Returns (do, first, count,
+  edges): the interior planes first .. first + count - 1 read no padding (so the input
+  needs no padded copy); edges lists (z, valid taps) for the rest.
+  """
+  lo, hi = padding
+  do = (depth + lo + hi - kd) // sd + 1
+  first = min(max(0, -(-lo // sd)), do)
+  last = min((depth - kd + lo) // sd, do - 1)
+  count = max(0, last - first + 1)
+  edges = [(z, [a for a in range(kd) if 0 <= sd * z + a - lo < depth])
+           for z in range(do) if not first <= z < first + count]
+  return do, first, count, edges
+
+
+def _tap_planes(x: jax.Array, n0, z0, nb: int, tz: int, kd: int, sd: int,
+                lo: int) -> list[jax.Array]:
+  """Input planes sd*z + a - lo of the interior block z0 .. z0 + tz - 1, [nb * tz, H, W, C]."""
+  if tz == 1:
+    return [lax.dynamic_slice(x, (n0, sd * z0 + a - lo, 0, 0, 0), (nb, 1) + x.shape[2:]
+                              ).reshape((nb,) + x.shape[2:]) for a in range(kd)]
+  size = (nb, sd * (tz - 1) + kd) + x.shape[2:]
+  xin = lax.dynamic_slice(x, (n0, sd * z0 - lo, 0, 0, 0), size)
   return [lax.slice_in_dim(xin, a, a + sd * (tz - 1) + 1, sd, axis=1).reshape((nb * tz,) + size[2:])
           for a in range(kd)]
 
 
-def _depth_padded(x: jax.Array, padding, kd: int, sd: int, n: int) -> tuple[jax.Array, int, int]:
-  """x padded in depth, with zero planes added at the end so that every block is full."""
-  xp = _pad_depth(x, padding)
-  do = (xp.shape[1] - kd) // sd + 1
-  nb, tz = _block_shape(n, do, int(np.prod(xp.shape[2:])))
-  extra = (-(-do // tz) * tz - do) * sd
-  return (_pad_depth(xp, (0, extra)) if extra else xp), do, tz
-
-
 def _fold_forward(x: jax.Array, kernel: jax.Array, strides: tuple[int, int, int],
                   padding: tuple[tuple[int, int], ...]) -> jax.Array:
-  n, (kd, sd) = x.shape[0], (kernel.shape[0], strides[0])
-  xp, do, tz = _depth_padded(x, padding[0], kd, sd, n)
+  n, depth = x.shape[:2]
+  kd, sd, lo = kernel.shape[0], strides[0], padding[0][0]
+  do, first, count, edges = _depth_plan(depth, kd, sd, padding[0])
+
+  def conv(xa, a):
+    return _conv2d(xa, kernel[a], strides[1:], padding[1:])
+
   out_hw = [(x.shape[2 + i] + sum(padding[1 + i]) - kernel.shape[1 + i]) // strides[1 + i] + 1
             for i in range(2)]
-  out = jnp.zeros((n, -(-do // tz) * tz, *out_hw, kernel.shape[4]), x.dtype)
+  out = jnp.zeros((n, do, *out_hw, kernel.shape[4]), x.dtype)
+  for z, taps in edges:
+    y = sum((conv(x[:, sd * z + a - lo], a) for a in taps), jnp.zeros_like(out[:, 0]))
+    out = out.at[:, z].set(y)
 
   def body(n0, z0, nb, tz, out):
     y = None
-    for a, xa in enumerate(_taps(xp, n0, z0, nb, tz, kd, sd)):
-      ya = _conv2d(xa, kernel[a], strides[1:], padding[1:])
+    for a, xa in enumerate(_tap_planes(x, n0, first + z0, nb, tz, kd, sd, lo)):
+      ya = conv(xa, a)
       y = ya if y is None else y + ya
-    return lax.dynamic_update_slice(out, y.reshape((nb, tz) + y.shape[1:]), (n0, z0, 0, 0, 0))
+    return lax.dynamic_update_slice(out, y.reshape((nb, tz) + y.shape[1:]),
+                                    (n0, first + z0, 0, 0, 0))
 
-  out = _blocked(n, do, int(np.prod(xp.shape[2:])), body, out)
-  return out[:, :do]
+  return _blocked(n, count, int(np.prod(x.shape[2:])), body, out)
 
 
 def _conv2d_kernel_grad(x: jax.Array, dy: jax.Array, kernel_size: Sequence[int],
@@ -244,21 +262,25 @@ _fold.defvjp(_fold_fwd, _fold_bwd)
 def _fold_kernel_grad(x: jax.Array, dy: jax.Array, kernel_shape: Sequence[int],
                       strides: tuple[int, int, int], padding) -> jax.Array:
   """dL/dkernel of the folded conv: per depth tap, blocked 2D kernel gradients, summed."""
-  n, kd, sd = x.shape[0], kernel_shape[0], strides[0]
-  xp, do, tz = _depth_padded(x, padding[0], kd, sd, n)
-  dyp = _pad_depth(dy, (0, -(-do // tz) * tz - do))
+  n, depth = x.shape[:2]
+  kd, sd, lo = kernel_shape[0], strides[0], padding[0][0]
+  _, first, count, edges = _depth_plan(depth, kd, sd, padding[0])
+
+  def grad(xa, dya):
+    return _conv2d_kernel_grad(xa, dya, kernel_shape[1:3], strides[1:], padding[1:])
+
+  dk = [jnp.zeros(tuple(kernel_shape[1:]), dy.dtype) for _ in range(kd)]
+  for z, taps in edges:
+    for a in taps:
+      dk[a] = dk[a] + grad(x[:, sd * z + a - lo], dy[:, z])
 
   def body(n0, z0, nb, tz, dk):
-    dyb = lax.dynamic_slice(dyp, (n0, z0, 0, 0, 0), (nb, tz) + dy.shape[2:])
+    dyb = lax.dynamic_slice(dy, (n0, first + z0, 0, 0, 0), (nb, tz) + dy.shape[2:])
     dyb = dyb.reshape((nb * tz,) + dy.shape[2:])
-    return tuple(g + _conv2d_kernel_grad(xa, dyb, kernel_shape[1:3], strides[1:], padding[1:])
-                 for g, xa in zip(dk, _taps(xp, n0, z0, nb, tz, kd, sd)))
+    return tuple(g + grad(xa, dyb)
+                 for g, xa in zip(dk, _tap_planes(x, n0, first + z0, nb, tz, kd, sd, lo)))
 
-  dk = _blocked(n, do, int(np.prod(xp.shape[2:])), body,
-                tuple(jnp.zeros(tuple(kernel_shape[1:]), dy.dtype) for _ in range(kd)))
-  return jnp.stack(dk)
-
-
+  return jnp.stack(_blocked(n, count, int(np.prod(x.shape[2:])), body, tuple(dk)))
 
 
 def tap_products_conv3d(x: jax.Array, kernel: jax.Array, padding) -> jax.Array:

@@ -9,6 +9,7 @@ import os
 from pathlib import Path
 from typing import Any
 
+import jax
 import orbax.checkpoint as ocp
 from orbax.checkpoint.checkpoint_managers import preservation_policy as pp
 
@@ -50,10 +51,17 @@ def save(manager: ocp.CheckpointManager, step: int, state: Any, meta: dict[str, 
 
 def restore(manager: ocp.CheckpointManager, step: int,
             abstract_state: Any | None = None) -> tuple[Any, dict[str, Any]]:
-  """(state, meta) saved at step; with abstract_state the arrays get its structure/shardings."""
-  state_args = (ocp.args.StandardRestore(abstract_state) if abstract_state is not None
-                else ocp.args.StandardRestore())
-  out = manager.restore(step, args=ocp.args.Composite(state=state_args, meta=ocp.args.JsonRestore()))
+  """(state, meta) saved at step; with abstract_state the arrays get its structure/shardings,
+  else they land on this process's first device (also for checkpoints written by several
+  processes, whose saved shardings name devices this process does not have)."""
+  if abstract_state is None:
+    saved = ocp.StandardCheckpointer().metadata(
+        Path(manager.directory) / str(step) / "state").item_metadata
+    device = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
+    abstract_state = jax.tree.map(
+        lambda leaf: jax.ShapeDtypeStruct(leaf.shape, leaf.dtype, sharding=device), saved)
+  out = manager.restore(step, args=ocp.args.Composite(
+      state=ocp.args.StandardRestore(abstract_state), meta=ocp.args.JsonRestore()))
   return out["state"], dict(out["meta"])
 
 

@@ -15,6 +15,9 @@ QUICK = {
     "size": (64, 64), "maxdisp": 32, "seed": 0, "disp_loss": "l2", "gray": None, "val_every": 1,
     "save_every": 0, "keep": 3, "max_val": 16, "init_from": None, "unet_depth": 4,
     "unet_width": 16, "preset": "quick",
+    # Flags added later (their defaults are the paper's).
+    "domain": "objects", "synth_t": None, "precision": "fp32", "log_every": 10,
+    "corr_window": 17,
 }
 # The paper preset (--preset paper, or auto with an accelerator).
 PAPER = dict(QUICK, synth_n=8000, synth_size=256, epochs=120, batch_size=12, lr=1e-4,
@@ -45,6 +48,11 @@ FLAGS = [
     (["--unet-depth", "3"], {"unet_depth": 3}),
     (["--unet-width", "8"], {"unet_width": 8}),
     (["--init-from", "models/psmnet"], {"init_from": "models/psmnet"}),
+    (["--domain", "tissue"], {"domain": "tissue"}),
+    (["--synth-t", "6"], {"synth_t": 6}),
+    (["--precision", "bf16"], {"precision": "bf16"}),
+    (["--log-every", "5"], {"log_every": 5}),
+    (["--corr-window", "5"], {"corr_window": 5}),
     (["--strategy", "unc", "--fraction", "1/16", "--seed", "2", "--gray"],
      {"strategy": "unc", "fraction": "1/16", "seed": 2, "gray": True}),
 ]
@@ -81,7 +89,8 @@ def test_run_flags():
 
 
 @pytest.mark.parametrize("argv", [["--gray", "--rgb"], ["--size", "12x"], ["--epochs", "x"],
-                                  ["--disp-loss", "l1"]])
+                                  ["--disp-loss", "l1"], ["--precision", "fp16"],
+                                  ["--domain", "mars"]])
 def test_bad_flags_are_argparse_errors(argv, capsys):
   with pytest.raises(SystemExit) as e:
     cli.build_parser().parse_args(argv)

@@ -109,15 +109,19 @@ def load_params(workdir: str | os.PathLike,
 
 def load_for_inference(path: str | os.PathLike) -> tuple[str, dict[str, Any], dict[str, Any],
                                                           dict[str, Any]]:
-  """(model_name, model_kwargs, variables, config) of a workdir, its checkpoints dir, or a
-  converted PSMNet dir (sljax.nets.convert); a workdir gives its best checkpoint by val MAE."""
+  """(model_name, model_kwargs, variables, config) of a workdir (its best checkpoint by val
+  MAE), its checkpoints dir (the same), one step's checkpoint dir (WORKDIR/checkpoints/STEP),
+  or a converted PSMNet dir (sljax.nets.convert)."""
   path = Path(path).absolute()
   require(path.exists(), f"{path}: does not exist")
+  step = None
+  if path.name.isdigit() and path.parent.name == CHECKPOINT_DIR and _is_workdir(path.parent.parent):
+    path, step = path.parent.parent, int(path.name)
   if path.name == CHECKPOINT_DIR and _is_workdir(path.parent):
     path = path.parent
   if _is_workdir(path):
-    config, variables, _ = load_params(path)
-    return config["net"], dict(config["model_kwargs"]), variables, config
+    config, variables, step = load_params(path, step)
+    return config["net"], dict(config["model_kwargs"]), variables, dict(config, step=step)
   from sljax.nets import convert  # pylint: disable=import-outside-toplevel
   name, kwargs, variables = convert.load_converted(path)
   return name, dict(kwargs), variables, {"net": name, "model_kwargs": dict(kwargs),

@@ -5,6 +5,7 @@ import dataclasses
 import sys
 from pathlib import Path
 
+from sljax.cli import quiet_libraries
 from sljax.errors import SljaxError
 from sljax.train import checkpoint as ckpt
 from sljax.train.config import FIELDS, PRESETS, TrainConfig, config_from_json, preset_config
@@ -87,8 +88,7 @@ def main(argv: list[str] | None = None) -> int:
       # Cross-process collectives on CPU need gloo (GPUs and TPUs bring their own).
       jax.config.update("jax_cpu_collectives_implementation", "gloo")
       jax.distributed.initialize()
-    from absl import logging as absl_logging
-    absl_logging.set_verbosity(absl_logging.ERROR)
+    quiet_libraries()
     from sljax.train.loop import train
     config, note, workdir = resolve(args, jax.default_backend())
     result = train(config, workdir, resume=args.resume, overwrite=args.overwrite,

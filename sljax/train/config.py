@@ -85,6 +85,8 @@ class TrainConfig:
                           "(every step is still logged)", resumable=True)
   init_from: str | None = option(None, "start from a training workdir or a converted PSMNet "
                                  "(sljax convert-psmnet)", parse=str)
+  corr_window: int = option(17, "window (px, odd) of the correlation that turns unet-sl's "
+                            "patterns into disparity (paper: 17 at 256x256)")
   unet_depth: int = option(4, "UNet levels")
   unet_width: int = option(32, "UNet channels at the first level")
   preset: str = option("paper", "the preset the run started from", flag=False, resumable=True)
@@ -156,6 +158,8 @@ def validate(config: TrainConfig) -> None:
     require(getattr(config, name) > 0,
             f"--{name.replace('_', '-')} {getattr(config, name)}: must be positive")
   require(config.synth_n >= 2, f"--synth-n {config.synth_n}: need at least 2 scenes")
+  require(config.corr_window > 0 and config.corr_window % 2 == 1,
+          f"--corr-window {config.corr_window}: must be a positive odd number")
   require(config.synth_t is None or 1 <= config.synth_t <= 12,
           f"--synth-t {config.synth_t}: must be in 1..12")
   require("depth" not in spec.options or (h % 2**config.unet_depth == 0

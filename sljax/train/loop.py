@@ -660,11 +660,13 @@ class RunResult:
 def train(config: TrainConfig, workdir: str | os.PathLike | None = None, *, resume: bool = False,
           overwrite: bool = False, stop_after: int | None = None, preset_note: str = "",
           profile_dir: str | None = None, log: Callable[[str], None] = functools.partial(
-              print, flush=True), progress: bool | None = None) -> RunResult:
+              print, flush=True), progress: bool | Any | None = None) -> RunResult:
   """Runs (or resumes) training; every bad input raises SljaxError before any compilation.
 
   stop_after: stop once the global step reaches this value (as an interruption would; the last
   checkpoint is the one saved at or before it), for tests and for splitting long runs.
+  progress: None (a bar on the main process), True/False, or a bar to drive: an object with
+  tqdm's update(steps), set_postfix(**kw) and write(line), e.g. the experiment runner's.
   """
   workdir = Path(workdir if workdir is not None else default_workdir(config)).absolute()
   run = setup(config, workdir, resume, overwrite, log, preset_note)
@@ -687,8 +689,10 @@ def train(config: TrainConfig, workdir: str | os.PathLike | None = None, *, resu
 
   # ---- data and logs
   cache_ok = len(run.source) * bytes_per_scene(config, run.info.t) < _CACHE_BYTES
+  own_bar = progress is None or isinstance(progress, bool)
   bar = tqdm(total=run.total_steps, initial=loop.step, unit="step", dynamic_ncols=True,
-             disable=(not main_process) if progress is None else not progress, file=sys.stderr)
+             disable=(not main_process) if progress is None else not progress,
+             file=sys.stderr) if own_bar else progress
   ctx = Context(run=run, mesh=mesh, train_step=train_step, eval_step=eval_step,
                 train_rows=RowCache(run.source, config, batch_parts(config),
                                     cache_ok and config.data is None),
@@ -713,7 +717,8 @@ def train(config: TrainConfig, workdir: str | os.PathLike | None = None, *, resu
   finally:
     batches.close()
     ctx.profiler.close()
-    bar.close()
+    if own_bar:
+      bar.close()
     manager.wait_until_finished()
     manager.close()
     ctx.writer.close()
@@ -762,7 +767,7 @@ def validate_split(ctx: Context, state: st.TrainState) -> dict[str, float]:
         pred = out["disparity"]
       else:  # unet-sl: disparity from the predicted patterns by correlation (SPEC 2)
         probs = [np.asarray(jax.nn.sigmoid(out[k])) for k in ("sl_logits", "sl_logits_right")]
-        pred = sl_disparity(*probs)[0]
+        pred = sl_disparity(*probs, window=config.corr_window)[0]
       gt = host["disp"][:n_real]
       # Scored where the training loss is: finite ground truth in [0, maxdisp).
       disp_metrics.add(pred, gt, mask=(gt >= 0) & (gt < config.maxdisp), name="validation")

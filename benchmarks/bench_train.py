@@ -73,7 +73,7 @@ def time_step(config: TrainConfig, steps: int) -> float:
   kwargs = loop.model_kwargs(config, info.channels, info.t)
   mesh = stp.make_mesh()
   model, tx, step, _ = loop.compiled_steps(config.net, tuple(sorted(kwargs.items())),
-                                           config.maxdisp, config.disp_loss, config.lr,
+                                           config.maxdisp, config.disp_loss, config.lr, None,
                                            config.precision, mesh)
   state = jax.device_put(st.create_state(st.init_variables(model, 0, *config.size,
                                                            info.channels), tx),

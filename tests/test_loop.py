@@ -156,7 +156,7 @@ def test_loading_overlaps_the_steps(tiny, monkeypatch, tmp_path):
   monkeypatch.setattr(loop, "open_source", lambda config: MemorySource(40, s_per_scene))
   monkeypatch.setattr(loop, "LOADER_THREADS", 1)
   model, tx, step, evaluate = toys.tiny_steps(
-      "psmnet", (("in_channels", 3), ("maxdisp", 16)), 16, "l2", 3e-2, "fp32",
+      "psmnet", (("in_channels", 3), ("maxdisp", 16)), 16, "l2", 3e-2, None, "fp32",
       loop.stp.make_mesh())
 
   def slow_step(state, batch, weights):
@@ -280,3 +280,21 @@ def test_two_processes_equal_one(tmp_path):
   assert [r["step"] for r in rows[0]] == [r["step"] for r in rows[1]] == list(range(1, 7))
   np.testing.assert_allclose([r["loss"] for r in rows[0]], [r["loss"] for r in rows[1]],
                              rtol=1e-4)
+
+
+def test_lr_drop_schedule_by_hand():
+  """--lr-drop-epoch: Adam's update is lr * m_hat / (sqrt(v_hat) + eps); with a constant
+  gradient m_hat / sqrt(v_hat) = 1, so each step moves a parameter by lr before the drop
+  step and by lr / 10 from it on."""
+  import jax.numpy as jnp  # pylint: disable=import-outside-toplevel
+  import optax  # pylint: disable=import-outside-toplevel
+  from sljax.train.state import make_optimizer  # pylint: disable=import-outside-toplevel
+  tx = make_optimizer(1e-2, drop_step=3)
+  params = {"w": jnp.zeros(())}
+  opt = tx.init(params)
+  moves = []
+  for _ in range(6):
+    updates, opt = tx.update({"w": jnp.ones(())}, opt, params)
+    params = optax.apply_updates(params, updates)
+    moves.append(-float(updates["w"]))
+  np.testing.assert_allclose(moves, [1e-2] * 3 + [1e-3] * 3, rtol=1e-4)  # float32 Adam

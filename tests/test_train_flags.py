@@ -17,7 +17,7 @@ QUICK = {
     "unet_width": 16, "preset": "quick",
     # Flags added later (their defaults are the paper's).
     "domain": "objects", "synth_t": None, "precision": "fp32", "log_every": 10,
-    "corr_window": 17,
+    "corr_window": 17, "lr_drop_epoch": None,
 }
 # The paper preset (--preset paper, or auto with an accelerator).
 PAPER = dict(QUICK, synth_n=8000, synth_size=256, epochs=120, batch_size=12, lr=1e-4,
@@ -53,6 +53,7 @@ FLAGS = [
     (["--precision", "bf16"], {"precision": "bf16"}),
     (["--log-every", "5"], {"log_every": 5}),
     (["--corr-window", "5"], {"corr_window": 5}),
+    (["--lr-drop-epoch", "6"], {"lr_drop_epoch": 6}),
     (["--strategy", "unc", "--fraction", "1/16", "--seed", "2", "--gray"],
      {"strategy": "unc", "fraction": "1/16", "seed": 2, "gray": True}),
 ]

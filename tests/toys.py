@@ -37,10 +37,10 @@ class TinyTwin(nn.Module):
 
 
 @functools.lru_cache(maxsize=None)
-def tiny_steps(net, kwargs, maxdisp, disp_loss, lr, precision, mesh):
+def tiny_steps(net, kwargs, maxdisp, disp_loss, lr, lr_drop_step, precision, mesh):
   """Drop-in for sljax.train.loop.compiled_steps that trains TinyTwin for any PSMNet."""
   model = TinyTwin(maxdisp=maxdisp, t=dict(kwargs).get("t", 4))
-  tx = train_state.make_optimizer(lr)
+  tx = train_state.make_optimizer(lr, lr_drop_step)
   opts = train_state.INIT_COMPILER_OPTIONS
   dtype = stp.COMPUTE_DTYPES[precision]
   return (model, tx,

@@ -9,7 +9,7 @@ def register(subparsers) -> None:
       "experiment", help="run the grids behind the paper's tables, resumably, and report them",
       description="Runs a plan (a grid of training runs: model and strategy, training fraction, "
                   "seed, domain, fine-tuning, evaluation sets) under OUT, then reports every "
-                  "cell with means and 95%% intervals over seeds and paired comparisons. "
+                  "cell with means and 95% intervals over seeds and paired comparisons. "
                   "Interrupt it at any time: the same command continues where it stopped.")
   sub = p.add_subparsers(dest="action", metavar="ACTION", required=True)
   r = sub.add_parser("run", help="train and score every unfinished cell of a plan",
@@ -61,7 +61,7 @@ def list_plans(args: argparse.Namespace) -> int:
   print(plans.__doc__.split("Plans:")[1].strip())
   for scale in plans.SCALES.values():
     print(f"scale {scale.name}: {scale.size}x{scale.size}, t = {scale.t}, maxdisp "
-          f"{scale.maxdisp}, {scale.objects_n} objects scenes, epochs {scale.epochs} (1/16: "
-          f"{scale.small_epochs}), fine-tuning {scale.finetune_epochs} epochs on "
-          f"{scale.tissue_n} tissue scenes; {scale.note}")
+          f"{scale.maxdisp}, {scale.objects_n} objects scenes, batch {scale.batch_size}, Adam "
+          f"{scale.lr:g}, epochs {scale.epochs} (1/16: {scale.small_epochs}), fine-tuning "
+          f"{scale.finetune_epochs} epochs on {scale.tissue_n} tissue scenes; {scale.note}")
   return 0

@@ -26,6 +26,7 @@ from typing import Any
 from sljax.errors import SljaxError, require
 from sljax.losses.weighting import STRATEGIES
 from sljax.train.config import QUICK, TrainConfig
+from sljax.train.state import LR_DROP
 
 PLANS = ("table1", "table2", "table3", "fig7")
 HELDOUT = "heldout"
@@ -45,6 +46,8 @@ class Scale:
   finetune_epochs: int
   batch_size: int
   lr: float
+  lr_drop: bool            # lr 10x lower for the last quarter of the epochs; fine-tuning
+                           # continues at the lower rate (else fixed, as the paper)
   corr_window: int         # unet-sl's correlation window (17 at 256 px, scaled with size)
   unet_width: int
   unet_depth: int
@@ -56,18 +59,20 @@ class Scale:
 
 SCALES = {s.name: s for s in (
     Scale("smoke", size=32, t=5, maxdisp=16, objects_n=40, tissue_n=20, epochs=2,
-          small_epochs=2, finetune_epochs=2, batch_size=2, lr=1e-3, corr_window=3,
-          unet_width=4, unet_depth=2, val_every=1, small_val_every=1, max_val=4,
-          note="a few minutes on a CPU; the tests run it"),
-    Scale("cpu", size=64, t=6, maxdisp=16, objects_n=400, tissue_n=80, epochs=8,
-          small_epochs=128, finetune_epochs=40, batch_size=4, lr=1e-3, corr_window=5,
-          unet_width=16, unet_depth=4, val_every=1, small_val_every=16, max_val=40,
+          small_epochs=2, finetune_epochs=2, batch_size=2, lr=1e-3, lr_drop=False,
+          corr_window=3, unet_width=4, unet_depth=2, val_every=1, small_val_every=1,
+          max_val=4, note="a few minutes on a CPU; the tests run it"),
+    Scale("cpu", size=64, t=6, maxdisp=16, objects_n=400, tissue_n=80, epochs=12,
+          small_epochs=48, finetune_epochs=40, batch_size=4, lr=1e-3, lr_drop=True,
+          corr_window=5, unet_width=16, unet_depth=4, val_every=1, small_val_every=4,
+          max_val=40,
           note="fits a 2-core CPU: 64x64 with 6 patterns keeps the finest stripe about "
-               "1.5 px wide, as 8 patterns at 256x256; the 1/16 runs get 16x the epochs, "
-               "so both fractions take the same number of steps and reach their plateau"),
+               "1.5 px wide, as 8 patterns at 256x256; Adam 1e-3 dropping to 1e-4 for the "
+               "last quarter of the epochs brings validation to its plateau within the budget"),
     Scale("paper", size=256, t=8, maxdisp=96, objects_n=8000, tissue_n=500, epochs=120,
-          small_epochs=120, finetune_epochs=40, batch_size=12, lr=1e-4, corr_window=17,
-          unet_width=32, unet_depth=4, val_every=1, small_val_every=1, max_val=None,
+          small_epochs=120, finetune_epochs=40, batch_size=12, lr=1e-4, lr_drop=False,
+          corr_window=17, unet_width=32, unet_depth=4, val_every=1, small_val_every=1,
+          max_val=None,
           note="the paper's sizes (256x256, maxdisp 96, 120 epochs, Adam 1e-4); for an "
                "accelerator"),
 )}
@@ -123,22 +128,30 @@ def _frac_label(fraction: str) -> str:
   return "all" if fraction == "1" else fraction
 
 
-def _base(scale: Scale, seed: int) -> TrainConfig:
+def _drop(scale: Scale, epochs: int) -> int | None:
+  return epochs - epochs // 4 if scale.lr_drop else None
+
+
+def _base(scale: Scale, seed: int, epochs: int | None = None) -> TrainConfig:
   """The scale's TrainConfig for objects training (paper losses and strategies)."""
+  epochs = scale.epochs if epochs is None else epochs
   return dataclasses.replace(
       QUICK, preset=f"experiment-{scale.name}", seed=seed, size=(scale.size, scale.size),
       synth_size=scale.size, synth_t=scale.t, maxdisp=scale.maxdisp, synth_n=scale.objects_n,
-      epochs=scale.epochs, batch_size=scale.batch_size, lr=scale.lr,
+      epochs=epochs, batch_size=scale.batch_size, lr=scale.lr, lr_drop_epoch=_drop(scale, epochs),
       corr_window=scale.corr_window, unet_width=scale.unet_width, unet_depth=scale.unet_depth,
       val_every=scale.val_every, max_val=scale.max_val, keep=2)
 
 
 def _on_target(config: TrainConfig, scale: Scale, data: str | None) -> TrainConfig:
-  """The config moved to the fine-tuning target: scarce synthetic tissue, or the user's data."""
+  """The config moved to the fine-tuning target (scarce synthetic tissue, or the user's data):
+  every epoch validated, the learning rate where pretraining ended."""
+  lr = config.lr * (LR_DROP if config.lr_drop_epoch is not None else 1.0)
+  moved = dataclasses.replace(config, epochs=scale.finetune_epochs, val_every=1, lr=lr,
+                              lr_drop_epoch=None)
   if data is not None:
-    return dataclasses.replace(config, data=data, epochs=scale.finetune_epochs, val_every=1)
-  return dataclasses.replace(config, domain="tissue", synth_n=scale.tissue_n,
-                             epochs=scale.finetune_epochs, val_every=1)
+    return dataclasses.replace(moved, data=data)
+  return dataclasses.replace(moved, domain="tissue", synth_n=scale.tissue_n)
 
 
 def _psmnet_name(strategy: str, where: str, fraction: str, seed: int) -> str:
@@ -154,8 +167,8 @@ def _table2_cells(scale: Scale, seed: int, data: str | None, fractions: tuple[st
     small = fraction != "1"
     for strategy in STRATEGIES:
       config = dataclasses.replace(
-          _base(scale, seed), model="psmnet", strategy=strategy, fraction=fraction, data=data,
-          epochs=scale.small_epochs if small else scale.epochs,
+          _base(scale, seed, scale.small_epochs if small else scale.epochs), model="psmnet",
+          strategy=strategy, fraction=fraction, data=data,
           val_every=scale.small_val_every if small else scale.val_every)
       cells.append(Cell(_psmnet_name(strategy, where, fraction, seed), strategy,
                         (("data", _frac_label(fraction)),), seed, config, evals=evals))
@@ -210,13 +223,6 @@ def build_plan(name: str, scale: str = "cpu", seeds: int = 3, data: str | None =
                           init_cell=pre.name, evals=(heldout,)))
   baseline = "unet-disp" if name == "table1" else "stl"
   return Plan(name, sc, tuple(range(seeds)), tuple(cells), baseline, data, tuple(eval_data))
-
-
-def steps_of(cell: Cell, n_train: int) -> int:
-  """Training steps of a cell with n_train scenes in its training split (whole batches)."""
-  from sljax.data.dataset import parse_fraction  # pylint: disable=import-outside-toplevel
-  used = max(1, int(round(parse_fraction(cell.config.fraction) * n_train)))
-  return (used // cell.config.batch_size) * cell.config.epochs
 
 
 def check_unique(plan: Plan) -> None:

@@ -175,7 +175,7 @@ def phase_conv_transpose3d(x: jax.Array, kernel: jax.Array, strides: Sequence[in
     m = sel.shape[0]
     # Phase output i reads inputs i + emin .. i + emin + m - 1 (zero outside the input).
     pads.append((-emin, q - 1 + emin + m - 1 - (size - 1)))
-    sels.append(jnp.asarray(sel))
+    sels.append(jnp.asarray(sel, kernel.dtype))
     lq.append(q)
     lengths.append(length)
   comb = jnp.einsum("dat,hbu,wcv,tuvio->dhwiabco", *sels, kernel)

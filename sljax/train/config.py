@@ -64,6 +64,9 @@ class TrainConfig:
   epochs: int = option(120, "training epochs", resumable=True)
   batch_size: int = option(12, "global batch (all devices; the reference PSMNet's 12)")
   lr: float = option(1e-4, "Adam learning rate (fixed, paper)")
+  lr_drop_epoch: int | None = option(None, "epoch from which the learning rate is 10x lower "
+                                     "(the PSMNet reference's step decay; default: fixed, as "
+                                     "the paper)", parse=int)
   size: tuple[int, int] = option((256, 256), "training size N or HEIGHTxWIDTH (multiples of 16)",
                                  parse=parse_size)
   maxdisp: int = option(96, "PSMNet disparity range (multiple of 16)")
@@ -157,6 +160,8 @@ def validate(config: TrainConfig) -> None:
                "unet_width"):
     require(getattr(config, name) > 0,
             f"--{name.replace('_', '-')} {getattr(config, name)}: must be positive")
+  require(config.lr_drop_epoch is None or config.lr_drop_epoch >= 1,
+          f"--lr-drop-epoch {config.lr_drop_epoch}: must be at least 1")
   require(config.synth_n >= 2, f"--synth-n {config.synth_n}: need at least 2 scenes")
   require(config.corr_window > 0 and config.corr_window % 2 == 1,
           f"--corr-window {config.corr_window}: must be a positive odd number")

@@ -168,11 +168,12 @@ def model_kwargs(config: TrainConfig, channels: int, t: int | None) -> dict[str,
 
 @functools.lru_cache(maxsize=8)
 def compiled_steps(net: str, kwargs: tuple[tuple[str, Any], ...], maxdisp: int, disp_loss: str,
-                   lr: float, precision: str, mesh) -> tuple[Any, Any, Any, Any]:
+                   lr: float, lr_drop_step: int | None, precision: str,
+                   mesh) -> tuple[Any, Any, Any, Any]:
   """(model, optimiser, train step, eval step), memoised so runs in one process share the
   compiled steps (tests, notebooks, experiment grids, a resume in the same process)."""
   model = build_model(net, **dict(kwargs))
-  tx = st.make_optimizer(lr)
+  tx = st.make_optimizer(lr, lr_drop_step)
   dtype = stp.COMPUTE_DTYPES[precision]
   return (model, tx,
           stp.make_train_step(model, net=net, maxdisp=maxdisp, disp_loss=disp_loss, tx=tx,
@@ -675,9 +676,10 @@ def train(config: TrainConfig, workdir: str | os.PathLike | None = None, *, resu
   # ---- compiled steps and state
   mesh = stp.make_mesh()
   repl, _ = stp.shardings(mesh)
+  drop = None if config.lr_drop_epoch is None else config.lr_drop_epoch * run.steps_per_epoch
   model, tx, train_step, eval_step = compiled_steps(
       config.net, tuple(sorted(run.kwargs.items())), config.maxdisp, config.disp_loss,
-      config.lr, config.precision, mesh)
+      config.lr, drop, config.precision, mesh)
   state = create_train_state(run, model, tx)
   manager = ckpt.make_manager(workdir / ckpt.CHECKPOINT_DIR, keep=config.keep)
   loop = LoopState()

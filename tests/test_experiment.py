@@ -38,6 +38,8 @@ def test_smoke_plan_runs_end_to_end_and_a_second_run_trains_nothing(smoke_out, c
   for cell in plan.cells:
     wd = runner.cell_dir(smoke_out, cell.name)
     assert (wd / runner.DONE_FILE).exists() and (wd / "eval" / "heldout.json").exists()
+    final = json.loads((wd / runner.DONE_FILE).read_text())["step"]
+    assert [p.name for p in (wd / "checkpoints").iterdir() if p.name.isdigit()] == [str(final)]
   # The tissue cells started from the objects cells' final checkpoints.
   cfg = json.loads((runner.cell_dir(smoke_out, "unet-sl-tissue-ft-s0") / "config.json")
                    .read_text())

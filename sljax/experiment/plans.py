@@ -63,12 +63,14 @@ SCALES = {s.name: s for s in (
           corr_window=3, unet_width=4, unet_depth=2, val_every=1, small_val_every=1,
           max_val=4, note="a few minutes on a CPU; the tests run it"),
     Scale("cpu", size=64, t=6, maxdisp=16, objects_n=400, tissue_n=80, epochs=12,
-          small_epochs=48, finetune_epochs=40, batch_size=4, lr=1e-3, lr_drop=True,
-          corr_window=5, unet_width=16, unet_depth=4, val_every=1, small_val_every=4,
+          small_epochs=96, finetune_epochs=40, batch_size=4, lr=1e-3, lr_drop=True,
+          corr_window=5, unet_width=16, unet_depth=4, val_every=1, small_val_every=8,
           max_val=40,
           note="fits a 2-core CPU: 64x64 with 6 patterns keeps the finest stripe about "
                "1.5 px wide, as 8 patterns at 256x256; Adam 1e-3 dropping to 1e-4 for the "
-               "last quarter of the epochs brings validation to its plateau within the budget"),
+               "last quarter of the epochs brings validation to a plateau within the budget; "
+               "the 1/16 runs take 8x the epochs (half the full runs' steps), which their "
+               "plateau needs"),
     Scale("paper", size=256, t=8, maxdisp=96, objects_n=8000, tissue_n=500, epochs=120,
           small_epochs=120, finetune_epochs=40, batch_size=12, lr=1e-4, lr_drop=False,
           corr_window=17, unet_width=32, unet_depth=4, val_every=1, small_val_every=1,

@@ -5,9 +5,27 @@ Inputs: numpy images HxW, HxWx1 or HxWx3 (or batched BxHxWxC), uint8 (/255), uin
 trained with (RGB -> gray by ITU-R BT.601 luma, gray -> RGB by repetition).
 
 Resolution modes:
-- "pad" (the PSMNet reference's test protocol): the pair is zero-padded at the TOP and RIGHT to
-  the next multiple of 32 in height and width, as the reference pads its test images, and the
-  outputs are cropped back (rows from the top pad on, columns up to the input width).
+- "pad" (the PSMNet reference's test protocol, Test_img.py / submission.py of JiaRenChang/PSMNet):
+  the reference normalises the image with the ImageNet mean and std and pads the normalised
+  tensor with 0 at the TOP and RIGHT to the next multiple of 16. sljax normalises inside the
+  model, so the [0, 1] pair is padded with the value the model's input normalisation maps to 0
+  (`pad_rule`), at the top and right, and the outputs are cropped back (rows from the top pad
+  on, columns up to the input width):
+    * psmnet, psmnet-mtl (RGB): the ImageNet mean colour (0.485, 0.456, 0.406), multiple of 16
+      (the reference's rule exactly).
+    * psmnet, psmnet-mtl (gray): 0.449, the average of the three means, which the 1-channel
+      normalisation (mean and std averaged over the channels) maps to 0; multiple of 16.
+    * unet-sl, unet-disp: 0.5, which the UNet's input centring 2x - 1 maps to 0; multiple of
+      2^depth, so every pooling level halves an even size and the UNet's own bottom/right edge
+      padding never applies. unet-disp scales its sigmoid by the width it is given, the padded
+      width here.
+  Why the normalised zero: the first convolution pads its input with zeros in the normalised
+  domain, so a pad region of normalised zeros is read exactly as the network's own border
+  padding; black (0) would be a dark frame (about -2 after normalisation) that the reference
+  never shows its network.
+  Why top and right: left-referenced disparity matches x in the left view with x - d in the
+  right view, so columns added on the right are never a match for an image pixel, while columns
+  on the left would be. Other (unknown) models are padded with 0 to a multiple of 16.
 - "resize" (the paper's evaluation): the pair is resized to the training size with the
   training loader's resampling (area when shrinking, bilinear when enlarging), the outputs are
   resized back bilinearly, and disparities are multiplied by input width / training width.
@@ -36,8 +54,49 @@ import numpy as np
 from sljax.data.scene import to_gray
 from sljax.errors import SljaxError
 
-PAD_MULTIPLE = 32
+PAD_MULTIPLE = 16  # PSMNet reference (and the default for models sljax does not know)
 MODES = ("pad", "resize")
+
+
+@dataclasses.dataclass(frozen=True)
+class PadRule:
+  """How pad mode pads a model's input: to a multiple of `multiple`, with `fill` per channel."""
+  multiple: int
+  fill: tuple[float, ...]
+
+  def describe(self) -> str:
+    """E.g. 'multiple of 16, filled with (0.485, 0.456, 0.406)'."""
+    return (f"multiple of {self.multiple} (top/right), filled with "
+            f"({', '.join(f'{v:.4g}' for v in self.fill)})")
+
+
+def pad_rule(model, channels: int) -> PadRule:
+  """The pad protocol for a model with `channels` input channels (see the module docstring)."""
+  from sljax.nets.psmnet import PSMNet, normalization_zero
+  from sljax.nets.psmnet_mtl import PSMNetMTL
+  from sljax.nets.unet import INPUT_ZERO, UNet
+  if isinstance(model, (PSMNet, PSMNetMTL)):
+    return PadRule(PAD_MULTIPLE, tuple(float(v) for v in normalization_zero(channels)))
+  if isinstance(model, UNet):
+    return PadRule(2 ** model.depth, (INPUT_ZERO,) * channels)
+  return PadRule(PAD_MULTIPLE, (0.0,) * channels)
+
+
+def pad_pair(left: np.ndarray, right: np.ndarray, rule: PadRule
+             ) -> tuple[np.ndarray, np.ndarray, int]:
+  """Pads BxHxWxC views at the top and right per rule; returns them and the top pad."""
+  _, h, w, c = left.shape
+  ph, pw = -h % rule.multiple, -w % rule.multiple
+  if not (ph or pw):
+    return left, right, 0
+  fill = np.asarray(rule.fill, np.float32).reshape(1, 1, 1, c)
+
+  def pad(x):
+    out = np.empty((x.shape[0], h + ph, w + pw, c), np.float32)
+    out[...] = fill
+    out[:, ph:, :w] = x
+    return out
+  return pad(left), pad(right), ph
 
 
 def _to_float(image: np.ndarray, what: str) -> np.ndarray:
@@ -245,6 +304,7 @@ class Predictor:
     self.spec = _probe(model, variables, guess, probe_size, self.name, desc)
     self.channels = self.spec.channels
     self.model = model
+    self.pad = pad_rule(model, self.channels)
     self.train_config: dict[str, Any] = {}  # set by load(): the run's training config
 
   @property
@@ -262,7 +322,7 @@ class Predictor:
     if self.mode == "resize":
       return (f"{self.model_name}: resized to the training size {self.train_size[0]}x"
               f"{self.train_size[1]} and back (bilinear, disparity scaled by the width ratio)")
-    return f"{self.model_name}: full resolution, padded to a multiple of {PAD_MULTIPLE} (top/right)"
+    return f"{self.model_name}: full resolution, padded to a {self.pad.describe()}"
 
   def __call__(self, left: np.ndarray, right: np.ndarray,
                calib: Any = None) -> dict[str, np.ndarray]:
@@ -273,9 +333,7 @@ class Predictor:
     lf, rf, batched = prepare_pair(left, right, self.channels, self.name)
     b, h, w, _ = lf.shape
     if self.mode == "pad":
-      ph, pw = -h % PAD_MULTIPLE, -w % PAD_MULTIPLE
-      widths = ((0, 0), (ph, 0), (0, pw), (0, 0))
-      lin, rin = np.pad(lf, widths), np.pad(rf, widths)
+      lin, rin, ph = pad_pair(lf, rf, self.pad)
     else:
       th, tw = self.train_size
       lin = np.stack([resize_image(x, (th, tw)) for x in lf])

@@ -370,14 +370,31 @@ def make_predictor(model_name: str, model_kwargs: dict, variables: dict, train_s
                    name=name)
 
 
-def load(checkpoint: str | os.PathLike, mode: str = "pad") -> Predictor:
-  """Predictor from a training workdir, its checkpoints dir, or a converted PSMNet dir."""
+def load(checkpoint: str | os.PathLike, mode: str = "pad", maxdisp: int | None = None
+         ) -> Predictor:
+  """Predictor from a training workdir, its checkpoints dir, or a converted PSMNet dir.
+
+  maxdisp (optional) replaces the disparity range: the cost volume's depth for psmnet and
+  psmnet-mtl (a multiple of 16; the weights do not depend on it), the correlation's search
+  range u for unet-sl (in the pixels the network sees); unet-disp has none.
+  """
   from sljax.train.checkpoint import load_for_inference
   path = os.fspath(checkpoint)
   model_name, model_kwargs, variables, config = load_for_inference(path)
   config = dict(config or {})
+  sl_max_disp = None
+  if maxdisp is not None:
+    if not isinstance(maxdisp, (int, np.integer)) or maxdisp <= 0:
+      raise SljaxError(f"maxdisp must be a positive integer, got {maxdisp!r}")
+    if model_name in ("psmnet", "psmnet-mtl"):
+      model_kwargs = dict(model_kwargs, maxdisp=int(maxdisp))
+    elif model_name == "unet-sl":
+      sl_max_disp = int(maxdisp)
+    else:
+      raise SljaxError(f"{path}: maxdisp does not apply to {model_name} (it predicts disparity "
+                       "directly, as a fraction of the image width)")
   predictor = make_predictor(model_name, model_kwargs, variables, train_size=config.get("size"),
-                             mode=mode, gray=config.get("gray"), name=path)
+                             mode=mode, gray=config.get("gray"), sl_max_disp=sl_max_disp,
+                             name=path)
   predictor.train_config = config
   return predictor
-

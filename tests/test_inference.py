@@ -430,3 +430,19 @@ def test_unet_pad_mode_matches_reference_padding(unet_disp_vars):
   ref = jax.jit(lambda v, a, b: model.apply(v, a, b, train=False))(
       unet_disp_vars, back(pad(centred(left))), back(pad(centred(right))))
   np.testing.assert_allclose(out, np.asarray(ref["disparity"])[0, 3:, :45], rtol=1e-5, atol=1e-4)
+
+
+def test_psmnet_mtl_export_round_trip(mtl_predictor, tmp_path):
+  """The deployable file of the twin (pad mode) in a process that imports only jax and numpy."""
+  from test_export import exported_outputs
+  rng = np.random.default_rng(17)
+  left = rng.uniform(0, 1, (2, 30, 27, 3)).astype(np.float32)
+  right = rng.uniform(0, 1, (2, 30, 27, 3)).astype(np.float32)
+  (out,), info = exported_outputs(tmp_path, mtl_predictor, (30, 27), [(left, right)])
+  want = mtl_predictor(left, right)
+  assert set(out) == set(want) == {"disparity", "patterns", "confidence"}
+  np.testing.assert_allclose(out["disparity"], want["disparity"], rtol=1e-4, atol=2e-4)
+  np.testing.assert_allclose(out["patterns"], want["patterns"], atol=5e-4)
+  np.testing.assert_allclose(out["confidence"], want["confidence"], atol=5e-4)
+  assert info["pad"]["multiple"] == 16 and info["pad"]["fill"] == pytest.approx([0.485, 0.456,
+                                                                                   0.406])

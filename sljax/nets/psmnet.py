@@ -68,7 +68,7 @@ def normalize_images(x: jax.Array) -> jax.Array:
 
 
 def normalization_zero(channels: int) -> np.ndarray:
-  """The [0, 1] input that `normalize_images` maps to 0 (per channel): the pad value at test time."""
+  """The [0, 1] input that `normalize_images` maps to 0, per channel: the test-time pad value."""
   require(channels in (1, 3), f"PSMNet expects 1 or 3 image channels, got {channels}")
   mean = np.asarray(IMAGENET_MEAN, np.float32)
   return mean.mean(keepdims=True) if channels == 1 else mean

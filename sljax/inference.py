@@ -235,6 +235,59 @@ def _jitted_forward():
   return jax.jit(_forward, static_argnums=0)
 
 
+# The twin (psmnet-mtl) runs as two programs when its cost volume would exceed this many bytes:
+# PSMNet on the disparity path's variables, then the SL path alone (`SLOnly`). Same values;
+# the two 3D stacks are never alive together (at 1024x1280, maxdisp 192: 9.2 GiB -> 6 GiB).
+TWIN_SPLIT_BYTES = 256 * 2**20
+
+
+def _twin_halves(model):
+  """(PSMNet, SLOnly) with the twin's configuration."""
+  from sljax.nets.psmnet import PSMNet
+  from sljax.nets.psmnet_mtl import SLOnly
+  kw = {"maxdisp": model.maxdisp, "in_channels": model.in_channels,
+        "align_corners": model.align_corners}
+  return PSMNet(**kw), SLOnly(t=model.t, **kw)
+
+
+def _sl_forward(model, variables, left, right):
+  """Pattern probabilities of the twin's SL path alone (SLOnly)."""
+  import jax
+  _TRACES[model] += 1
+  return {"patterns": jax.nn.sigmoid(model.apply(variables, left, right, train=False))}
+
+
+@functools.cache
+def _jitted_sl_forward():
+  import jax
+  return jax.jit(_sl_forward, static_argnums=0)
+
+
+def twin_split_needed(model, shape: tuple[int, ...]) -> bool:
+  """True for a psmnet-mtl whose cost volume for a BxHxWxC input exceeds TWIN_SPLIT_BYTES."""
+  from sljax.nets.psmnet_mtl import PSMNetMTL
+  if not isinstance(model, PSMNetMTL):
+    return False
+  b, h, w = shape[0], shape[1], shape[2]
+  return 4 * b * (model.maxdisp // 4) * (h // 4) * (w // 4) * 64 > TWIN_SPLIT_BYTES
+
+
+def forward(model, variables, left, right, split: bool | None = None) -> dict:
+  """The model's eval outputs (disparity, pattern probabilities) for prepared inputs.
+
+  split: run the twin as two programs (see TWIN_SPLIT_BYTES); None decides by size.
+  """
+  from sljax.nets.psmnet_mtl import detach_sl
+  if split is None:
+    split = twin_split_needed(model, np.shape(left))
+  if not split:
+    return _jitted_forward()(model, variables, left, right)
+  plain, sl_only = _twin_halves(model)
+  out = dict(_jitted_forward()(plain, detach_sl(variables), left, right))
+  out.update(_jitted_sl_forward()(sl_only, variables, left, right))
+  return out
+
+
 @dataclasses.dataclass(frozen=True)
 class ModelSpec:
   """What the predictor learnt about a model from an abstract run of it."""
@@ -278,7 +331,8 @@ class Predictor:
 
   def __init__(self, model, variables, *, model_name: str, model_kwargs: dict | None = None,
                train_size: Any = None, mode: str = "pad", gray: bool | None = None,
-               sl_max_disp: int | None = None, name: str | None = None):
+               sl_max_disp: int | None = None, name: str | None = None,
+               split_twin: bool | None = None):
     import jax
 
     if mode not in MODES:
@@ -291,6 +345,7 @@ class Predictor:
     self.model_name = model_name
     self.model_kwargs = dict(model_kwargs or {})
     self.mode = mode
+    self.split_twin = split_twin  # psmnet-mtl in two programs: None = when large (forward)
     self.train_size = _as_size(train_size)
     self.name = name or model_name
     self.sl_max_disp = sl_max_disp
@@ -338,7 +393,7 @@ class Predictor:
       th, tw = self.train_size
       lin = np.stack([resize_image(x, (th, tw)) for x in lf])
       rin = np.stack([resize_image(x, (th, tw)) for x in rf])
-    raw = _jitted_forward()(self.model, self.variables, lin, rin)
+    raw = forward(self.model, self.variables, lin, rin, self.split_twin)
     out = {k: np.asarray(v, dtype=np.float32) for k, v in raw.items()}
 
     if self.mode == "pad":

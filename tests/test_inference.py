@@ -446,3 +446,23 @@ def test_psmnet_mtl_export_round_trip(mtl_predictor, tmp_path):
   np.testing.assert_allclose(out["confidence"], want["confidence"], atol=5e-4)
   assert info["pad"]["multiple"] == 16 and info["pad"]["fill"] == pytest.approx([0.485, 0.456,
                                                                                    0.406])
+
+
+def test_twin_in_two_programs_equals_one(mtl_predictor):
+  """The memory-bounded path for large inputs (the twin as PSMNet + its SL path alone, two
+  programs) gives the one-program outputs; large inputs choose it, small ones do not."""
+  from sljax.nets import build_model
+  model = build_model("psmnet-mtl", **PSM_KW)
+  split = inference.Predictor(model, mtl_predictor.variables, model_name="psmnet-mtl",
+                              mode="pad", split_twin=True)
+  rng = np.random.default_rng(18)
+  left = rng.integers(0, 256, (2, 30, 27, 3), dtype=np.uint8)
+  right = rng.integers(0, 256, (2, 30, 27, 3), dtype=np.uint8)
+  one, two = mtl_predictor(left, right), split(left, right)
+  assert set(one) == set(two) == {"disparity", "patterns", "confidence"}
+  for k in one:
+    np.testing.assert_allclose(two[k], one[k], rtol=1e-5, atol=1e-5)
+  big = build_model("psmnet-mtl", maxdisp=192, t=9)
+  assert inference.twin_split_needed(big, (1, 1024, 1280, 3))
+  assert not inference.twin_split_needed(big, (1, 256, 320, 3))
+  assert not inference.twin_split_needed(build_model("psmnet", maxdisp=192), (1, 1024, 1280, 3))

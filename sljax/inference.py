@@ -36,6 +36,10 @@ and "confidence" (HxW in [0, 1], higher is surer: the correlation's peak-ratio c
 unet-sl, whose disparity is the windowed correlation of its predicted patterns, and the mean
 pattern certainty |2p - 1| for psmnet-mtl).
 
+Memory at full resolution: the twin (psmnet-mtl) holds two stacks of 3D activations; when its
+cost volume is large (TWIN_SPLIT_BYTES) it runs as two programs, PSMNet on the disparity
+path's variables and then its SL path alone, with the same outputs (`forward`).
+
 The network runs in one jitted function shared by every predictor of an equal model (flax
 modules compare by their fields), so jax keeps one compilation per model and model-input shape
 (in resize mode that is always the training size) for the whole process: both resolution
@@ -237,7 +241,7 @@ def _jitted_forward():
 
 # The twin (psmnet-mtl) runs as two programs when its cost volume would exceed this many bytes:
 # PSMNet on the disparity path's variables, then the SL path alone (`SLOnly`). Same values;
-# the two 3D stacks are never alive together (at 1024x1280, maxdisp 192: 9.2 GiB -> 6 GiB).
+# the two 3D stacks are never alive together (1024x1280, maxdisp 192: peak 9.2 -> 6.2 GiB).
 TWIN_SPLIT_BYTES = 256 * 2**20
 
 

@@ -23,6 +23,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+from tqdm import tqdm
 
 from sljax import geometry, inference
 from sljax.baselines import SGBMConfig, SGBMPredictor
@@ -190,14 +191,14 @@ def write_outputs(folder: Path, pair: Pair, left: np.ndarray, out: dict[str, np.
     geometry.write_ply(folder / "cloud.ply", xyz, rgb,
                        comment=f"sljax predict {label}: x y z in mm, left camera frame "
                                "(x right, y down, z forward)")
-    summary.update(points=len(xyz), png_zero_but_known=int((np.isfinite(depth) & (png == 0)).sum()))
+    summary.update(points=len(xyz),
+                   png_zero_but_known=int((np.isfinite(depth) & (png == 0)).sum()))
   return summary
 
 
 def predict_pairs(predictor, pairs: list[Pair], out: Path, max_depth: float | None = None,
                   progress: bool = True) -> list[dict[str, Any]]:
   """Runs the predictor on every pair (progress bar) and writes its files; returns summaries."""
-  from tqdm import tqdm
   summaries = []
   for pair in tqdm(pairs, desc="predict", unit="pair", disable=None if progress else True):
     left, right = read_pair(pair)

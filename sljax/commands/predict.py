@@ -64,7 +64,8 @@ def run(args) -> int:
     if "points" in s:
       line += f", {s['points']} points"
       if s["png_zero_but_known"]:
-        line += f" ({s['png_zero_but_known']} depths over 65535 mm are 0 in depth_mm.png)"
+        line += (f" ({s['png_zero_but_known']} known depths do not fit 16-bit mm and are 0 in "
+                 "depth_mm.png)")
     else:
       line += ", no calibration: no depth or point cloud"
     print(line)

@@ -37,7 +37,6 @@ import concurrent.futures
 import functools
 import math
 import os
-import threading
 
 import jax
 import jax.numpy as jnp
@@ -419,7 +418,7 @@ def _row_reduce(cc: np.ndarray, u: int, subpixel: bool, confidence: bool):
 
 
 def _rows_disparity(pl: np.ndarray, pr: np.ndarray, u: int, window: int, subpixel: bool,
-                    confidence: bool, band_rows: int = BAND_ROWS):
+                    confidence: bool, band_rows: int = BAND_ROWS, workers: int | None = None):
   """Left-referenced (disparity, peak, confidence or None) of one HxWxt pair by the row path."""
   h, w, _ = pl.shape
   disp = np.empty((h, w), np.float32)
@@ -431,15 +430,15 @@ def _rows_disparity(pl: np.ndarray, pr: np.ndarray, u: int, window: int, subpixe
     disp[y], peak[y] = d, p
     if confidence:
       conf[y] = c
-  _run_rows(pl, pr, u, window, emit, band_rows)
+  _run_rows(pl, pr, u, window, emit, band_rows, workers)
   return disp, peak, conf
 
 
 def _lr_checked(pl: np.ndarray, pr: np.ndarray, disp: np.ndarray, u: int, window: int,
-                subpixel: bool, band_rows: int) -> np.ndarray:
+                subpixel: bool, workers: int | None = None) -> np.ndarray:
   """disp with inf where right-to-left matching (the mirrored pair) disagrees by > LR_TOLERANCE."""
   disp_r, _, _ = _rows_disparity(pr[:, ::-1], pl[:, ::-1], u, window, subpixel, False,
-                                 band_rows)
+                                 workers=workers)
   disp_r = disp_r[:, ::-1]
   width = disp.shape[1]
   x = np.arange(width, dtype=np.float32)[None, :]
@@ -513,13 +512,22 @@ def sl_disparity(p_left, p_right, max_disp: int | None = None, window: int = PAP
     res = _shift_major(pl, pr, u, int(window), subpixel=bool(subpixel), normalized=True,
                        lr_check=bool(lr_check), confidence=bool(confidence), block=block)
   else:
-    outs = []
-    for i in range(b):
+    # One image at a time over threads (bands of rows), or, for batches of images with fewer
+    # bands than threads, one image per thread.
+    per_image = b > 1 and -(-h // BAND_ROWS) < _workers()
+
+    def one(i):
       disp, peak, conf = _rows_disparity(pl[i], pr[i], u, int(window), bool(subpixel),
-                                         bool(confidence))
+                                         bool(confidence), workers=1 if per_image else None)
       if lr_check:
-        disp = _lr_checked(pl[i], pr[i], disp, u, int(window), bool(subpixel), BAND_ROWS)
-      outs.append((disp, peak, conf) if confidence else (disp, peak))
+        disp = _lr_checked(pl[i], pr[i], disp, u, int(window), bool(subpixel),
+                           1 if per_image else None)
+      return (disp, peak, conf) if confidence else (disp, peak)
+    if per_image:
+      with concurrent.futures.ThreadPoolExecutor(_workers()) as pool:
+        outs = list(pool.map(one, range(b)))
+    else:
+      outs = [one(i) for i in range(b)]
     res = tuple(np.stack(parts) for parts in zip(*outs))
   return tuple(r[0] for r in res) if single else res
 

@@ -238,12 +238,12 @@ def evaluate(predictor, source, indices: list[int] | None = None, *, out_dir: Pa
   return report
 
 
-def _clean(value: Any) -> Any:
-  """NaN/inf -> None so that metrics.json is strict JSON."""
+def json_safe(value: Any) -> Any:
+  """NaN/inf -> None and numpy scalars -> Python numbers, so that reports are strict JSON."""
   if isinstance(value, dict):
-    return {k: _clean(v) for k, v in value.items()}
+    return {k: json_safe(v) for k, v in value.items()}
   if isinstance(value, (list, tuple)):
-    return [_clean(v) for v in value]
+    return [json_safe(v) for v in value]
   if isinstance(value, (float, np.floating)):
     return float(value) if math.isfinite(value) else None
   if isinstance(value, np.integer):
@@ -359,7 +359,7 @@ def write_report(report: dict[str, Any], out_dir: str | os.PathLike) -> None:
   out_dir = Path(out_dir)
   out_dir.mkdir(parents=True, exist_ok=True)
   (out_dir / "metrics.json").write_text(
-      json.dumps(_clean(report), indent=2, allow_nan=False) + "\n", encoding="utf-8")
+      json.dumps(json_safe(report), indent=2, allow_nan=False) + "\n", encoding="utf-8")
   (out_dir / "metrics.md").write_text(markdown_report(report), encoding="utf-8")
   columns, rows = csv_rows(report)
   with open(out_dir / "per_scene.csv", "w", newline="", encoding="utf-8") as f:

@@ -141,6 +141,7 @@ def inference_function(predictor, size: tuple[int, int]) -> Callable:
     return canvas.at[:, ph:, :w].set(x)
 
   sl_u = predictor.sl_max_disp
+  sl_window = getattr(predictor, "sl_window", None) or correlation.PAPER_WINDOW
 
   def f(left, right):
     # The predictor's order: crop (pad mode), then correlate or score the patterns, then resize
@@ -153,7 +154,7 @@ def inference_function(predictor, size: tuple[int, int]) -> Callable:
       u = correlation.default_max_disp(cw) if sl_u is None else sl_u
       block = correlation.choose_block(1, ch, cw, u)
       corr = jax.vmap(lambda a, b: correlation._single(
-          a, b, u=u, window=correlation.PAPER_WINDOW, subpixel=False, normalized=False,
+          a, b, u=u, window=sl_window, subpixel=False, normalized=False,
           lr_check=False, confidence=True, block=block))(out["patterns"], out["patterns_right"])
       out["disparity"], out["confidence"] = corr["disparity"], corr["confidence"]
     elif "patterns" in out:  # psmnet-mtl: mean pattern certainty |2p - 1|

@@ -335,8 +335,8 @@ class Predictor:
 
   def __init__(self, model, variables, *, model_name: str, model_kwargs: dict | None = None,
                train_size: Any = None, mode: str = "pad", gray: bool | None = None,
-               sl_max_disp: int | None = None, name: str | None = None,
-               split_twin: bool | None = None):
+               sl_max_disp: int | None = None, sl_window: int | None = None,
+               name: str | None = None, split_twin: bool | None = None):
     import jax
 
     if mode not in MODES:
@@ -353,6 +353,7 @@ class Predictor:
     self.train_size = _as_size(train_size)
     self.name = name or model_name
     self.sl_max_disp = sl_max_disp
+    self.sl_window = sl_window
     if mode == "resize" and self.train_size is None:
       raise SljaxError(f"{self.name}: resize mode needs the training size, which the "
                        "checkpoint's config lacks; use --mode pad (full resolution)")
@@ -404,8 +405,9 @@ class Predictor:
       out = {k: v[:, ph:, :w] for k, v in out.items()}
     if "patterns_right" in out:  # unet-sl: disparity by correlating the predicted patterns
       from sljax.corr.correlation import sl_disparity
+      window = {} if self.sl_window is None else {"window": self.sl_window}
       disp, _, conf = sl_disparity(out["patterns"], out["patterns_right"],
-                                   max_disp=self.sl_max_disp, confidence=True)
+                                   max_disp=self.sl_max_disp, confidence=True, **window)
       out["disparity"], out["confidence"] = disp, conf
     elif "patterns" in out:  # mean |2p - 1| over patterns: 1 - sljax.corr's uncertainty
       from sljax.corr.uncertainty import view_uncertainty
@@ -420,13 +422,13 @@ class Predictor:
 
 def make_predictor(model_name: str, model_kwargs: dict, variables: dict, train_size: Any = None,
                    mode: str = "pad", *, gray: bool | None = None, sl_max_disp: int | None = None,
-                   name: str | None = None) -> Predictor:
+                   sl_window: int | None = None, name: str | None = None) -> Predictor:
   """Predictor for a model built by sljax.nets.build_model(model_name, **model_kwargs)."""
   from sljax.nets import build_model
   model = build_model(model_name, **dict(model_kwargs or {}))
   return Predictor(model, variables, model_name=model_name, model_kwargs=model_kwargs,
                    train_size=train_size, mode=mode, gray=gray, sl_max_disp=sl_max_disp,
-                   name=name)
+                   sl_window=sl_window, name=name)
 
 
 def load(checkpoint: str | os.PathLike, mode: str = "pad", maxdisp: int | None = None
@@ -454,6 +456,6 @@ def load(checkpoint: str | os.PathLike, mode: str = "pad", maxdisp: int | None =
                        "directly, as a fraction of the image width)")
   predictor = make_predictor(model_name, model_kwargs, variables, train_size=config.get("size"),
                              mode=mode, gray=config.get("gray"), sl_max_disp=sl_max_disp,
-                             name=path)
+                             sl_window=config.get("corr_window"), name=path)
   predictor.train_config = config
   return predictor

@@ -175,7 +175,7 @@ def phase_conv_transpose3d(x: jax.Array, kernel: jax.Array, strides: Sequence[in
     m = sel.shape[0]
     # Phase output i reads inputs i + emin .. i + emin + m - 1 (zero outside the input).
     pads.append((-emin, q - 1 + emin + m - 1 - (size - 1)))
-    sels.append(jnp.asarray(sel))
+    sels.append(jnp.asarray(sel, kernel.dtype))
     lq.append(q)
     lengths.append(length)
   comb = jnp.einsum("dat,hbu,wcv,tuvio->dhwiabco", *sels, kernel)
@@ -219,7 +219,7 @@ class Conv3D(nn.Module):
   use_bias: bool = False
   kernel_init: Initializer = nn.initializers.lecun_normal()
   bias_init: Initializer = nn.initializers.zeros_init()
-  dtype: Any = jnp.float32
+  dtype: Any = None  # computation dtype; None: that of the input and kernel (as nn.Conv)
   impl: str | None = None
 
   @nn.compact
@@ -228,11 +228,12 @@ class Conv3D(nn.Module):
     ks = _triple(self.kernel_size)
     cin = x.shape[-1]
     kernel = self.param("kernel", self.kernel_init, ks + (cin, self.features), jnp.float32)
-    y = conv3d(x.astype(self.dtype), kernel.astype(self.dtype), _triple(self.strides),
+    dtype = self.dtype or jnp.result_type(x, kernel)
+    y = conv3d(x.astype(dtype), kernel.astype(dtype), _triple(self.strides),
                resolve_padding(self.padding, ks), self.impl)
     if self.use_bias:
       bias = self.param("bias", self.bias_init, (self.features,), jnp.float32)
-      y = y + bias.astype(self.dtype)
+      y = y + bias.astype(dtype)
     return y
 
 
@@ -254,7 +255,7 @@ class ConvTranspose3D(nn.Module):
   use_bias: bool = False
   kernel_init: Initializer = nn.initializers.lecun_normal()
   bias_init: Initializer = nn.initializers.zeros_init()
-  dtype: Any = jnp.float32
+  dtype: Any = None  # computation dtype; None: that of the input and kernel (as nn.Conv)
   impl: str | None = None
 
   @nn.compact
@@ -263,9 +264,10 @@ class ConvTranspose3D(nn.Module):
     ks = _triple(self.kernel_size)
     cin = x.shape[-1]
     kernel = self.param("kernel", self.kernel_init, ks + (cin, self.features), jnp.float32)
-    y = conv_transpose3d(x.astype(self.dtype), kernel.astype(self.dtype), _triple(self.strides),
+    dtype = self.dtype or jnp.result_type(x, kernel)
+    y = conv_transpose3d(x.astype(dtype), kernel.astype(dtype), _triple(self.strides),
                          transpose_padding(ks, self.padding, self.output_padding), self.impl)
     if self.use_bias:
       bias = self.param("bias", self.bias_init, (self.features,), jnp.float32)
-      y = y + bias.astype(self.dtype)
+      y = y + bias.astype(dtype)
     return y

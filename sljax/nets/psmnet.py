@@ -64,7 +64,7 @@ def normalize_images(x: jax.Array) -> jax.Array:
   std = np.asarray(IMAGENET_STD, np.float32)
   if c == 1:
     mean, std = mean.mean(keepdims=True), std.mean(keepdims=True)
-  return (x - mean) / std
+  return ((x - mean) / std).astype(x.dtype)
 
 
 def normalization_zero(channels: int) -> np.ndarray:
@@ -262,6 +262,8 @@ def disparity_outputs(outs: tuple[jax.Array, jax.Array, jax.Array], train: bool,
   cost3 = Classifier(name="classif3")(outs[2], train) + cost2
 
   def regress(c):
+    # Upsampling, softmax and regression in float32 whatever the computation dtype.
+    c = c.astype(jnp.float32)
     return disparity_regression(upsample_cost(c, maxdisp, height, width, align_corners))
 
   pred3 = regress(cost3)

@@ -57,12 +57,13 @@ class SLPath(nn.Module):
     x = nn.relu(ConvBN3D(32, name="head_convbn")(out3, train))
     score = Conv3D(1, (3, 3, 3), padding=1, use_bias=False, kernel_init=conv_init,
                    name="head_attention")(x)
-    weights = jax.nn.softmax(score, axis=1)  # over disparity, [B, D, h, w, 1]
+    # Softmax over disparity in float32 whatever the computation dtype; [B, D, h, w, 1].
+    weights = jax.nn.softmax(score.astype(jnp.float32), axis=1)
     feat = jnp.sum(weights * x, axis=1)
     num_d = x.shape[1]
-    disp = jnp.arange(num_d, dtype=x.dtype)[None, :, None, None, None]
+    disp = jnp.arange(num_d, dtype=jnp.float32)[None, :, None, None, None]
     expected = jnp.sum(weights * disp, axis=1) / num_d
-    x = jnp.concatenate([feat, expected], axis=-1)
+    x = jnp.concatenate([feat, expected], axis=-1).astype(x.dtype)
     for i, (h, w) in enumerate(((height // 2, width // 2), (height, width)), start=1):
       x = resize_linear(x, (w, h), (2, 1), self.align_corners)
       x = nn.relu(ConvBN2D(32, 3, 1, 1, name=f"up{i}")(x, train))

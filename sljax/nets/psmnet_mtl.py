@@ -95,6 +95,29 @@ class PSMNetMTL(nn.Module):
     return out
 
 
+class SLOnly(nn.Module):
+  """The twin's structured-light output alone: feature extraction, cost volume and SL path.
+
+  Same fields and parameter names as PSMNetMTL, so it applies to the twin's variables (the
+  disparity path's are not read): `PSMNet` on `detach_sl(variables)` plus this give the twin's
+  two outputs in two separate runs, which never hold both 3D stacks at once
+  (`sljax.inference` does so at large sizes).
+  """
+
+  maxdisp: int = 96
+  t: int = 8
+  in_channels: int = 3
+  align_corners: bool = False
+
+  @nn.compact
+  def __call__(self, left: jax.Array, right: jax.Array, train: bool = False) -> jax.Array:
+    """Left-view pattern logits [B, H, W, t]."""
+    check_pair(left, right, self.in_channels, self.maxdisp)
+    h, w = left.shape[1], left.shape[2]
+    cost = extract_cost_volume(left, right, self.maxdisp, train, self.align_corners)
+    return SLPath(self.t, self.align_corners, name=SL_KEY)(cost, h, w, train)
+
+
 def detach_sl(variables: Mapping[str, Any]) -> dict[str, Any]:
   """Variables of the plain PSMNet from psmnet-mtl variables: every collection minus `sl`."""
   require(isinstance(variables, Mapping) and "params" in variables,

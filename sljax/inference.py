@@ -439,6 +439,7 @@ def load(checkpoint: str | os.PathLike, mode: str = "pad", maxdisp: int | None =
   psmnet-mtl (a multiple of 16; the weights do not depend on it), the correlation's search
   range u for unet-sl (in the pixels the network sees); unet-disp has none.
   """
+  from sljax.nets import registry
   from sljax.train.checkpoint import load_for_inference
   path = os.fspath(checkpoint)
   model_name, model_kwargs, variables, config = load_for_inference(path)
@@ -447,9 +448,10 @@ def load(checkpoint: str | os.PathLike, mode: str = "pad", maxdisp: int | None =
   if maxdisp is not None:
     if not isinstance(maxdisp, (int, np.integer)) or maxdisp <= 0:
       raise SljaxError(f"maxdisp must be a positive integer, got {maxdisp!r}")
-    if model_name in ("psmnet", "psmnet-mtl"):
+    spec = registry.spec(model_name)
+    if "maxdisp" in spec.options:
       model_kwargs = dict(model_kwargs, maxdisp=int(maxdisp))
-    elif model_name == "unet-sl":
+    elif "sl_logits_right" in spec.outputs:  # disparity by correlating both views' patterns
       sl_max_disp = int(maxdisp)
     else:
       raise SljaxError(f"{path}: maxdisp does not apply to {model_name} (it predicts disparity "

@@ -1,11 +1,16 @@
-"""Throughput of sljax.corr.sl_disparity beside a naive loop and the memory-bandwidth floor.
+"""Speed of sljax.corr.sl_disparity (row path) beside the shift-major path it replaced.
 
 Usage: python benchmarks/bench_corr.py [--quick] [--repeats N]
 
-Each size runs in its own subprocess, so its peak resident memory (ru_maxrss via os.wait4) is
-measured alone. Prints one table: pixels/s of the jit correlation, of the naive NumPy loop (on a
-crop, literal loops over pixels and shifts), and of the bandwidth floor (bytes the formulation
-moves per pixel per shift / measured memcpy bandwidth), with the ratios.
+For each size one subprocess times both formulations side by side (interleaved, minimum over
+repeats, wall and process CPU seconds) on random pattern probabilities and checks on random 0/1
+patterns that they agree exactly; two more subprocesses run each formulation once alone so that
+their peak resident memory (ru_maxrss via os.wait4) is measured separately. A naive NumPy loop
+of the formula on a small crop gives the baseline in pixels per second.
+
+Rows: "rows" is `sl_disparity` (plain cc: per-row matrix products + separable box filter on the
+host CPU), "shifts" is the shift-major JAX formulation that `sl_disparity` used before
+(`correlation._shift_major`, still used for normalised cc).
 """
 
 import argparse
@@ -20,29 +25,6 @@ import numpy as np
 # (H, W, t, u): the paper's virtual set and a SCARED-sized frame.
 SIZES = [(256, 256, 8, 64), (1024, 1280, 9, 320)]
 WINDOW = 17
-
-
-def bytes_per_pixel_shift(t: int, window: int = WINDOW) -> dict[str, float]:
-  """Bytes per pixel per shift: 'fused' (each stage streams once), 'ops' (op by op)."""
-  f = 4
-  product = (2 * t + 1) * f  # read t left + t shifted right values, write the product map
-  levels = int(np.log2(window))  # doubling levels per axis, each reads and writes a map
-  extra = bin(window).count("1") - 1  # adds combining the levels
-  box_axis = 2 * f + levels * 2 * f + extra * 3 * f  # pad copy, levels, final combination
-  argmax = 3 * f  # maps read by max and argmax, running state update amortised
-  return {"fused": product + 3 * f, "ops": product + 2 * box_axis + argmax}
-
-
-def memcpy_bandwidth(nbytes: int = 256 * 2**20, repeats: int = 5) -> float:
-  """Bytes/s moved by a large numpy copy (read + write counted)."""
-  src = np.ones(nbytes // 4, np.float32)
-  dst = np.empty_like(src)
-  best = float("inf")
-  for _ in range(repeats):
-    t0 = time.perf_counter()
-    np.copyto(dst, src)
-    best = min(best, time.perf_counter() - t0)
-  return 2 * nbytes / best
 
 
 def naive_pixels_per_s(t: int, u: int, crop: int = 6, window: int = WINDOW) -> float:
@@ -67,42 +49,64 @@ def naive_pixels_per_s(t: int, u: int, crop: int = 6, window: int = WINDOW) -> f
   return crop * crop / (time.perf_counter() - t0)
 
 
-def child(h: int, w: int, t: int, u: int, repeats: int, block: int | None) -> None:
-  """Times the jit correlation for one size; prints a JSON line."""
+def _implementations():
   os.environ.setdefault("JAX_PLATFORMS", "cpu")
   sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
   from sljax.corr import correlation
 
+  def rows(pl, pr, u):
+    return correlation.sl_disparity(pl, pr, u, WINDOW)
+
+  def shifts(pl, pr, u):
+    d, p = correlation._shift_major(pl[None], pr[None], u, WINDOW)
+    return d[0], p[0]
+  return {"rows": rows, "shifts": shifts}
+
+
+def child_time(h: int, w: int, t: int, u: int, repeats: int) -> None:
+  """Times both formulations interleaved; checks exact agreement on 0/1 patterns; JSON line."""
+  impls = _implementations()
   rng = np.random.default_rng(0)
   pl = rng.random((h, w, t), dtype=np.float32)
   pr = rng.random((h, w, t), dtype=np.float32)
-  t0 = time.perf_counter()
-  correlation.sl_disparity(pl, pr, u, WINDOW, block=block)
-  first = time.perf_counter() - t0
-  times = []
-  for _ in range(repeats):
+  res = {name: {"seconds": float("inf"), "cpu_seconds": float("inf")} for name in impls}
+  for name, f in impls.items():  # first calls compile (shifts) and warm the caches
     t0 = time.perf_counter()
-    correlation.sl_disparity(pl, pr, u, WINDOW, block=block)
-    times.append(time.perf_counter() - t0)
-  used = block or correlation.choose_block(1, h, w, u, WINDOW)
-  print(json.dumps({"seconds": float(np.median(times)), "compile_and_run": first, "block": used}))
+    f(pl, pr, u)
+    res[name]["first_call"] = time.perf_counter() - t0
+  for _ in range(repeats):
+    for name, f in impls.items():
+      c0, t0 = time.process_time(), time.perf_counter()
+      f(pl, pr, u)
+      r = res[name]
+      r["seconds"] = min(r["seconds"], time.perf_counter() - t0)
+      r["cpu_seconds"] = min(r["cpu_seconds"], time.process_time() - c0)
+  bl = (rng.random((h, w, t)) < 0.5).astype(np.float32)
+  br = (rng.random((h, w, t)) < 0.5).astype(np.float32)
+  (d1, p1), (d2, p2) = (f(bl, br, u) for f in impls.values())
+  res["identical_on_binary"] = bool(np.array_equal(d1, d2) and np.array_equal(p1, p2))
+  print(json.dumps(res))
 
 
-def run_child(h, w, t, u, repeats, block=None) -> dict:
-  """Runs child() in a fresh process; adds its peak RSS in MiB."""
-  cmd = [sys.executable, os.path.abspath(__file__), "--child", f"{h},{w},{t},{u}",
-         "--repeats", str(repeats)]
-  if block:
-    cmd += ["--block", str(block)]
-  proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True)
+def child_memory(h: int, w: int, t: int, u: int, name: str) -> None:
+  """One call of one formulation (the parent reads this process's peak RSS)."""
+  rng = np.random.default_rng(0)
+  pl = rng.random((h, w, t), dtype=np.float32)
+  pr = rng.random((h, w, t), dtype=np.float32)
+  _implementations()[name](pl, pr, u)
+  print(json.dumps({"ok": True}))
+
+
+def run_child(args: list[str]) -> tuple[dict, float]:
+  """Runs this file with args in a fresh process; returns its JSON line and peak RSS in MiB."""
+  proc = subprocess.Popen([sys.executable, os.path.abspath(__file__)] + args,
+                          stdout=subprocess.PIPE, text=True)
   out = proc.stdout.read()
   _, status, usage = os.wait4(proc.pid, 0)
-  proc.returncode = os.waitstatus_to_exitcode(status)
-  if proc.returncode != 0:
-    raise SystemExit(f"benchmark child for {h}x{w} failed with exit code {proc.returncode}")
-  res = json.loads(out.strip().splitlines()[-1])
-  res["peak_rss_mib"] = usage.ru_maxrss / 1024  # Linux reports KiB
-  return res
+  code = os.waitstatus_to_exitcode(status)
+  if code != 0:
+    raise SystemExit(f"benchmark child {' '.join(args)} failed with exit code {code}")
+  return json.loads(out.strip().splitlines()[-1]), usage.ru_maxrss / 1024  # Linux: KiB
 
 
 def main() -> None:
@@ -110,38 +114,33 @@ def main() -> None:
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   parser.add_argument("--quick", action="store_true", help="only the 256x256 size")
   parser.add_argument("--repeats", type=int, default=3)
-  parser.add_argument("--blocks", default="", help="comma list: also time these block sizes at 256")
   parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
-  parser.add_argument("--block", type=int, default=None, help=argparse.SUPPRESS)
+  parser.add_argument("--memory", default=None, help=argparse.SUPPRESS)
   args = parser.parse_args()
   if args.child:
-    child(*[int(v) for v in args.child.split(",")], args.repeats, args.block)
+    size = [int(v) for v in args.child.split(",")]
+    if args.memory:
+      child_memory(*size, args.memory)
+    else:
+      child_time(*size, args.repeats)
     return
 
-  bandwidth = memcpy_bandwidth()
-  print(f"memcpy bandwidth (numpy, read + write): {bandwidth / 1e9:.2f} GB/s; "
-        f"CPU cores: {os.cpu_count()}")
-  header = (f"{'size':>10} {'t':>2} {'u':>4} {'block':>5} {'jit px/s':>10} {'naive px/s':>10} "
-            f"{'floor px/s (fused/ops)':>23} {'jit/naive':>9} {'jit/floor':>15} {'peak MiB':>8} "
-            f"{'compile+run s':>13}")
-  print(header)
-  sizes = SIZES[:1] if args.quick else SIZES
-  rows = [(s, None) for s in sizes]
-  rows += [(SIZES[0], int(b)) for b in args.blocks.split(",") if b]
-  for (h, w, t, u), block in rows:
-    res = run_child(h, w, t, u, args.repeats, block)
-    jit = h * w / res["seconds"]
+  print(f"CPU cores: {os.cpu_count()}; times are minimums over {args.repeats} interleaved repeats")
+  print(f"{'size':>10} {'t':>2} {'u':>4} {'rows s':>7} {'(cpu s)':>7} {'shifts s':>8} "
+        f"{'(cpu s)':>7} {'shifts/rows':>11} {'rows px/s':>9} {'naive px/s':>10} "
+        f"{'rows/naive':>10} {'peak MiB rows/shifts':>20} {'identical':>9}")
+  for h, w, t, u in (SIZES[:1] if args.quick else SIZES):
+    size = f"{h},{w},{t},{u}"
+    res, _ = run_child(["--child", size, "--repeats", str(args.repeats)])
+    mem = {name: run_child(["--child", size, "--memory", name])[1] for name in ("rows", "shifts")}
+    rows, shifts = res["rows"], res["shifts"]
     naive = naive_pixels_per_s(t, u)
-    bpp = bytes_per_pixel_shift(t)
-    floor_fused = bandwidth / (bpp["fused"] * (u + 1))
-    floor_ops = bandwidth / (bpp["ops"] * (u + 1))
-    print(f"{w:>4}x{h:<5} {t:>2} {u:>4} {res['block']:>5} {jit:>10.3g} {naive:>10.3g} "
-          f"{floor_fused:>11.3g}/{floor_ops:<11.3g} {jit / naive:>9.0f} "
-          f"{jit / floor_fused:>7.2f}/{jit / floor_ops:<7.2f} {res['peak_rss_mib']:>8.0f} "
-          f"{res['compile_and_run']:>13.2f}")
-  print("bytes per pixel per shift (t=8 / t=9): fused "
-        f"{bytes_per_pixel_shift(8)['fused']}/{bytes_per_pixel_shift(9)['fused']}, op by op "
-        f"{bytes_per_pixel_shift(8)['ops']}/{bytes_per_pixel_shift(9)['ops']}")
+    px = h * w / rows["seconds"]
+    print(f"{w:>4}x{h:<5} {t:>2} {u:>4} {rows['seconds']:>7.3f} {rows['cpu_seconds']:>7.3f} "
+          f"{shifts['seconds']:>8.3f} {shifts['cpu_seconds']:>7.3f} "
+          f"{shifts['seconds'] / rows['seconds']:>11.1f} {px:>9.3g} {naive:>10.3g} "
+          f"{px / naive:>10.0f} {mem['rows']:>9.0f}/{mem['shifts']:<10.0f} "
+          f"{'yes' if res['identical_on_binary'] else 'NO':>9}")
 
 
 if __name__ == "__main__":

@@ -1,82 +1,147 @@
-"""Training-step cost per network and size: compile time, seconds per step and per sample, and
-the extrapolated time per epoch of the quick and paper presets.
+"""Training speed: the compiled step alone against the whole loop, side by side in one run.
 
-  JAX_PLATFORMS=cpu python benchmarks/bench_train.py --net psmnet-mtl --size 64 --maxdisp 32 --batch 8
-  JAX_PLATFORMS=cpu python benchmarks/bench_train.py --preset paper --batch 1 --steps 2
+Steps per second of
+  (a) the compiled training step on one fixed device batch (no data, no logging);
+  (b) the full loop (`sljax.train.loop.train`) on synthetic scenes rendered on the fly;
+  (c) the full loop on a folder of 256x256 PNG scenes that this benchmark writes first;
+and the ratios (b)/(a) and (c)/(a): the loop's overhead (data, logs, checkpoints) is hidden
+when they are close to 1. Loop timings are the steady-state epochs (the first epoch, which
+compiles, and validation are left out). Prints where it ran (CPU, devices, versions).
+
+  python benchmarks/bench_train.py                          # quick preset, psmnet-mtl
+  python benchmarks/bench_train.py --preset paper --batch 2 --steps 2
+  python benchmarks/bench_train.py --net unet-sl --precision bf16
 """
 
 import argparse
+import dataclasses
+import json
+import os
+import platform
+import tempfile
 import time
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from sljax.data.dataset import split_indices
+from sljax.data.scene import write_scene
+from sljax.data.synthetic import SynthConfig, SyntheticSource
 from sljax.losses.weighting import step_weights
-from sljax.nets import build_model
+from sljax.nets import registry
+from sljax.train import loop
 from sljax.train import state as st
 from sljax.train import step as stp
-from sljax.train.config import PAPER, QUICK
+from sljax.train.config import PAPER, QUICK, TrainConfig
+
+
+def machine() -> str:
+  """One line: CPU model, cores, devices and versions."""
+  cpu = platform.processor() or "?"
+  try:
+    with open("/proc/cpuinfo", encoding="utf-8") as f:
+      cpu = next(l.split(":", 1)[1].strip() for l in f if l.startswith("model name"))
+  except (OSError, StopIteration):
+    pass
+  return (f"{cpu}, {os.cpu_count()} cores; {jax.device_count()} x {jax.devices()[0].device_kind}"
+          f" ({jax.default_backend()}); jax {jax.__version__}")
+
+
+def config_for(args) -> TrainConfig:
+  """The preset with the benchmark's network, batch and a training set of `steps` batches."""
+  base = {"quick": QUICK, "paper": PAPER}[args.preset]
+  spec = registry.spec(args.net)
+  model = spec.single or args.net
+  strategy = "unc" if spec.multi_task else "stl"
+  b = args.batch or base.batch_size
+  return dataclasses.replace(base, model=model, strategy=strategy, batch_size=b,
+                             epochs=args.epochs, val_every=10**6, max_val=b, keep=1,
+                             precision=args.precision)
+
+
+def subset(config: TrainConfig, n_train: int, steps: int) -> TrainConfig:
+  """Keeps `steps` batches of the training split (--fraction), so epochs are short."""
+  return dataclasses.replace(config, fraction=f"{steps * config.batch_size}/{n_train}")
+
+
+def time_step(config: TrainConfig, steps: int) -> float:
+  """(a): steps/s of the compiled step on one fixed batch."""
+  source = loop.open_source(config)
+  info = loop.check_source(source, config)
+  kwargs = loop.model_kwargs(config, info.channels, info.t)
+  mesh = stp.make_mesh()
+  model, tx, step, _ = loop.compiled_steps(config.net, tuple(sorted(kwargs.items())),
+                                           config.maxdisp, config.disp_loss, config.lr, None,
+                                           config.precision, mesh)
+  state = jax.device_put(st.create_state(st.init_variables(model, 0, *config.size,
+                                                           info.channels), tx),
+                         stp.shardings(mesh)[0])
+  rows = loop.RowCache(source, config, loop.batch_parts(config), False)
+  batch = stp.put_batch(rows.batch(list(range(config.batch_size))), mesh)
+  w = jnp.asarray(step_weights(config.strategy, []))
+  state, m = step(state, batch, w)  # compiles
+  jax.block_until_ready(m)
+  t0 = time.perf_counter()
+  for _ in range(steps):
+    state, m = step(state, batch, w)
+  jax.block_until_ready((state, m))
+  return steps / (time.perf_counter() - t0)
+
+
+def time_loop(config: TrainConfig, workdir: Path) -> float:
+  """(b), (c): steps/s of the loop's steady-state epochs (epoch 1 compiles; no validation)."""
+  loop.train(config, workdir, overwrite=True, log=lambda line: None, progress=False)
+  recs = [json.loads(l) for l in (workdir / loop.EPOCHS_FILE).read_text().splitlines()]
+  steady = recs[1:]
+  return recs[0]["step"] * len(steady) / sum(r["seconds"] for r in steady)
+
+
+def write_folder(root: Path, n: int, size: int, seed: int = 0) -> Path:
+  """n synthetic 'objects' scenes of size x size as PNG scene folders."""
+  src = SyntheticSource(n, seed=seed, config=SynthConfig(size=size))
+  for i in range(n):
+    write_scene(root / src.name(i), src[i])
+  return root
 
 
 def main() -> None:
-  """Times one network's training step and prints a table row plus the epoch extrapolation."""
+  """Prints the table."""
   p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
-  p.add_argument("--preset", choices=("quick", "paper"), default=None)
-  p.add_argument("--net", default="psmnet-mtl",
-                 choices=("psmnet", "psmnet-mtl", "unet-sl", "unet-disp"))
-  p.add_argument("--size", type=int, default=None)
-  p.add_argument("--maxdisp", type=int, default=None)
-  p.add_argument("--batch", type=int, default=None)
-  p.add_argument("--steps", type=int, default=3)
-  p.add_argument("--t", type=int, default=8)
+  p.add_argument("--preset", choices=("quick", "paper"), default="quick")
+  p.add_argument("--net", default="psmnet-mtl", choices=registry.NAMES)
+  p.add_argument("--batch", type=int, default=None, help="default: the preset's")
+  p.add_argument("--steps", type=int, default=10, help="steps per epoch (and for (a))")
+  p.add_argument("--epochs", type=int, default=3,
+                 help="loop epochs (at least 2); the first is not timed")
+  p.add_argument("--precision", choices=("fp32", "bf16"), default="fp32")
+  p.add_argument("--folder-size", type=int, default=256, help="PNG scene size for (c)")
   args = p.parse_args()
-  cfg = {"quick": QUICK, "paper": PAPER, None: QUICK}[args.preset]
-  size = args.size or cfg.size[0]
-  maxdisp = args.maxdisp or cfg.maxdisp
-  batch = args.batch or cfg.batch_size
-  c = 1 if args.net.startswith("unet") else 3
-  kw = {"in_channels": c}
-  if args.net.startswith("psmnet"):
-    kw["maxdisp"] = maxdisp
-  if args.net in ("psmnet-mtl", "unet-sl"):
-    kw["t"] = args.t
-  if args.net.startswith("unet"):
-    kw.update(depth=cfg.unet_depth, base_width=cfg.unet_width)
-  model = build_model(args.net, **kw)
-  t0 = time.perf_counter()
-  variables = st.init_variables(model, 0, size, size, c)
-  t_init = time.perf_counter() - t0
-  tx = st.make_optimizer(1e-4)
-  mesh = stp.make_mesh()
-  state = jax.device_put(st.create_state(variables, tx), stp.shardings(mesh)[0])
-  step = stp.make_train_step(model, net=args.net, maxdisp=maxdisp, disp_loss="l2", tx=tx,
-                             mesh=mesh)
-  rng = np.random.default_rng(0)
-  host = {"left": rng.random((batch, size, size, c), np.float32),
-          "right": rng.random((batch, size, size, c), np.float32),
-          "disp": rng.uniform(0, maxdisp, (batch, size, size)).astype(np.float32),
-          "sl": (rng.random((batch, size, size, args.t)) > 0.5).astype(np.float32)}
-  host["sl_right"] = host["sl"]
-  b = stp.put_batch({k: host[k] for k in stp.BATCH_PARTS[args.net]}, mesh)
-  w = jnp.asarray(step_weights("unc", []))
-  t0 = time.perf_counter()
-  state, m = step(state, b, w)
-  jax.block_until_ready(m)
-  t_first = time.perf_counter() - t0
-  t0 = time.perf_counter()
-  for _ in range(args.steps):
-    state, m = step(state, b, w)
-  jax.block_until_ready(m)
-  per_step = (time.perf_counter() - t0) / args.steps
-  per_sample = per_step / batch
-  n_train = int(round(cfg.synth_n * (1 - cfg.test_fraction)))
-  print(f"| net | size | maxdisp | batch | init s | compile+1st s | s/step | s/sample |")
-  print(f"| {args.net} | {size} | {maxdisp} | {batch} | {t_init:.1f} | {t_first:.1f} | "
-        f"{per_step:.3f} | {per_sample:.3f} |")
-  print(f"{cfg.preset} preset ({n_train} training scenes of {cfg.synth_n}): ~"
-        f"{per_sample * n_train / 60:.1f} min per epoch of training steps on "
-        f"{jax.devices()[0].device_kind} (validation and data not included)")
+  config = config_for(args)
+  n_train = len(split_indices(loop.open_source(config), config.test_fraction, config.seed)[0])
+  rows = []
+  a = time_step(config, args.steps)
+  rows.append(("(a) compiled step, fixed batch", a))
+  with tempfile.TemporaryDirectory() as tmp:
+    tmp = Path(tmp)
+    rows.append(("(b) loop, synthetic on the fly",
+                 time_loop(subset(config, n_train, args.steps), tmp / "b")))
+    n_folder = int(np.ceil(args.steps * config.batch_size / 0.8 / 10) * 10) + 10
+    folder = write_folder(tmp / "scenes", n_folder, args.folder_size)
+    folder_cfg = dataclasses.replace(config, data=str(folder))
+    n_folder_train = len(split_indices(loop.open_source(folder_cfg), config.test_fraction,
+                                       config.seed)[0])
+    rows.append((f"(c) loop, folder of {args.folder_size}x{args.folder_size} PNG scenes",
+                 time_loop(subset(folder_cfg, n_folder_train, args.steps), tmp / "c")))
+  print(f"\n{machine()}")
+  print(f"preset {config.preset}: {config.net}/{config.strategy}, {config.size[0]}x"
+        f"{config.size[1]}, maxdisp {config.maxdisp}, batch {config.batch_size}, "
+        f"{config.precision}, {args.steps} steps per epoch\n")
+  print("| what | steps/s | samples/s | ratio to (a) |")
+  print("| --- | --- | --- | --- |")
+  for name, sps in rows:
+    print(f"| {name} | {sps:.3f} | {sps * config.batch_size:.2f} | {sps / a:.3f} |")
 
 
 if __name__ == "__main__":

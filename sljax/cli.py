@@ -22,9 +22,17 @@ def build_parser() -> argparse.ArgumentParser:
   return parser
 
 
+def quiet_libraries() -> None:
+  """Keeps library chatter (orbax logs each read-only checkpoint opening as a warning) to
+  errors only."""
+  from absl import logging as absl_logging  # pylint: disable=import-outside-toplevel
+  absl_logging.set_verbosity(absl_logging.ERROR)
+
+
 def main(argv: list[str] | None = None) -> int:
   """Entry point: runs a subcommand; bad input ends with one line on stderr and exit 2."""
   args = build_parser().parse_args(argv)
+  quiet_libraries()
   try:
     result = args.func(args)
   except SljaxError as e:

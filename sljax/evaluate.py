@@ -5,7 +5,14 @@ with attributes `model_name`, `is_sl`, `mode` and a `describe()` line: the netwo
 of sljax.inference and the SGBM baseline of sljax.baselines.
 
 Regions: "full" = every pixel with finite ground truth; "seg" = those inside mask0 (when the
-scene has one). Depth statistics are added when the scene has a calibration. For models that
+scene has one).
+
+SCARED keyframes imported by `sljax import-scared` (meta.json "source": "SCARED" with the
+original frame kept) are also scored as the SCARED toolkit scores them (sljax.data.scared):
+the predicted disparity is mapped back to the original, unrectified and distorted left view
+and compared with the keyframe's own depth map there; depth MAE in mm per keyframe, keyframes
+whose ground truth covers under 10% of the pixels excluded, and the mean over the scored
+keyframes. Depth statistics are added when the scene has a calibration. For models that
 predict patterns, pattern accuracy is measured against sl0 (and sl1 for two-view models) over
 known pattern pixels; for unet-sl the evaluated disparity is the correlation of its predicted
 patterns (sljax.corr), as in the paper.
@@ -114,6 +121,27 @@ def _uncertainty(out: dict[str, np.ndarray]) -> np.ndarray:
   return np.asarray(pattern_uncertainty(out["patterns"]), dtype=np.float32)
 
 
+def _scared_row(source, i: int, scene, disparity: np.ndarray, where: str
+                ) -> dict[str, Any] | None:
+  """scared_toolkit-style error in the original frame, for imported SCARED keyframes."""
+  paths = getattr(source, "paths", None)
+  if paths is None or scene.meta.get("source") != "SCARED" or scene.calib is None:
+    return None
+  from sljax.data import scared
+  gt_path = paths[i] / scared.ORIGINAL_DEPTH
+  if not gt_path.exists() or "original" not in scene.meta:
+    return {"note": f"no {scared.ORIGINAL_DEPTH} / meta 'original' (imported before they were "
+                    "kept): re-import the keyframe to score it in the original frame"}
+  from sljax.data.pfm import read_pfm
+  original = scared.read_original(scene.meta, where)
+  gt = read_pfm(gt_path)
+  if gt.shape != original["size"]:
+    raise SljaxError(f"{where}: {scared.ORIGINAL_DEPTH} is {gt.shape[1]}x{gt.shape[0]}, meta.json "
+                     f"'original' says {original['size'][1]}x{original['size'][0]}")
+  pred = scared.original_frame_depth(disparity, scene.calib, original)
+  return scared.keyframe_error(gt, pred)
+
+
 def evaluate(predictor, source, indices: list[int] | None = None, *, out_dir: Path | None = None,
              save_predictions: bool = False, figures: bool = False,
              progress: bool = True, info: dict[str, Any] | None = None) -> dict[str, Any]:
@@ -150,6 +178,9 @@ def evaluate(predictor, source, indices: list[int] | None = None, *, out_dir: Pa
         pooled[region].add(out["disparity"], scene.disp0, mask, scene.calib, name=where)
         used[region] += 1
         row[region] = acc.result()
+    scared_row = _scared_row(source, i, scene, out["disparity"], where)
+    if scared_row is not None:
+      row["scared"] = scared_row
     if "patterns" in out:
       for view, pred_key, gt in (("left", "patterns", scene.sl0),
                                  ("right", "patterns_right", scene.sl1)):
@@ -193,6 +224,13 @@ def evaluate(predictor, source, indices: list[int] | None = None, *, out_dir: Pa
   for view in ("left", "right"):
     if patterns[view].known:
       report["pooled"][f"patterns_{view}"] = patterns[view].result()
+  scored = [r["scared"] for r in rows if "depth_mae_mm" in r.get("scared", {})]
+  if scored:
+    done = [r["depth_mae_mm"] for r in scored if not r["excluded"]]
+    report["pooled"]["scared"] = {
+        "frame": "original (unrectified, distorted) left view",
+        "keyframes": len(done), "excluded": len(scored) - len(done),
+        "depth_mae_mm": float(np.mean(done)) if done else float("nan")}
   if report["n_scenes_with_gt"] == 0:
     report["notes"].insert(0, NO_GT_NOTE)
   if out_dir is not None:
@@ -200,12 +238,12 @@ def evaluate(predictor, source, indices: list[int] | None = None, *, out_dir: Pa
   return report
 
 
-def _clean(value: Any) -> Any:
-  """NaN/inf -> None so that metrics.json is strict JSON."""
+def json_safe(value: Any) -> Any:
+  """NaN/inf -> None and numpy scalars -> Python numbers, so that reports are strict JSON."""
   if isinstance(value, dict):
-    return {k: _clean(v) for k, v in value.items()}
+    return {k: json_safe(v) for k, v in value.items()}
   if isinstance(value, (list, tuple)):
-    return [_clean(v) for v in value]
+    return [json_safe(v) for v in value]
   if isinstance(value, (float, np.floating)):
     return float(value) if math.isfinite(value) else None
   if isinstance(value, np.integer):
@@ -260,6 +298,22 @@ def markdown_report(report: dict[str, Any]) -> str:
       lines.append(f"Pattern accuracy ({view} view): {_fmt(p['pattern_acc'], 'pattern_acc')} % "
                    f"over {p['pattern_n_pixels']} known pattern pixels.")
       lines.append("")
+  scared = pooled.get("scared")
+  if scared:
+    lines.append("## SCARED (scared_toolkit rules, original frame)")
+    lines.append("")
+    lines.append(f"Depth MAE {_fmt(scared['depth_mae_mm'])} mm: mean over {scared['keyframes']} "
+                 f"keyframe(s) in the {scared['frame']}; {scared['excluded']} excluded "
+                 "(ground truth on under 10% of the pixels).")
+    lines.append("")
+    rows = []
+    for r in report["per_scene"]:
+      k = r.get("scared", {})
+      if "coverage" in k:
+        mae = "excluded" if k["excluded"] else _fmt(k["depth_mae_mm"])
+        rows.append([r["scene"], f"{100 * k['coverage']:.1f}", f"{100 * k['assessed']:.1f}", mae])
+    lines += _table(["keyframe", "coverage %", "assessed %", "depth MAE mm"], rows)
+    lines.append("")
   if regions:
     lines.append("## Per scene")
     lines.append("")
@@ -305,7 +359,7 @@ def write_report(report: dict[str, Any], out_dir: str | os.PathLike) -> None:
   out_dir = Path(out_dir)
   out_dir.mkdir(parents=True, exist_ok=True)
   (out_dir / "metrics.json").write_text(
-      json.dumps(_clean(report), indent=2, allow_nan=False) + "\n", encoding="utf-8")
+      json.dumps(json_safe(report), indent=2, allow_nan=False) + "\n", encoding="utf-8")
   (out_dir / "metrics.md").write_text(markdown_report(report), encoding="utf-8")
   columns, rows = csv_rows(report)
   with open(out_dir / "per_scene.csv", "w", newline="", encoding="utf-8") as f:

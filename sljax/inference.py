@@ -5,9 +5,27 @@ Inputs: numpy images HxW, HxWx1 or HxWx3 (or batched BxHxWxC), uint8 (/255), uin
 trained with (RGB -> gray by ITU-R BT.601 luma, gray -> RGB by repetition).
 
 Resolution modes:
-- "pad" (the PSMNet reference's test protocol): the pair is zero-padded at the TOP and RIGHT to
-  the next multiple of 32 in height and width, as the reference pads its test images, and the
-  outputs are cropped back (rows from the top pad on, columns up to the input width).
+- "pad" (the PSMNet reference's test protocol, Test_img.py / submission.py of JiaRenChang/PSMNet):
+  the reference normalises the image with the ImageNet mean and std and pads the normalised
+  tensor with 0 at the TOP and RIGHT to the next multiple of 16. sljax normalises inside the
+  model, so the [0, 1] pair is padded with the value the model's input normalisation maps to 0
+  (`pad_rule`), at the top and right, and the outputs are cropped back (rows from the top pad
+  on, columns up to the input width):
+    * psmnet, psmnet-mtl (RGB): the ImageNet mean colour (0.485, 0.456, 0.406), multiple of 16
+      (the reference's rule exactly).
+    * psmnet, psmnet-mtl (gray): 0.449, the average of the three means, which the 1-channel
+      normalisation (mean and std averaged over the channels) maps to 0; multiple of 16.
+    * unet-sl, unet-disp: 0.5, which the UNet's input centring 2x - 1 maps to 0; multiple of
+      2^depth, so every pooling level halves an even size and the UNet's own bottom/right edge
+      padding never applies. unet-disp scales its sigmoid by the width it is given, the padded
+      width here.
+  Why the normalised zero: the first convolution pads its input with zeros in the normalised
+  domain, so a pad region of normalised zeros is read exactly as the network's own border
+  padding; black (0) would be a dark frame (about -2 after normalisation) that the reference
+  never shows its network.
+  Why top and right: left-referenced disparity matches x in the left view with x - d in the
+  right view, so columns added on the right are never a match for an image pixel, while columns
+  on the left would be. Other (unknown) models are padded with 0 to a multiple of 16.
 - "resize" (the paper's evaluation): the pair is resized to the training size with the
   training loader's resampling (area when shrinking, bilinear when enlarging), the outputs are
   resized back bilinearly, and disparities are multiplied by input width / training width.
@@ -17,6 +35,10 @@ structured-light models, "patterns" (left-view probabilities HxWxt), "patterns_r
 and "confidence" (HxW in [0, 1], higher is surer: the correlation's peak-ratio confidence for
 unet-sl, whose disparity is the windowed correlation of its predicted patterns, and the mean
 pattern certainty |2p - 1| for psmnet-mtl).
+
+Memory at full resolution: the twin (psmnet-mtl) holds two stacks of 3D activations; when its
+cost volume is large (TWIN_SPLIT_BYTES) it runs as two programs, PSMNet on the disparity
+path's variables and then its SL path alone, with the same outputs (`forward`).
 
 The network runs in one jitted function shared by every predictor of an equal model (flax
 modules compare by their fields), so jax keeps one compilation per model and model-input shape
@@ -36,8 +58,49 @@ import numpy as np
 from sljax.data.scene import to_gray
 from sljax.errors import SljaxError
 
-PAD_MULTIPLE = 32
+PAD_MULTIPLE = 16  # PSMNet reference (and the default for models sljax does not know)
 MODES = ("pad", "resize")
+
+
+@dataclasses.dataclass(frozen=True)
+class PadRule:
+  """How pad mode pads a model's input: to a multiple of `multiple`, with `fill` per channel."""
+  multiple: int
+  fill: tuple[float, ...]
+
+  def describe(self) -> str:
+    """E.g. 'multiple of 16, filled with (0.485, 0.456, 0.406)'."""
+    return (f"multiple of {self.multiple} (top/right), filled with "
+            f"({', '.join(f'{v:.4g}' for v in self.fill)})")
+
+
+def pad_rule(model, channels: int) -> PadRule:
+  """The pad protocol for a model with `channels` input channels (see the module docstring)."""
+  from sljax.nets.psmnet import PSMNet, normalization_zero
+  from sljax.nets.psmnet_mtl import PSMNetMTL
+  from sljax.nets.unet import INPUT_ZERO, UNet
+  if isinstance(model, (PSMNet, PSMNetMTL)):
+    return PadRule(PAD_MULTIPLE, tuple(float(v) for v in normalization_zero(channels)))
+  if isinstance(model, UNet):
+    return PadRule(2 ** model.depth, (INPUT_ZERO,) * channels)
+  return PadRule(PAD_MULTIPLE, (0.0,) * channels)
+
+
+def pad_pair(left: np.ndarray, right: np.ndarray, rule: PadRule
+             ) -> tuple[np.ndarray, np.ndarray, int]:
+  """Pads BxHxWxC views at the top and right per rule; returns them and the top pad."""
+  _, h, w, c = left.shape
+  ph, pw = -h % rule.multiple, -w % rule.multiple
+  if not (ph or pw):
+    return left, right, 0
+  fill = np.asarray(rule.fill, np.float32).reshape(1, 1, 1, c)
+
+  def pad(x):
+    out = np.empty((x.shape[0], h + ph, w + pw, c), np.float32)
+    out[...] = fill
+    out[:, ph:, :w] = x
+    return out
+  return pad(left), pad(right), ph
 
 
 def _to_float(image: np.ndarray, what: str) -> np.ndarray:
@@ -176,6 +239,59 @@ def _jitted_forward():
   return jax.jit(_forward, static_argnums=0)
 
 
+# The twin (psmnet-mtl) runs as two programs when its cost volume would exceed this many bytes:
+# PSMNet on the disparity path's variables, then the SL path alone (`SLOnly`). Same values;
+# the two 3D stacks are never alive together (1024x1280, maxdisp 192: peak 9.2 -> 6.2 GiB).
+TWIN_SPLIT_BYTES = 256 * 2**20
+
+
+def _twin_halves(model):
+  """(PSMNet, SLOnly) with the twin's configuration."""
+  from sljax.nets.psmnet import PSMNet
+  from sljax.nets.psmnet_mtl import SLOnly
+  kw = {"maxdisp": model.maxdisp, "in_channels": model.in_channels,
+        "align_corners": model.align_corners}
+  return PSMNet(**kw), SLOnly(t=model.t, **kw)
+
+
+def _sl_forward(model, variables, left, right):
+  """Pattern probabilities of the twin's SL path alone (SLOnly)."""
+  import jax
+  _TRACES[model] += 1
+  return {"patterns": jax.nn.sigmoid(model.apply(variables, left, right, train=False))}
+
+
+@functools.cache
+def _jitted_sl_forward():
+  import jax
+  return jax.jit(_sl_forward, static_argnums=0)
+
+
+def twin_split_needed(model, shape: tuple[int, ...]) -> bool:
+  """True for a psmnet-mtl whose cost volume for a BxHxWxC input exceeds TWIN_SPLIT_BYTES."""
+  from sljax.nets.psmnet_mtl import PSMNetMTL
+  if not isinstance(model, PSMNetMTL):
+    return False
+  b, h, w = shape[0], shape[1], shape[2]
+  return 4 * b * (model.maxdisp // 4) * (h // 4) * (w // 4) * 64 > TWIN_SPLIT_BYTES
+
+
+def forward(model, variables, left, right, split: bool | None = None) -> dict:
+  """The model's eval outputs (disparity, pattern probabilities) for prepared inputs.
+
+  split: run the twin as two programs (see TWIN_SPLIT_BYTES); None decides by size.
+  """
+  from sljax.nets.psmnet_mtl import detach_sl
+  if split is None:
+    split = twin_split_needed(model, np.shape(left))
+  if not split:
+    return _jitted_forward()(model, variables, left, right)
+  plain, sl_only = _twin_halves(model)
+  out = dict(_jitted_forward()(plain, detach_sl(variables), left, right))
+  out.update(_jitted_sl_forward()(sl_only, variables, left, right))
+  return out
+
+
 @dataclasses.dataclass(frozen=True)
 class ModelSpec:
   """What the predictor learnt about a model from an abstract run of it."""
@@ -219,7 +335,8 @@ class Predictor:
 
   def __init__(self, model, variables, *, model_name: str, model_kwargs: dict | None = None,
                train_size: Any = None, mode: str = "pad", gray: bool | None = None,
-               sl_max_disp: int | None = None, name: str | None = None):
+               sl_max_disp: int | None = None, sl_window: int | None = None,
+               name: str | None = None, split_twin: bool | None = None):
     import jax
 
     if mode not in MODES:
@@ -232,9 +349,11 @@ class Predictor:
     self.model_name = model_name
     self.model_kwargs = dict(model_kwargs or {})
     self.mode = mode
+    self.split_twin = split_twin  # psmnet-mtl in two programs: None = when large (forward)
     self.train_size = _as_size(train_size)
     self.name = name or model_name
     self.sl_max_disp = sl_max_disp
+    self.sl_window = sl_window
     if mode == "resize" and self.train_size is None:
       raise SljaxError(f"{self.name}: resize mode needs the training size, which the "
                        "checkpoint's config lacks; use --mode pad (full resolution)")
@@ -245,6 +364,7 @@ class Predictor:
     self.spec = _probe(model, variables, guess, probe_size, self.name, desc)
     self.channels = self.spec.channels
     self.model = model
+    self.pad = pad_rule(model, self.channels)
     self.train_config: dict[str, Any] = {}  # set by load(): the run's training config
 
   @property
@@ -262,7 +382,7 @@ class Predictor:
     if self.mode == "resize":
       return (f"{self.model_name}: resized to the training size {self.train_size[0]}x"
               f"{self.train_size[1]} and back (bilinear, disparity scaled by the width ratio)")
-    return f"{self.model_name}: full resolution, padded to a multiple of {PAD_MULTIPLE} (top/right)"
+    return f"{self.model_name}: full resolution, padded to a {self.pad.describe()}"
 
   def __call__(self, left: np.ndarray, right: np.ndarray,
                calib: Any = None) -> dict[str, np.ndarray]:
@@ -273,22 +393,21 @@ class Predictor:
     lf, rf, batched = prepare_pair(left, right, self.channels, self.name)
     b, h, w, _ = lf.shape
     if self.mode == "pad":
-      ph, pw = -h % PAD_MULTIPLE, -w % PAD_MULTIPLE
-      widths = ((0, 0), (ph, 0), (0, pw), (0, 0))
-      lin, rin = np.pad(lf, widths), np.pad(rf, widths)
+      lin, rin, ph = pad_pair(lf, rf, self.pad)
     else:
       th, tw = self.train_size
       lin = np.stack([resize_image(x, (th, tw)) for x in lf])
       rin = np.stack([resize_image(x, (th, tw)) for x in rf])
-    raw = _jitted_forward()(self.model, self.variables, lin, rin)
+    raw = forward(self.model, self.variables, lin, rin, self.split_twin)
     out = {k: np.asarray(v, dtype=np.float32) for k, v in raw.items()}
 
     if self.mode == "pad":
       out = {k: v[:, ph:, :w] for k, v in out.items()}
     if "patterns_right" in out:  # unet-sl: disparity by correlating the predicted patterns
       from sljax.corr.correlation import sl_disparity
+      window = {} if self.sl_window is None else {"window": self.sl_window}
       disp, _, conf = sl_disparity(out["patterns"], out["patterns_right"],
-                                   max_disp=self.sl_max_disp, confidence=True)
+                                   max_disp=self.sl_max_disp, confidence=True, **window)
       out["disparity"], out["confidence"] = disp, conf
     elif "patterns" in out:  # mean |2p - 1| over patterns: 1 - sljax.corr's uncertainty
       from sljax.corr.uncertainty import view_uncertainty
@@ -303,23 +422,42 @@ class Predictor:
 
 def make_predictor(model_name: str, model_kwargs: dict, variables: dict, train_size: Any = None,
                    mode: str = "pad", *, gray: bool | None = None, sl_max_disp: int | None = None,
-                   name: str | None = None) -> Predictor:
+                   sl_window: int | None = None, name: str | None = None) -> Predictor:
   """Predictor for a model built by sljax.nets.build_model(model_name, **model_kwargs)."""
   from sljax.nets import build_model
   model = build_model(model_name, **dict(model_kwargs or {}))
   return Predictor(model, variables, model_name=model_name, model_kwargs=model_kwargs,
                    train_size=train_size, mode=mode, gray=gray, sl_max_disp=sl_max_disp,
-                   name=name)
+                   sl_window=sl_window, name=name)
 
 
-def load(checkpoint: str | os.PathLike, mode: str = "pad") -> Predictor:
-  """Predictor from a training workdir, its checkpoints dir, or a converted PSMNet dir."""
+def load(checkpoint: str | os.PathLike, mode: str = "pad", maxdisp: int | None = None
+         ) -> Predictor:
+  """Predictor from a training workdir, its checkpoints dir, or a converted PSMNet dir.
+
+  maxdisp (optional) replaces the disparity range: the cost volume's depth for psmnet and
+  psmnet-mtl (a multiple of 16; the weights do not depend on it), the correlation's search
+  range u for unet-sl (in the pixels the network sees); unet-disp has none.
+  """
+  from sljax.nets import registry
   from sljax.train.checkpoint import load_for_inference
   path = os.fspath(checkpoint)
   model_name, model_kwargs, variables, config = load_for_inference(path)
   config = dict(config or {})
+  sl_max_disp = None
+  if maxdisp is not None:
+    if not isinstance(maxdisp, (int, np.integer)) or maxdisp <= 0:
+      raise SljaxError(f"maxdisp must be a positive integer, got {maxdisp!r}")
+    spec = registry.spec(model_name)
+    if "maxdisp" in spec.options:
+      model_kwargs = dict(model_kwargs, maxdisp=int(maxdisp))
+    elif "sl_logits_right" in spec.outputs:  # disparity by correlating both views' patterns
+      sl_max_disp = int(maxdisp)
+    else:
+      raise SljaxError(f"{path}: maxdisp does not apply to {model_name} (it predicts disparity "
+                       "directly, as a fraction of the image width)")
   predictor = make_predictor(model_name, model_kwargs, variables, train_size=config.get("size"),
-                             mode=mode, gray=config.get("gray"), name=path)
+                             mode=mode, gray=config.get("gray"), sl_max_disp=sl_max_disp,
+                             sl_window=config.get("corr_window"), name=path)
   predictor.train_config = config
   return predictor
-

@@ -143,3 +143,18 @@ def test_impl_selection(monkeypatch):
   assert c3.conv_impl() == ("fast" if jax.default_backend() == "cpu" else "lax")
   with pytest.raises(ValueError):
     c3.conv_impl("bogus")
+
+
+def test_bfloat16_inputs_compute_in_bfloat16():
+  """--precision bf16 casts inputs and kernels: every path keeps bfloat16 (no silent float32
+  promotion) and stays close to the float32 result."""
+  rng = np.random.default_rng(0)
+  x = rng.standard_normal((1, 4, 6, 6, 3)).astype(np.float32)
+  k = rng.standard_normal((3, 3, 3, 3, 5)).astype(np.float32)
+  for fn, kw in ((c3.conv3d, {}), (c3.conv_transpose3d, {})):
+    for impl in ("lax", "fast"):
+      want = fn(jnp.asarray(x), jnp.asarray(k), impl=impl, **kw)
+      got = fn(jnp.asarray(x, jnp.bfloat16), jnp.asarray(k, jnp.bfloat16), impl=impl, **kw)
+      assert got.dtype == jnp.bfloat16
+      np.testing.assert_allclose(np.asarray(got, np.float32), np.asarray(want), rtol=0.05,
+                                 atol=0.15)

@@ -80,6 +80,63 @@ def test_binary_equals_naive_loop_exactly(case):
     assert (ref == ref.max(axis=0)).sum(axis=0).max() > 1
 
 
+def reference_volume(a, b, u, w):
+  """The formula vectorised over pixels in float64: per shift, the channel-summed product of the
+  left view and the right view shifted by s (zeros where x - s < 0), then the w x w window sum
+  as w * w explicit shifted adds of a zero-padded map (no doubling tree, no matrix product)."""
+  a = np.nan_to_num(np.asarray(a, np.float64))
+  b = np.nan_to_num(np.asarray(b, np.float64))
+  h, wd, _ = a.shape
+  r = w // 2
+  cc = np.zeros((u + 1, h, wd))
+  for s in range(u + 1):
+    shifted = np.zeros_like(b)
+    shifted[:, s:] = b[:, :wd - s] if s < wd else 0.0
+    prod = np.pad((a * shifted).sum(axis=2), r)
+    for dy in range(w):
+      for dx in range(w):
+        cc[s] += prod[dy:dy + h, dx:dx + wd]
+  return cc
+
+
+def test_reference_volume_is_the_naive_loop():
+  rng = np.random.default_rng(21)
+  a, b = rng.random((6, 9, 3)), rng.random((6, 9, 3))
+  np.testing.assert_allclose(reference_volume(a, b, 4, 5), naive_volume(a, b, 4, 5), rtol=1e-12)
+
+
+# Larger odd sizes for the row path: several blocks of _COLS columns (W + window - 1 > 64),
+# several row bands (band_rows below the height, one band shorter than the window), t = 8 and 9,
+# the paper's window 17 and shifts past the image's left edge.
+ROW_CASES = [(41, 83, 9, 29, 17, 7), (37, 75, 8, 35, 9, 16), (23, 131, 9, 40, 17, 10),
+             (19, 67, 8, 70, 5, 1000)]
+
+
+@pytest.mark.parametrize("case", ROW_CASES)
+def test_row_path_equals_formula_on_odd_sizes(case):
+  h, w, t, u, win, band_rows = case
+  rng = np.random.default_rng(sum(case))
+  pl, pr = binary(rng, (h, w, t)), binary(rng, (h, w, t))
+  ref = reference_volume(pl, pr, u, win)
+  disp, peak, _ = corr._rows_disparity(pl, pr, u, win, False, False, band_rows=band_rows)
+  np.testing.assert_array_equal(disp, np.argmax(ref, axis=0))
+  np.testing.assert_array_equal(peak, ref.max(axis=0))
+  public = corr.sl_disparity(pl, pr, u, win)  # default bands and threads
+  np.testing.assert_array_equal(public[0], disp)
+  np.testing.assert_array_equal(public[1], peak)
+  np.testing.assert_array_equal(corr.cost_volume(pl, pr, u, win), ref.astype(np.float32))
+  # Probabilities: float32 sums of float32 products, within a few ulps of the float64 formula.
+  qa = rng.random((h, w, t), dtype=np.float32)
+  qb = rng.random((h, w, t), dtype=np.float32)
+  ref = reference_volume(qa, qb, u, win)
+  disp, peak, _ = corr._rows_disparity(qa, qb, u, win, False, False, band_rows=band_rows)
+  np.testing.assert_allclose(peak, ref.max(axis=0), rtol=2e-6)
+  top2 = np.sort(ref, axis=0)[-2:]
+  clear = (top2[1] - top2[0]) > 1e-4 * top2[1]
+  assert clear.mean() > 0.9
+  np.testing.assert_array_equal(disp[clear], np.argmax(ref, axis=0)[clear])
+
+
 def test_probabilities_close_to_float64_loop():
   rng = np.random.default_rng(3)
   pl = rng.random((8, 13, 9)).astype(np.float32)

@@ -51,7 +51,7 @@ def test_pad_mode_on_odd_size_crops_back_exactly(pad_predictor):
 
 
 def test_pad_mode_pads_top_and_right():
-  """The padded input the model sees: zeros above and right of the image (multiple of 32)."""
+  """Models sljax does not know: zeros above and right of the image, to a multiple of 16."""
   seen = {}
 
   class Spy(nn.Module):
@@ -63,10 +63,39 @@ def test_pad_mode_pads_top_and_right():
   pred = inference.Predictor(Spy(), {}, model_name="spy", mode="pad", gray=True)
   left, right = _pair(33, 40)
   pred(left, right)
-  assert seen["shape"] == (1, 64, 64, 1)
-  lf = np.pad(left, ((31, 0), (0, 24)))
+  assert seen["shape"] == (1, 48, 48, 1)
+  lf = np.pad(left, ((15, 0), (0, 8)))
   # Apply the model directly on our own padding: the predictor's crop gives the same map.
-  np.testing.assert_array_equal(pred(left, right)["disparity"], lf[31:, :40])
+  np.testing.assert_array_equal(pred(left, right)["disparity"], lf[15:, :40])
+
+
+@pytest.mark.parametrize("channels", [1, 3])
+def test_psmnet_pad_value_is_the_normalised_zero(channels):
+  """Gray and RGB PSMNets see the normalisation's zero in the pad (a spy subclass records it)."""
+  import jax
+  from sljax.nets import psmnet
+  seen = {}
+
+  class SpyPSMNet(psmnet.PSMNet):
+    @nn.compact
+    def __call__(self, left, right, train=False):
+      jax.debug.callback(lambda x: seen.update(left=np.asarray(x)), left)
+      return {"disparity": left[..., 0]}
+
+  pred = inference.Predictor(SpyPSMNet(in_channels=channels), {}, model_name="spy-psmnet",
+                             mode="pad", gray=channels == 1)
+  left, right = _pair(30, 27, c=channels)
+  pred(left, right)
+  jax.effects_barrier()
+  x = np.asarray(seen["left"])
+  assert x.shape == (1, 32, 32, channels)
+  np.testing.assert_array_equal(x[0, 2:, :27], left)
+  pad = np.concatenate([x[0, :2].reshape(-1, channels), x[0, 2:, 27:].reshape(-1, channels)])
+  mean = np.array([0.485, 0.456, 0.406], np.float32)
+  want = mean if channels == 3 else mean.mean(keepdims=True)
+  np.testing.assert_allclose(pad, np.broadcast_to(want, pad.shape), rtol=1e-6)
+  # ...which the model's own input normalisation maps to 0.
+  np.testing.assert_allclose(np.asarray(psmnet.normalize_images(pad)), 0.0, atol=1e-6)
 
 
 def test_resize_mode_against_cv2(resize_predictor):
@@ -118,10 +147,10 @@ def test_compiled_once_per_shape_and_shared_between_predictors():
   assert p.traces == 1
   p(*_pair(40, 33, seed=6))  # pads to another shape: one more trace
   assert p.traces == 2
-  # Resize mode: the network always sees the training size (32x64, compiled above), and an
-  # equal model in another predictor reuses the compilation.
+  # Resize mode: the network always sees the training size (32x48, compiled above: 21x33 pads
+  # to 32x48), and an equal model in another predictor reuses the compilation.
   r = inference.Predictor(ToyCount(), variables, model_name="count", mode="resize",
-                          train_size=(32, 64))
+                          train_size=(32, 48))
   r(*_pair(17, 19))
   r(*_pair(60, 90))
   assert r.traces == p.traces == 2
@@ -223,8 +252,9 @@ def test_unet_disp_odd_sizes_and_batches(unet_disp_vars, mode):
   assert batch.shape == (2, 37, 45) and np.isfinite(batch).all()
   for i in range(2):
     np.testing.assert_allclose(pred(rgb[i], right[i])["disparity"], batch[i], rtol=1e-5, atol=1e-5)
-  # The network's disparity = sigmoid * model-input width, so it stays inside [0, width].
-  width = 45 if mode == "resize" else 64
+  # The network's disparity = sigmoid * model-input width (padded to a multiple of 2^depth = 4
+  # in pad mode), so it stays inside [0, width].
+  width = 45 if mode == "resize" else 48
   assert batch.min() >= 0 and batch.max() <= width
 
 
@@ -353,3 +383,86 @@ def test_detached_psmnet_predicts_the_twins_disparity(mtl_predictor):
   assert set(out) == {"disparity"}
   np.testing.assert_allclose(out["disparity"], mtl_predictor(left, right)["disparity"],
                              rtol=1e-5, atol=1e-5)
+
+
+def test_psmnet_pad_mode_matches_reference_padding(mtl_predictor, monkeypatch):
+  """Pad mode == the reference's protocol computed by hand: normalise with the ImageNet mean and
+  std, zero-pad the normalised tensor at the top and right to a multiple of 16, run the model's
+  layers on it (its own normalisation switched off) and crop."""
+  import jax
+  from sljax.nets import psmnet
+  rng = np.random.default_rng(15)
+  left = rng.integers(0, 256, (30, 27, 3), dtype=np.uint8)
+  right = rng.integers(0, 256, (30, 27, 3), dtype=np.uint8)
+  out = mtl_predictor(left, right)
+  mean = np.array([0.485, 0.456, 0.406], np.float32)
+  std = np.array([0.229, 0.224, 0.225], np.float32)
+  norm = lambda im: (im.astype(np.float32) / np.float32(255) - mean) / std
+  pad = lambda x: np.pad(x, ((2, 0), (0, 5), (0, 0)))[None]  # 30x27 -> 32x32
+  monkeypatch.setattr(psmnet, "normalize_images", lambda x: x)
+  model = mtl_predictor.model
+  run = jax.jit(lambda v, a, b: model.apply(v, a, b, train=False))
+  ref = run(mtl_predictor.variables, pad(norm(left)), pad(norm(right)))
+  # Tolerances: two compilations of one float32 network (random weights) differ by ~1e-4.
+  np.testing.assert_allclose(out["disparity"], np.asarray(ref["disparity"])[0, 2:, :27],
+                             rtol=1e-4, atol=2e-4)
+  p = 1.0 / (1.0 + np.exp(-np.asarray(ref["sl_logits"], np.float64)[0, 2:, :27]))
+  np.testing.assert_allclose(out["patterns"], p, atol=5e-4)
+  # The test tells the protocols apart: black padding of the image (the old rule) is far off.
+  black = lambda im: norm(np.pad(im, ((2, 0), (0, 5), (0, 0))))[None]
+  old = run(mtl_predictor.variables, black(left), black(right))
+  assert np.abs(out["disparity"] - np.asarray(old["disparity"])[0, 2:, :27]).max() > 0.05
+
+
+def test_unet_pad_mode_matches_reference_padding(unet_disp_vars):
+  """UNets: pad the centred input (2x - 1) with 0 at the top and right to a multiple of 2^depth
+  by hand, feed it through the inverse of the centring, run and crop."""
+  import jax
+  from sljax.nets import build_model
+  pred = inference.make_predictor("unet-disp", UNET_KW, unet_disp_vars, mode="pad")
+  assert pred.pad.multiple == 4 and pred.pad.fill == (0.5,)
+  left, right = _pair(37, 45, seed=16)
+  out = pred(left, right)["disparity"]
+  centred = lambda im: 2.0 * im.astype(np.float64) - 1.0
+  pad = lambda x: np.pad(x, ((3, 0), (0, 3)))[None, ..., None]  # 37x45 -> 40x48
+  back = lambda z: ((z + 1.0) / 2.0).astype(np.float32)
+  model = build_model("unet-disp", **UNET_KW)
+  ref = jax.jit(lambda v, a, b: model.apply(v, a, b, train=False))(
+      unet_disp_vars, back(pad(centred(left))), back(pad(centred(right))))
+  np.testing.assert_allclose(out, np.asarray(ref["disparity"])[0, 3:, :45], rtol=1e-5, atol=1e-4)
+
+
+def test_psmnet_mtl_export_round_trip(mtl_predictor, tmp_path):
+  """The deployable file of the twin (pad mode) in a process that imports only jax and numpy."""
+  from test_export import exported_outputs
+  rng = np.random.default_rng(17)
+  left = rng.uniform(0, 1, (2, 30, 27, 3)).astype(np.float32)
+  right = rng.uniform(0, 1, (2, 30, 27, 3)).astype(np.float32)
+  (out,), info = exported_outputs(tmp_path, mtl_predictor, (30, 27), [(left, right)])
+  want = mtl_predictor(left, right)
+  assert set(out) == set(want) == {"disparity", "patterns", "confidence"}
+  np.testing.assert_allclose(out["disparity"], want["disparity"], rtol=1e-4, atol=2e-4)
+  np.testing.assert_allclose(out["patterns"], want["patterns"], atol=5e-4)
+  np.testing.assert_allclose(out["confidence"], want["confidence"], atol=5e-4)
+  assert info["pad"]["multiple"] == 16 and info["pad"]["fill"] == pytest.approx([0.485, 0.456,
+                                                                                   0.406])
+
+
+def test_twin_in_two_programs_equals_one(mtl_predictor):
+  """The memory-bounded path for large inputs (the twin as PSMNet + its SL path alone, two
+  programs) gives the one-program outputs; large inputs choose it, small ones do not."""
+  from sljax.nets import build_model
+  model = build_model("psmnet-mtl", **PSM_KW)
+  split = inference.Predictor(model, mtl_predictor.variables, model_name="psmnet-mtl",
+                              mode="pad", split_twin=True)
+  rng = np.random.default_rng(18)
+  left = rng.integers(0, 256, (2, 30, 27, 3), dtype=np.uint8)
+  right = rng.integers(0, 256, (2, 30, 27, 3), dtype=np.uint8)
+  one, two = mtl_predictor(left, right), split(left, right)
+  assert set(one) == set(two) == {"disparity", "patterns", "confidence"}
+  for k in one:
+    np.testing.assert_allclose(two[k], one[k], rtol=1e-5, atol=1e-5)
+  big = build_model("psmnet-mtl", maxdisp=192, t=9)
+  assert inference.twin_split_needed(big, (1, 1024, 1280, 3))
+  assert not inference.twin_split_needed(big, (1, 256, 320, 3))
+  assert not inference.twin_split_needed(build_model("psmnet", maxdisp=192), (1, 1024, 1280, 3))

@@ -211,3 +211,80 @@ def test_missing_file(keyframe, tmp_path, capsys):
       (kf / "endoscope_calibration.yaml").read_text().split("T: ")[0])
   with pytest.raises(SljaxError, match=r"endoscope_calibration\.yaml.*T"):
     import_scared(broken, tmp_path / "o")
+
+
+def _exact_rectified_disparity(c):
+  """The plane's disparity at every rectified pixel, by ray-plane intersection (float64)."""
+  f, cx, cy, b = c.focal, c.cam0[0, 2], c.cam0[1, 2], c.baseline
+  r1 = cv2.stereoRectify(M1, np.zeros(5), M2, np.zeros(5), (W, H), R, T[:, None],
+                         flags=cv2.CALIB_ZERO_DISPARITY, alpha=0)[0]
+  u, v = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
+  rays = np.stack([(u - cx) / f, (v - cy) / f, np.ones_like(u)], -1)
+  z = C_PLANE / (rays @ (r1 @ N_PLANE))
+  return (f * b / z).astype(np.float32)
+
+
+def test_original_frame_mapping_recovers_the_plane(keyframe):
+  """A rectified disparity mapped back to the original, distorted left view gives the depth of
+  the plane seen through each original pixel (the fixture's own ray-plane intersection)."""
+  from sljax.data import scared
+  _, out, xyz = keyframe
+  s = load_scene(out)
+  original = scared.read_original(s.meta, str(out))
+  depth = scared.original_frame_depth(_exact_rectified_disparity(s.calib), s.calib, original)
+  known = np.isfinite(depth)
+  assert known.mean() > 0.7  # alpha = 0 crops the rectified view: the border has no prediction
+  np.testing.assert_allclose(depth[known], xyz[..., 2][known], rtol=2e-4)
+  gt = read_pfm(out / scared.ORIGINAL_DEPTH)
+  np.testing.assert_array_equal(np.isinf(gt[:, STRIP[0]:STRIP[1]]), True)
+  np.testing.assert_allclose(gt[np.isfinite(gt)], xyz[..., 2][np.isfinite(gt)], rtol=1e-6)
+
+
+def test_keyframe_error_follows_the_toolkit():
+  from sljax.data import scared
+  gt = np.full((10, 10), np.inf, np.float32)
+  gt[:3, :3] = 50.0  # 9% coverage: excluded
+  r = scared.keyframe_error(gt, np.full((10, 10), 40.0))
+  assert r["excluded"] and np.isnan(r["depth_mae_mm"]) and r["coverage"] == pytest.approx(0.09)
+  gt[:4, :3] = 50.0  # 12%: scored over the pixels both maps know (0 = unknown, as the toolkit)
+  pred = np.full((10, 10), 40.0)
+  pred[0, 0], pred[0, 1] = np.nan, 0.0
+  pred[1, 0] = 53.0
+  r = scared.keyframe_error(gt, pred)
+  assert not r["excluded"] and r["assessed"] == pytest.approx(0.10)
+  assert r["depth_mae_mm"] == pytest.approx((9 * 10.0 + 3.0) / 10)
+
+
+def test_evaluate_scores_keyframes_in_the_original_frame(keyframe, tmp_path):
+  """sljax evaluate on an imported keyframe: a prediction 5% off in disparity is 1/1.05 off in
+  depth everywhere, so the keyframe's MAE is (1 - 1/1.05) times the mean assessed depth."""
+  from sljax.data import scared
+  from sljax.data.dataset import FolderSource
+  from sljax.evaluate import evaluate
+  _, out, _ = keyframe
+  calib = load_scene(out).calib
+  pred = _exact_rectified_disparity(calib) * np.float32(1.05)
+
+  class Fixed:
+    model_name, mode, is_sl = "fixed", "full", False
+
+    def describe(self):
+      return "fixed disparity"
+
+    def __call__(self, left, right, calib=None):
+      return {"disparity": pred}
+
+  report = evaluate(Fixed(), FolderSource(out), out_dir=tmp_path / "eval", progress=False)
+  row = report["per_scene"][0]["scared"]
+  gt = read_pfm(out / scared.ORIGINAL_DEPTH)
+  mapped = scared.original_frame_depth(pred, calib, scared.read_original(
+      load_scene(out).meta, ""))
+  both = np.isfinite(gt) & np.isfinite(mapped)
+  assert row["assessed"] == pytest.approx(both.mean()) and not row["excluded"]
+  np.testing.assert_allclose(row["depth_mae_mm"], (1 - 1 / 1.05) * gt[both].mean(), rtol=1e-3)
+  pooled = report["pooled"]["scared"]
+  assert pooled["keyframes"] == 1 and pooled["excluded"] == 0
+  assert pooled["depth_mae_mm"] == row["depth_mae_mm"]
+  md = (tmp_path / "eval" / "metrics.md").read_text()
+  assert "SCARED (scared_toolkit rules, original frame)" in md
+  assert "scared_depth_mae_mm" in (tmp_path / "eval" / "per_scene.csv").read_text()

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from sljax.losses import weighting as wt
-from sljax.nets import build_model
+from sljax.nets import build_model, registry
 from sljax.train import state as st
 from sljax.train import step as stp
 
@@ -136,7 +136,7 @@ def test_unets_overfit_one_batch(net, mesh):
   tx = st.make_optimizer(2e-2)
   step = stp.make_train_step(model, net=net, maxdisp=MAXDISP, disp_loss="l2", tx=tx, mesh=mesh,
                              compiler_options=FAST)
-  batch = stp.put_batch({k: v for k, v in _batch().items() if k in stp.BATCH_PARTS[net]}, mesh)
+  batch = stp.put_batch({k: v for k, v in _batch().items() if k in registry.spec(net).parts}, mesh)
   w = jnp.asarray([1.0, 0.0, 0.0] if net == "unet-sl" else [0.0, 1.0, 0.0])
   _, first, last = _overfit(step, _fresh(variables, tx, mesh), batch, w, 60)
   key = "loss_sl" if net == "unet-sl" else "loss_disp"

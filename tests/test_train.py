@@ -1,7 +1,6 @@
 """train.py / sljax.train.loop: CLI bad input (before any compilation), workdir safety, exact
 resume after kill -9, checkpoints for inference."""
 
-import functools
 import json
 import math
 import os
@@ -11,17 +10,18 @@ import sys
 import time
 from pathlib import Path
 
-import flax.linen as nn
 import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from sljax.data.dataset import epoch_order
 from sljax.data.scene import Scene, write_scene
 from sljax.errors import SljaxError
 from sljax.train import checkpoint as ckpt
 from sljax.train import cli, loop
 from sljax.train import state as train_state
+
+import toys
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -149,9 +149,9 @@ def test_dwa_weights_of_a_config_follow_history():
 
 
 def test_epoch_order_depends_only_on_seed_and_epoch():
-  a = loop.epoch_order(list(range(10, 30)), 3, 5)
-  assert a == loop.epoch_order(list(range(10, 30)), 3, 5)
-  assert sorted(a) == list(range(10, 30)) and a != loop.epoch_order(list(range(10, 30)), 3, 6)
+  a = epoch_order(list(range(10, 30)), 3, 5)
+  assert a == epoch_order(list(range(10, 30)), 3, 5)
+  assert sorted(a) == list(range(10, 30)) and a != epoch_order(list(range(10, 30)), 3, 6)
 
 
 def _latest(ckpt_dir: Path) -> int:
@@ -283,40 +283,12 @@ def test_resume_uses_the_saved_config(tmp_path):
   assert config.preset == "paper" and config.size == (256, 256) and config.epochs == 120
 
 
-class _TinyTwin(nn.Module):
-  """A stand-in for the PSMNet twin with the same outputs (compiles in a second)."""
-  maxdisp: int
-  t: int
-
-  @nn.compact
-  def __call__(self, left, right, train: bool = False):
-    h = nn.Conv(4, (3, 3))(jnp.concatenate([left, right], -1))
-    h = nn.relu(nn.BatchNorm(use_running_average=not train)(h))
-    d = self.maxdisp * nn.sigmoid(nn.Conv(3, (1, 1))(h))
-    out = {"disparity": d[..., 2], "sl_logits": nn.Conv(self.t, (1, 1))(h)}
-    if train:
-      out["disparities"] = (d[..., 0], d[..., 1], d[..., 2])
-    return out
-
-
-@functools.lru_cache(maxsize=None)
-def _tiny_steps(net, kwargs, maxdisp, disp_loss, lr, mesh):
-  from sljax.train import step as stp
-  model = _TinyTwin(maxdisp=maxdisp, t=dict(kwargs)["t"])
-  tx = train_state.make_optimizer(lr)
-  opts = train_state.INIT_COMPILER_OPTIONS
-  return (model, tx,
-          stp.make_train_step(model, net=net, maxdisp=maxdisp, disp_loss=disp_loss, tx=tx,
-                              mesh=mesh, compiler_options=opts),
-          stp.make_eval_step(model, net=net, mesh=mesh, compiler_options=opts))
-
-
 def test_epr_loop_uses_dwa_of_epoch_mean_training_losses_and_resumes_exactly(
     data_full, tmp_path, monkeypatch):
   """The loop feeds the step DWA weights that are constant within an epoch, 1 for the first two
   epochs, then computed by hand from the two previous epochs' mean training losses; a run
   stopped mid-epoch (partial epoch sums in its checkpoint) resumes bit-identically."""
-  monkeypatch.setattr(loop, "compiled_steps", _tiny_steps)
+  monkeypatch.setattr(loop, "compiled_steps", toys.tiny_steps)
   cfg = loop.TrainConfig(strategy="epr", data=str(data_full), size=(32, 32), maxdisp=16,
                          epochs=5, batch_size=2, lr=3e-2, save_every=3, max_val=2, preset="quick")
   quiet = dict(log=lambda line: None, progress=False)

@@ -1,6 +1,12 @@
-"""Tiny stand-in models shared by the inference and evaluation tests."""
+"""Tiny stand-in models shared by the tests (inference, evaluation, the training loop)."""
+
+import functools
 
 import flax.linen as nn
+import jax.numpy as jnp
+
+from sljax.train import state as train_state
+from sljax.train import step as stp
 
 
 class ToySL(nn.Module):
@@ -11,3 +17,33 @@ class ToySL(nn.Module):
     gain = self.param("gain", nn.initializers.ones, ())
     return {"sl_logits": 20.0 * gain * (2.0 * left - 1.0),
             "sl_logits_right": 20.0 * gain * (2.0 * right - 1.0)}
+
+
+class TinyTwin(nn.Module):
+  """A stand-in for the PSMNet twin with the same outputs (compiles in a second)."""
+  maxdisp: int
+  t: int
+
+  @nn.compact
+  def __call__(self, left, right, train: bool = False):
+    # No bias before BatchNorm (as PSMNet): its gradient would be rounding noise only.
+    h = nn.Conv(4, (3, 3), use_bias=False)(jnp.concatenate([left, right], -1))
+    h = nn.relu(nn.BatchNorm(use_running_average=not train)(h))
+    d = self.maxdisp * nn.sigmoid(nn.Conv(3, (1, 1))(h))
+    out = {"disparity": d[..., 2], "sl_logits": nn.Conv(self.t, (1, 1))(h)}
+    if train:
+      out["disparities"] = (d[..., 0], d[..., 1], d[..., 2])
+    return out
+
+
+@functools.lru_cache(maxsize=None)
+def tiny_steps(net, kwargs, maxdisp, disp_loss, lr, lr_drop_step, precision, mesh):
+  """Drop-in for sljax.train.loop.compiled_steps that trains TinyTwin for any PSMNet."""
+  model = TinyTwin(maxdisp=maxdisp, t=dict(kwargs).get("t", 4))
+  tx = train_state.make_optimizer(lr, lr_drop_step)
+  opts = train_state.INIT_COMPILER_OPTIONS
+  dtype = stp.COMPUTE_DTYPES[precision]
+  return (model, tx,
+          stp.make_train_step(model, net=net, maxdisp=maxdisp, disp_loss=disp_loss, tx=tx,
+                              mesh=mesh, dtype=dtype, compiler_options=opts),
+          stp.make_eval_step(model, net=net, mesh=mesh, dtype=dtype, compiler_options=opts))

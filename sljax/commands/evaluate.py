@@ -24,8 +24,8 @@ def register(subparsers) -> None:
   p.add_argument("--out", required=True, help="output folder (must be empty or absent)")
   p.add_argument("--mode", choices=("resize", "pad"), default="resize",
                  help="resize: to the training size and back with disparity scaled by the width "
-                      "ratio (the paper's protocol); pad: full resolution padded to a multiple "
-                      "of 32 (the PSMNet reference)")
+                      "ratio (the paper's protocol); pad: full resolution, padded at the top and "
+                      "right as the PSMNet reference pads (see sljax.inference)")
   p.add_argument("--split", choices=("all", "test", "train"), default="all",
                  help="which scenes: all, or the dataset's group-level test/train split")
   p.add_argument("--test-fraction", type=float, default=None,

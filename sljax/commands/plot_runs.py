@@ -29,11 +29,12 @@ def register(subparsers) -> None:
 
 def run_label(config: dict[str, Any], workdir: Path) -> str:
   """model/strategy for PSMNet runs, the model for the UNets, else the folder name."""
+  from sljax.nets.registry import NETS  # pylint: disable=import-outside-toplevel
   model = config.get("model")
   strategy = config.get("strategy")
   if model is None:
     return workdir.name
-  if model == "psmnet" and strategy:
+  if model in NETS and NETS[model].twin and strategy:
     return f"{model}/{strategy}"
   return str(model)
 

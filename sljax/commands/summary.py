@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-MODELS = ("psmnet", "psmnet-mtl", "unet-sl", "unet-disp")  # mirrors sljax.nets.MODEL_NAMES
+from sljax.nets.registry import NAMES
 
 
 def register(subparsers) -> None:
@@ -14,7 +14,7 @@ def register(subparsers) -> None:
       description="Prints the parameter counts per part (features, cost aggregation, disparity "
                   "path, SL path, total) and the output shapes for an input size, without "
                   "running the network.")
-  p.add_argument("--model", required=True, choices=MODELS, help="network name")
+  p.add_argument("--model", required=True, choices=NAMES, help="network name")
   p.add_argument("--size", nargs=2, type=int, default=(256, 256), metavar=("H", "W"),
                  help="input height and width (default 256 256)")
   p.add_argument("--maxdisp", type=int, default=96, help="PSMNet disparity range (default 96)")

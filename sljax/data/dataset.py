@@ -20,7 +20,7 @@ from sljax.errors import SljaxError
 BATCH_PARTS = ("left", "right", "disp", "disp_right", "sl", "sl_right", "mask")
 DEFAULT_PARTS = ("left", "right", "disp", "sl")
 # Batch key -> (Scene attribute, scene-folder part that holds it).
-_PART_FIELD = {
+PART_FIELD = {
     "left": ("im0", "im"), "right": ("im1", "im"), "disp": ("disp0", "disp"),
     "disp_right": ("disp1", "disp"), "sl": ("sl0", "sl"), "sl_right": ("sl1", "sl"),
     "mask": ("mask0", "mask"),
@@ -293,7 +293,7 @@ def load_batch(source, indices: Sequence[int], *, size: int | Sequence[int] | No
     raise SljaxError("crop mode needs a size")
   if len(indices) == 0:
     raise SljaxError("cannot load an empty batch")
-  folder_parts = {_PART_FIELD[p][1] for p in parts} | {"im"}
+  folder_parts = {PART_FIELD[p][1] for p in parts} | {"im"}
   out: dict[str, list[np.ndarray]] = {p: [] for p in parts}
   for i in indices:
     i = int(i)
@@ -308,7 +308,7 @@ def load_batch(source, indices: Sequence[int], *, size: int | Sequence[int] | No
                          f"{hw[1]}x{hw[0]}")
       y0, x0 = _crop_offset(seed, epoch, i, native, hw)
     for p in parts:
-      field = _PART_FIELD[p][0]
+      field = PART_FIELD[p][0]
       a = getattr(scene, field)
       if a is None:
         raise SljaxError(f"scene {name}: {_SCENE_FILE[field]}: missing (needed for batch "
@@ -337,6 +337,12 @@ def load_batch(source, indices: Sequence[int], *, size: int | Sequence[int] | No
   return batch
 
 
+def epoch_order(indices: Sequence[int], seed: int, epoch: int) -> list[int]:
+  """The scene order of an epoch: a permutation of indices drawn from (seed, epoch) only."""
+  perm = np.random.default_rng([seed, epoch]).permutation(len(indices))
+  return [int(indices[k]) for k in perm]
+
+
 def iterate_batches(source, indices: Sequence[int], batch_size: int, *, seed: int, epoch: int,
                     size: int | Sequence[int] | None = None, mode: str = "resize",
                     gray: bool = False, drop_last: bool = True, shuffle: bool = True,
@@ -351,8 +357,7 @@ def iterate_batches(source, indices: Sequence[int], batch_size: int, *, seed: in
     raise SljaxError(f"batch size {batch_size} exceeds the {len(indices)} scenes available "
                      "(drop_last would give no batch)")
   if shuffle:
-    order = np.random.default_rng([seed, epoch]).permutation(len(indices))
-    indices = [indices[k] for k in order]
+    indices = epoch_order(indices, seed, epoch)
   stop = len(indices) - len(indices) % batch_size if drop_last else len(indices)
   for start in range(0, stop, batch_size):
     yield load_batch(source, indices[start:start + batch_size], size=size, mode=mode, gray=gray,

@@ -1,4 +1,5 @@
-"""Conversion of a SCARED keyframe into a rectified scene folder with ground-truth disparity.
+"""Conversion of a SCARED keyframe into a rectified scene folder with ground-truth disparity,
+and the SCARED error measured the way the challenge's toolkit measures it.
 
 A SCARED keyframe holds the raw (unrectified, distorted) stereo pair, a per-pixel 3D point
 map of the left view (x, y, z in mm, left camera frame) and the OpenCV stereo calibration.
@@ -6,6 +7,20 @@ We rectify with cv2.stereoRectify (alpha = 0: the rectified views hold only vali
 CALIB_ZERO_DISPARITY: equal principal points, so doffs = 0) and project every 3D point into
 the rectified left view, keeping the nearest point per pixel; pixels that no point lands on
 take the point seen through them (the rectify map sampled back into the point map).
+
+For scoring, the importer also keeps the original frame: `depth0_orig.pfm` (the ground-truth
+depth z of the original left image, mm, inf = unknown) and meta.json "original" (M1, D1, R1
+and the size). `original_frame_depth` maps a predicted rectified disparity back to that frame
+(each original pixel's ray is followed into the rectified view, the disparity read there
+bilinearly gives the point, which is rotated back by R1^T), and `keyframe_error` scores it as
+the SCARED toolkit does (dimitrisPs/scared_toolkit, scaredtk/evaluation.py, depthmap_error):
+coverage = share of the image's pixels with known ground truth; a frame under 10% coverage is
+excluded (no error); otherwise the error is the mean absolute depth difference (mm) over the
+pixels where both ground truth and prediction are known, and the share of such pixels is
+reported as "assessed". The toolkit's disparity_to_original_depthmap.py maps predictions back
+the other way round (points projected forward into the original view, holes interpolated);
+following each original pixel's ray instead gives the same depth where the prediction is
+smooth and leaves no holes to fill.
 """
 
 import os
@@ -15,12 +30,15 @@ import cv2
 import numpy as np
 
 from sljax.data.calib import Calib
+from sljax.data.pfm import write_pfm
 from sljax.data.scene import Scene, image_to_float, write_scene
 from sljax.errors import SljaxError
 
 LEFT, RIGHT = "Left_Image.png", "Right_Image.png"
 DEPTH, CALIB = "left_depth_map.tiff", "endoscope_calibration.yaml"
 RECTIFY_ALPHA = 0.0
+ORIGINAL_DEPTH = "depth0_orig.pfm"  # ground-truth depth of the original left view (scene file)
+MIN_COVERAGE = 0.1  # scared_toolkit: frames with less known ground truth are not scored
 
 
 def read_scared_calibration(path: str | os.PathLike) -> dict[str, np.ndarray]:
@@ -160,9 +178,76 @@ def import_scared(keyframe_dir: str | os.PathLike, out_dir: str | os.PathLike,
                 width=w, height=h, ndisp=ndisp, vmin=vmin, vmax=vmax)
   group = f"{kf.resolve().parent.name}/{kf.resolve().name}"
   meta = {"group": group, "source": "SCARED", "keyframe": kf.resolve().name,
-          "rectify_alpha": RECTIFY_ALPHA, "known_pixels": int(finite.size)}
+          "rectify_alpha": RECTIFY_ALPHA, "known_pixels": int(finite.size),
+          "original": {"M1": cal["M1"].tolist(), "D1": cal["D1"].ravel().tolist(),
+                       "R1": np.asarray(r1).tolist(), "width": w, "height": h}}
   scene = Scene(name=out.name, im0=image_to_float(im0, str(kf / LEFT)),
                 im1=image_to_float(im1, str(kf / RIGHT)), disp0=disp,
                 calib=calib, meta=meta)
+  if (out / ORIGINAL_DEPTH).exists() and not overwrite:
+    raise SljaxError(f"scene {out}: {ORIGINAL_DEPTH}: exists (use --overwrite / "
+                     "overwrite=True to replace it)")
   write_scene(out, scene, overwrite=overwrite, bit_depth=8 if left.dtype == np.uint8 else 16)
+  write_pfm(out / ORIGINAL_DEPTH, np.where(np.isfinite(xyz[..., 2]), xyz[..., 2], np.inf))
   return out
+
+
+def read_original(meta: dict, where: str) -> dict[str, np.ndarray]:
+  """M1 (3x3), D1 (1xk), R1 (3x3) and (height, width) of the original view from meta.json."""
+  try:
+    o = meta["original"]
+    out = {"M1": np.asarray(o["M1"], np.float64).reshape(3, 3),
+           "D1": np.asarray(o["D1"], np.float64).reshape(1, -1),
+           "R1": np.asarray(o["R1"], np.float64).reshape(3, 3),
+           "size": (int(o["height"]), int(o["width"]))}
+  except (KeyError, TypeError, ValueError):
+    raise SljaxError(f"{where}: meta.json 'original' must hold M1, D1, R1, width and height "
+                     "(re-import the keyframe with sljax import-scared)") from None
+  return out
+
+
+def original_frame_depth(disp: np.ndarray, calib: Calib, original: dict) -> np.ndarray:
+  """Depth (mm, inf unknown) in the original, distorted left view from a rectified disparity.
+
+  Original pixel (u, v) -> its ray (undistorted by M1, D1) -> rotated by R1 into the rectified
+  camera -> the rectified pixel it passes (cam0 of calib); the disparity there (bilinear; any
+  unknown neighbour makes it unknown) gives Z_rect = f B / (d + doffs) and the point
+  Z_rect * ray; its z in the original camera frame is (R1^T point)_z.
+  """
+  h, w = original["size"]
+  u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+  pix = np.stack([u.ravel(), v.ravel()], -1)[:, None, :]
+  cam = np.asarray(calib.cam0, np.float64)
+  rect = cv2.undistortPoints(pix, original["M1"], original["D1"], R=original["R1"], P=cam)
+  xr = rect[:, 0, 0].reshape(h, w).astype(np.float32)
+  yr = rect[:, 0, 1].reshape(h, w).astype(np.float32)
+  d = np.asarray(disp, np.float32)
+  # remap reads outside the rectified image as NaN; inf neighbours give inf or NaN: unknown.
+  sampled = cv2.remap(d, xr, yr, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                      borderValue=float("nan")).astype(np.float64)
+  denom = sampled + calib.doffs
+  known = np.isfinite(denom) & (denom > 0)
+  z_rect = np.where(known, calib.focal * calib.baseline / np.where(known, denom, 1.0), np.inf)
+  ray = np.stack([(xr - cam[0, 2]) / cam[0, 0], (yr - cam[1, 2]) / cam[1, 1],
+                  np.ones_like(xr)], -1).astype(np.float64)
+  z = np.where(known, z_rect * (ray @ original["R1"][:, 2]), np.inf)
+  return z.astype(np.float32)
+
+
+def keyframe_error(gt_depth: np.ndarray, pred_depth: np.ndarray) -> dict[str, float | bool]:
+  """SCARED frame error (scared_toolkit depthmap_error): see the module docstring.
+
+  Non-finite or zero depths are unknown in both maps. Returns depth_mae_mm (NaN when
+  excluded), coverage and assessed (shares of all pixels) and excluded (coverage < 10%).
+  """
+  gt = np.asarray(gt_depth, np.float64)
+  pred = np.asarray(pred_depth, np.float64)
+  if gt.shape != pred.shape:
+    raise SljaxError(f"SCARED error: ground truth {gt.shape} and prediction {pred.shape} differ")
+  known_gt = np.isfinite(gt) & (gt != 0)
+  both = known_gt & np.isfinite(pred) & (pred != 0)
+  coverage = float(known_gt.mean())
+  excluded = coverage < MIN_COVERAGE
+  mae = float(np.abs(pred[both] - gt[both]).mean()) if both.any() and not excluded else float("nan")
+  return {"depth_mae_mm": mae, "coverage": coverage,
+          "assessed": 0.0 if excluded else float(both.mean()), "excluded": bool(excluded)}

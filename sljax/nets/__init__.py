@@ -1,60 +1,54 @@
-"""Networks: PSMNet, its multi-task twin and the UNets, built by name.
+"""Networks: PSMNet, its multi-task twin and the UNets, built by name from one table.
 
 Every model is applied as `model.apply(variables, left, right, train=...)` (with
 `mutable=["batch_stats"]` when training) on BxHxWxC images in [0, 1] and returns a dict:
 "disparity" BxHxW (disparity models), "disparities" (PSMNets in training: the three
 intermediate predictions), "sl_logits" BxHxWxt (left view; psmnet-mtl, unet-sl) and
-"sl_logits_right" (unet-sl).
+"sl_logits_right" (unet-sl). What each network trains on and returns is in
+`sljax.nets.registry.NETS`.
+
+The model classes are imported on first use (module __getattr__), so that listing the
+networks (command-line parsers) does not import flax.
 """
 
 from __future__ import annotations
 
+import importlib
 from typing import Any
 
-import flax.linen as nn
-
 from sljax.errors import SljaxError
-from sljax.nets.psmnet import PSMNet
-from sljax.nets.psmnet_mtl import PSMNetMTL, detach_sl
-from sljax.nets.unet import UNet
+from sljax.nets.registry import COMMON_OPTIONS, MODELS, NAMES, NETS, NetSpec, spec
 
-MODEL_NAMES = ("psmnet", "psmnet-mtl", "unet-sl", "unet-disp")
+MODEL_NAMES = NAMES
 
-# Accepted by every model (ignored where they do not apply, so one training config can
-# carry them for any model) and the options specific to some models.
-_COMMON = ("maxdisp", "t", "gray", "in_channels")
-_SPECIFIC = {
-    "psmnet": ("align_corners",),
-    "psmnet-mtl": ("align_corners",),
-    "unet-sl": ("depth", "base_width"),
-    "unet-disp": ("depth", "base_width"),
-}
+_LAZY = {"PSMNet": "sljax.nets.psmnet", "PSMNetMTL": "sljax.nets.psmnet_mtl",
+         "UNet": "sljax.nets.unet", "detach_sl": "sljax.nets.psmnet_mtl"}
 
-__all__ = ["MODEL_NAMES", "PSMNet", "PSMNetMTL", "UNet", "build_model", "detach_sl",
-           "model_kwargs_for"]
+__all__ = ["MODELS", "MODEL_NAMES", "NETS", "NetSpec", "PSMNet", "PSMNetMTL", "UNet",
+           "build_model", "detach_sl", "model_kwargs_for", "spec"]
+
+
+def __getattr__(name: str) -> Any:
+  if name in _LAZY:
+    return getattr(importlib.import_module(_LAZY[name]), name)
+  raise AttributeError(f"module 'sljax.nets' has no attribute {name!r}")
 
 
 def model_kwargs_for(name: str) -> tuple[str, ...]:
   """The keyword arguments build_model accepts for `name`."""
-  _check_name(name)
-  return _COMMON + _SPECIFIC[name]
-
-
-def _check_name(name: str) -> None:
-  if name not in MODEL_NAMES:
-    raise SljaxError(f"unknown model {name!r}; valid models: {', '.join(MODEL_NAMES)}")
+  return COMMON_OPTIONS + spec(name).options
 
 
 def build_model(name: str, *, maxdisp: int = 96, t: int = 8, gray: bool = False,
-                in_channels: int | None = None, **kwargs: Any) -> nn.Module:
+                in_channels: int | None = None, **kwargs: Any):
   """Builds a model by name: "psmnet", "psmnet-mtl", "unet-sl" or "unet-disp".
 
   maxdisp (PSMNets; multiple of 16), t (patterns; psmnet-mtl, unet-sl), gray or in_channels
   (channels per view: 1 or 3) apply where relevant; align_corners (PSMNets) and depth,
   base_width (UNets) are model options. Unknown names or options raise SljaxError.
   """
-  _check_name(name)
-  unknown = sorted(set(kwargs) - set(_SPECIFIC[name]))
+  s = spec(name)
+  unknown = sorted(set(kwargs) - set(s.options))
   if unknown:
     raise SljaxError(f"model {name!r} has no option(s) {', '.join(unknown)}; accepted: "
                      f"{', '.join(model_kwargs_for(name))}")
@@ -63,13 +57,13 @@ def build_model(name: str, *, maxdisp: int = 96, t: int = 8, gray: bool = False,
   if in_channels not in (1, 3) or (gray and in_channels != 1):
     raise SljaxError(f"in_channels must be 1 (gray) or 3 (RGB), got {in_channels} "
                      f"(gray={gray})")
-  if name in ("psmnet", "psmnet-mtl") and (maxdisp <= 0 or maxdisp % 16):
-    raise SljaxError(f"maxdisp must be a positive multiple of 16 for {name}, got {maxdisp}")
-  if name in ("psmnet-mtl", "unet-sl") and t <= 0:
-    raise SljaxError(f"t (number of patterns) must be positive, got {t}")
-  if name == "psmnet":
-    return PSMNet(maxdisp=maxdisp, in_channels=in_channels, **kwargs)
-  if name == "psmnet-mtl":
-    return PSMNetMTL(maxdisp=maxdisp, t=t, in_channels=in_channels, **kwargs)
-  head = "sl" if name == "unet-sl" else "disp"
-  return UNet(head=head, t=t, in_channels=in_channels, **kwargs)
+  args = dict(s.fixed, in_channels=in_channels, **kwargs)
+  if "maxdisp" in s.options:
+    if maxdisp <= 0 or maxdisp % 16:
+      raise SljaxError(f"maxdisp must be a positive multiple of 16 for {name}, got {maxdisp}")
+    args["maxdisp"] = maxdisp
+  if "t" in s.options:
+    if t <= 0:
+      raise SljaxError(f"t (number of patterns) must be positive, got {t}")
+    args["t"] = t
+  return s.build_class()(**args)

@@ -411,7 +411,7 @@ def _phase_forward(x, kernel, strides, padding):
     m = sel.shape[0]
     # Phase output i reads inputs i + emin .. i + emin + m - 1 (zero outside the input).
     pads.append((-emin, q - 1 + emin + m - 1 - (size - 1)))
-    sels.append(jnp.asarray(sel))
+    sels.append(jnp.asarray(sel, kernel.dtype))
     lq.append(q)
     lengths.append(length)
   comb = jnp.einsum("dat,hbu,wcv,tuvio->dhwiabco", *sels, kernel)
@@ -500,7 +500,7 @@ class Conv3D(nn.Module):
   use_bias: bool = False
   kernel_init: Initializer = nn.initializers.lecun_normal()
   bias_init: Initializer = nn.initializers.zeros_init()
-  dtype: Any = jnp.float32
+  dtype: Any = None  # computation dtype; None: that of the input and kernel (as nn.Conv)
   impl: str | None = None
 
   @nn.compact
@@ -509,11 +509,12 @@ class Conv3D(nn.Module):
     ks = _triple(self.kernel_size)
     cin = x.shape[-1]
     kernel = self.param("kernel", self.kernel_init, ks + (cin, self.features), jnp.float32)
-    y = conv3d(x.astype(self.dtype), kernel.astype(self.dtype), _triple(self.strides),
+    dtype = self.dtype or jnp.result_type(x, kernel)
+    y = conv3d(x.astype(dtype), kernel.astype(dtype), _triple(self.strides),
                resolve_padding(self.padding, ks), self.impl)
     if self.use_bias:
       bias = self.param("bias", self.bias_init, (self.features,), jnp.float32)
-      y = y + bias.astype(self.dtype)
+      y = y + bias.astype(dtype)
     return y
 
 
@@ -535,7 +536,7 @@ class ConvTranspose3D(nn.Module):
   use_bias: bool = False
   kernel_init: Initializer = nn.initializers.lecun_normal()
   bias_init: Initializer = nn.initializers.zeros_init()
-  dtype: Any = jnp.float32
+  dtype: Any = None  # computation dtype; None: that of the input and kernel (as nn.Conv)
   impl: str | None = None
 
   @nn.compact
@@ -544,11 +545,12 @@ class ConvTranspose3D(nn.Module):
     ks = _triple(self.kernel_size)
     cin = x.shape[-1]
     kernel = self.param("kernel", self.kernel_init, ks + (cin, self.features), jnp.float32)
-    y = conv_transpose3d(x.astype(self.dtype), kernel.astype(self.dtype), _triple(self.strides),
+    dtype = self.dtype or jnp.result_type(x, kernel)
+    y = conv_transpose3d(x.astype(dtype), kernel.astype(dtype), _triple(self.strides),
                          transpose_padding(ks, self.padding, self.output_padding), self.impl)
     if self.use_bias:
       bias = self.param("bias", self.bias_init, (self.features,), jnp.float32)
-      y = y + bias.astype(self.dtype)
+      y = y + bias.astype(dtype)
     return y
 
 
@@ -563,7 +565,7 @@ class Conv2D(nn.Module):
   use_bias: bool = True
   kernel_init: Initializer = nn.initializers.lecun_normal()
   bias_init: Initializer = nn.initializers.zeros_init()
-  dtype: Any = jnp.float32
+  dtype: Any = None  # computation dtype; None: that of the input and kernel (as nn.Conv)
   impl: str | None = None
 
   @nn.compact
@@ -573,9 +575,10 @@ class Conv2D(nn.Module):
     pair = lambda v: (v, v) if isinstance(v, int) else tuple(v)
     kernel = self.param("kernel", self.kernel_init, ks + (x.shape[-1], self.features), jnp.float32)
     pad = self.padding if isinstance(self.padding, str) else resolve_padding(self.padding, ks)
-    y = conv2d(x.astype(self.dtype), kernel.astype(self.dtype), pair(self.strides), pad,
+    dtype = self.dtype or jnp.result_type(x, kernel)
+    y = conv2d(x.astype(dtype), kernel.astype(dtype), pair(self.strides), pad,
                pair(self.kernel_dilation), self.impl)
     if self.use_bias:
       bias = self.param("bias", self.bias_init, (self.features,), jnp.float32)
-      y = y + bias.astype(self.dtype)
+      y = y + bias.astype(dtype)
     return y

@@ -25,7 +25,8 @@ Decisions (the reference leaves these to the PyTorch version or to input sizes):
   than a kernel, PyTorch would fail; here the kernel shrinks to the map size along that axis
   (a global average). For 256x256 input (64x64 map) this is exactly the reference.
 * Sizes. H and W must be multiples of 16 and maxdisp a multiple of 16 (the hourglasses halve
-  the 1/4-resolution volume twice); pad at inference (`sljax.inference` pads to 32).
+  the 1/4-resolution volume twice); pad at inference (`sljax.inference` pads as the reference
+  does: the normalised input with 0, at the top and right, to a multiple of 16).
 * Inputs are images in [0, 1]; the ImageNet mean/std normalisation of the reference's data
   loader happens inside the model. Grayscale (1 channel) uses the mean of the three
   channels' statistics and a 1-channel first convolution.
@@ -66,7 +67,14 @@ def normalize_images(x: jax.Array) -> jax.Array:
   std = np.asarray(IMAGENET_STD, np.float32)
   if c == 1:
     mean, std = mean.mean(keepdims=True), std.mean(keepdims=True)
-  return (x - mean) / std
+  return ((x - mean) / std).astype(x.dtype)
+
+
+def normalization_zero(channels: int) -> np.ndarray:
+  """The [0, 1] input that `normalize_images` maps to 0, per channel: the test-time pad value."""
+  require(channels in (1, 3), f"PSMNet expects 1 or 3 image channels, got {channels}")
+  mean = np.asarray(IMAGENET_MEAN, np.float32)
+  return mean.mean(keepdims=True) if channels == 1 else mean
 
 
 def cost_volume(left_feat: jax.Array, right_feat: jax.Array, num_disp: int) -> jax.Array:
@@ -328,7 +336,8 @@ def disparity_outputs(outs: tuple[jax.Array, jax.Array, jax.Array], train: bool,
   cost3 = Classifier(name="classif3")(outs[2], train) + cost2
 
   def regress(c):
-    return regress_upsampled(c, maxdisp, height, width, align_corners)
+    # Upsampling, softmax and regression in float32 whatever the computation dtype.
+    return regress_upsampled(c.astype(jnp.float32), maxdisp, height, width, align_corners)
 
   pred3 = regress(cost3)
   if not train:

@@ -57,12 +57,13 @@ class SLPath(nn.Module):
     x = nn.relu(ConvBN3D(32, name="head_convbn")(out3, train))
     score = Conv3D(1, (3, 3, 3), padding=1, use_bias=False, kernel_init=conv_init,
                    name="head_attention")(x)
-    weights = jax.nn.softmax(score, axis=1)  # over disparity, [B, D, h, w, 1]
+    # Softmax over disparity in float32 whatever the computation dtype; [B, D, h, w, 1].
+    weights = jax.nn.softmax(score.astype(jnp.float32), axis=1)
     feat = jnp.sum(weights * x, axis=1)
     num_d = x.shape[1]
-    disp = jnp.arange(num_d, dtype=x.dtype)[None, :, None, None, None]
+    disp = jnp.arange(num_d, dtype=jnp.float32)[None, :, None, None, None]
     expected = jnp.sum(weights * disp, axis=1) / num_d
-    x = jnp.concatenate([feat, expected], axis=-1)
+    x = jnp.concatenate([feat, expected], axis=-1).astype(x.dtype)
     for i, (h, w) in enumerate(((height // 2, width // 2), (height, width)), start=1):
       x = resize_linear(x, (w, h), (2, 1), self.align_corners)
       x = nn.relu(ConvBN2D(32, 3, 1, 1, name=f"up{i}")(x, train))
@@ -92,6 +93,29 @@ class PSMNetMTL(nn.Module):
     out = disparity_outputs(outs, train, self.maxdisp, h, w, self.align_corners)
     out["sl_logits"] = SLPath(self.t, self.align_corners, name=SL_KEY)(cost, h, w, train)
     return out
+
+
+class SLOnly(nn.Module):
+  """The twin's structured-light output alone: feature extraction, cost volume and SL path.
+
+  Same fields and parameter names as PSMNetMTL, so it applies to the twin's variables (the
+  disparity path's are not read): `PSMNet` on `detach_sl(variables)` plus this give the twin's
+  two outputs in two separate runs, which never hold both 3D stacks at once
+  (`sljax.inference` does so at large sizes).
+  """
+
+  maxdisp: int = 96
+  t: int = 8
+  in_channels: int = 3
+  align_corners: bool = False
+
+  @nn.compact
+  def __call__(self, left: jax.Array, right: jax.Array, train: bool = False) -> jax.Array:
+    """Left-view pattern logits [B, H, W, t]."""
+    check_pair(left, right, self.in_channels, self.maxdisp)
+    h, w = left.shape[1], left.shape[2]
+    cost = extract_cost_volume(left, right, self.maxdisp, train, self.align_corners)
+    return SLPath(self.t, self.align_corners, name=SL_KEY)(cost, h, w, train)
 
 
 def detach_sl(variables: Mapping[str, Any]) -> dict[str, Any]:

@@ -29,6 +29,7 @@ from sljax.errors import require
 from sljax.nets.layers import ConvBN2D, conv_init
 
 HEADS = ("sl", "disp")
+INPUT_ZERO = 0.5  # the [0, 1] input that the centring 2x - 1 maps to 0: the pad value at test time
 
 
 class DoubleConv(nn.Module):

@@ -9,6 +9,7 @@ import os
 from pathlib import Path
 from typing import Any
 
+import jax
 import orbax.checkpoint as ocp
 from orbax.checkpoint.checkpoint_managers import preservation_policy as pp
 
@@ -50,10 +51,17 @@ def save(manager: ocp.CheckpointManager, step: int, state: Any, meta: dict[str, 
 
 def restore(manager: ocp.CheckpointManager, step: int,
             abstract_state: Any | None = None) -> tuple[Any, dict[str, Any]]:
-  """(state, meta) saved at step; with abstract_state the arrays get its structure/shardings."""
-  state_args = (ocp.args.StandardRestore(abstract_state) if abstract_state is not None
-                else ocp.args.StandardRestore())
-  out = manager.restore(step, args=ocp.args.Composite(state=state_args, meta=ocp.args.JsonRestore()))
+  """(state, meta) saved at step; with abstract_state the arrays get its structure/shardings,
+  else they land on this process's first device (also for checkpoints written by several
+  processes, whose saved shardings name devices this process does not have)."""
+  if abstract_state is None:
+    saved = ocp.StandardCheckpointer().metadata(
+        Path(manager.directory) / str(step) / "state").item_metadata
+    device = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
+    abstract_state = jax.tree.map(
+        lambda leaf: jax.ShapeDtypeStruct(leaf.shape, leaf.dtype, sharding=device), saved)
+  out = manager.restore(step, args=ocp.args.Composite(
+      state=ocp.args.StandardRestore(abstract_state), meta=ocp.args.JsonRestore()))
   return out["state"], dict(out["meta"])
 
 
@@ -101,15 +109,19 @@ def load_params(workdir: str | os.PathLike,
 
 def load_for_inference(path: str | os.PathLike) -> tuple[str, dict[str, Any], dict[str, Any],
                                                           dict[str, Any]]:
-  """(model_name, model_kwargs, variables, config) of a workdir, its checkpoints dir, or a
-  converted PSMNet dir (sljax.nets.convert); a workdir gives its best checkpoint by val MAE."""
+  """(model_name, model_kwargs, variables, config) of a workdir (its best checkpoint by val
+  MAE), its checkpoints dir (the same), one step's checkpoint dir (WORKDIR/checkpoints/STEP),
+  or a converted PSMNet dir (sljax.nets.convert)."""
   path = Path(path).absolute()
   require(path.exists(), f"{path}: does not exist")
+  step = None
+  if path.name.isdigit() and path.parent.name == CHECKPOINT_DIR and _is_workdir(path.parent.parent):
+    path, step = path.parent.parent, int(path.name)
   if path.name == CHECKPOINT_DIR and _is_workdir(path.parent):
     path = path.parent
   if _is_workdir(path):
-    config, variables, _ = load_params(path)
-    return config["net"], dict(config["model_kwargs"]), variables, config
+    config, variables, step = load_params(path, step)
+    return config["net"], dict(config["model_kwargs"]), variables, dict(config, step=step)
   from sljax.nets import convert  # pylint: disable=import-outside-toplevel
   name, kwargs, variables = convert.load_converted(path)
   return name, dict(kwargs), variables, {"net": name, "model_kwargs": dict(kwargs),

@@ -1,77 +1,43 @@
-"""Command line of train.py: presets, flags that override them, clear errors."""
+"""Command line of train.py: presets, one flag per TrainConfig field, clear errors."""
 
 import argparse
 import dataclasses
 import sys
 from pathlib import Path
 
+from sljax.cli import quiet_libraries
 from sljax.errors import SljaxError
-from sljax.losses.disparity import DISP_LOSSES
-from sljax.losses.weighting import STRATEGIES
-from sljax.train.config import MODELS, PRESETS, TrainConfig
-
-# CLI flag dest -> TrainConfig field, for the flags that override a preset.
-_OVERRIDES = ("model", "strategy", "data", "fraction", "epochs", "batch_size", "lr", "size",
-              "maxdisp", "seed", "disp_loss", "gray", "val_every", "save_every", "keep",
-              "max_val", "init_from", "synth_n", "synth_size", "test_fraction", "unet_depth",
-              "unet_width")
+from sljax.train import checkpoint as ckpt
+from sljax.train.config import FIELDS, PRESETS, TrainConfig, config_from_json, preset_config
 
 
-def parse_size(text: str) -> tuple[int, int]:
-  """'256' -> (256, 256); '96x128' -> (96, 128) (height x width)."""
-  try:
-    parts = [int(p) for p in text.lower().split("x")]
-  except ValueError:
-    raise argparse.ArgumentTypeError(f"expected N or HEIGHTxWIDTH, got {text!r}") from None
-  if len(parts) == 1:
-    parts = parts * 2
-  if len(parts) != 2:
-    raise argparse.ArgumentTypeError(f"expected N or HEIGHTxWIDTH, got {text!r}")
-  return parts[0], parts[1]
+def add_config_flags(parser: argparse.ArgumentParser) -> None:
+  """One flag per TrainConfig field (help, parser and choices from the field); every flag
+  defaults to None, meaning the preset's value."""
+  for name, f in FIELDS.items():
+    meta = f.metadata
+    if not meta["flag"]:
+      continue
+    if meta["switch"]:
+      group = parser.add_mutually_exclusive_group()
+      for (flag, text), value in zip(meta["switch"], (True, False)):
+        group.add_argument(flag, dest=name, action="store_const", const=value, default=None,
+                           help=text)
+      continue
+    kw = {"choices": meta["choices"]} if meta["choices"] else {"type": meta["parse"]}
+    parser.add_argument(f"--{name.replace('_', '-')}", dest=name, default=None,
+                        help=meta["help"], **kw)
 
 
 def build_parser() -> argparse.ArgumentParser:
-  """The train.py argument parser; preset-overriding flags default to None (= preset value)."""
+  """The train.py argument parser."""
   p = argparse.ArgumentParser(
       prog="train.py",
       description="Train PSMNet (stl), the PSMNet+SL twin (cg_a, cg_b, epr, unc) or the UNets. "
       "With no flags: the 'auto' preset (paper settings on an accelerator, a quick CPU run "
-      "otherwise) on synthetic 'objects' scenes rendered on the fly.")
-  p.add_argument("--strategy", choices=STRATEGIES, default=None,
-                 help="loss weighting (PSMNet): stl = plain PSMNet; cg_a/cg_b/epr/unc = the twin "
-                 "with the SL path (default stl)")
-  p.add_argument("--model", choices=MODELS, default=None, help="network (default psmnet)")
-  p.add_argument("--data", default=None,
-                 help="scene-format folder (default: synthetic 'objects' scenes on the fly)")
-  p.add_argument("--fraction", default=None, help="fraction of the training split, e.g. 1/16")
-  p.add_argument("--epochs", type=int, default=None)
-  p.add_argument("--batch-size", type=int, default=None, help="global batch (all devices)")
-  p.add_argument("--lr", type=float, default=None, help="Adam learning rate")
-  p.add_argument("--size", type=parse_size, default=None,
-                 help="training size N or HEIGHTxWIDTH (multiples of 16)")
-  p.add_argument("--maxdisp", type=int, default=None, help="PSMNet disparity range (multiple of 16)")
-  p.add_argument("--seed", type=int, default=None)
-  p.add_argument("--disp-loss", choices=DISP_LOSSES, default=None,
-                 help="l2 (paper, default) or smooth_l1 (reference PSMNet)")
-  gray = p.add_mutually_exclusive_group()
-  gray.add_argument("--gray", dest="gray", action="store_const", const=True, default=None,
-                    help="grayscale inputs (default for the UNets)")
-  gray.add_argument("--rgb", dest="gray", action="store_const", const=False,
-                    help="RGB inputs (default for PSMNet)")
-  p.add_argument("--val-every", type=int, default=None, help="epochs between validations")
-  p.add_argument("--save-every", type=int, default=None,
-                 help="also checkpoint every N steps (default: at each epoch end only)")
-  p.add_argument("--keep", type=int, default=None,
-                 help="checkpoints kept (the last N, plus the best by validation MAE)")
-  p.add_argument("--max-val", type=int, default=None, help="cap on validation scenes")
-  p.add_argument("--synth-n", type=int, default=None, help="synthetic scenes (train + val)")
-  p.add_argument("--synth-size", type=int, default=None, help="synthetic render size")
-  p.add_argument("--test-fraction", type=float, default=None, help="held-out group fraction")
-  p.add_argument("--unet-depth", type=int, default=None, help="UNet levels (default 4)")
-  p.add_argument("--unet-width", type=int, default=None,
-                 help="UNet channels at the first level (default 32)")
-  p.add_argument("--init-from", default=None,
-                 help="start from a training workdir or a converted PSMNet (sljax.nets.convert)")
+      "otherwise) on synthetic 'objects' scenes rendered on the fly. Flags left out take the "
+      "preset's value.")
+  add_config_flags(p)
   p.add_argument("--workdir", default=None,
                  help="run folder (default runs/<model>-<strategy>-<seed>)")
   p.add_argument("--resume", action="store_true",
@@ -87,17 +53,17 @@ def build_parser() -> argparse.ArgumentParser:
                  "from the environment, e.g. SLURM or JAX_COORDINATOR_ADDRESS/...)")
   p.add_argument("--stop-after", type=int, default=None,
                  help="stop after this global step (a clean interruption; --resume continues)")
+  p.add_argument("--profile", default=None, metavar="DIR",
+                 help="write a jax.profiler trace of a few steps after compilation to DIR")
   p.add_argument("--no-progress", action="store_true", help="no progress bar")
   return p
 
 
 def resolve(args: argparse.Namespace, backend: str) -> tuple[TrainConfig, str, Path]:
   """(config, preset note, workdir): preset, or the saved config on --resume, then flags."""
-  # pylint: disable=import-outside-toplevel
-  from sljax.train import checkpoint as ckpt
-  from sljax.train.config import config_from_json, preset_config
-  from sljax.train.loop import default_workdir
-  given = {k: getattr(args, k) for k in _OVERRIDES if getattr(args, k) is not None}
+  from sljax.train.loop import default_workdir  # pylint: disable=import-outside-toplevel
+  given = {k: getattr(args, k) for k, f in FIELDS.items()
+           if f.metadata["flag"] and getattr(args, k) is not None}
   base = preset_config(args.preset, backend)
   note = ""
   if args.preset == "auto":
@@ -116,16 +82,17 @@ def main(argv: list[str] | None = None) -> int:
   """Entry point of train.py; SljaxError -> one line on stderr and exit code 2."""
   args = build_parser().parse_args(argv)
   try:
+    # pylint: disable=import-outside-toplevel
+    import jax
     if args.distributed:
-      import jax  # pylint: disable=import-outside-toplevel
+      # Cross-process collectives on CPU need gloo (GPUs and TPUs bring their own).
+      jax.config.update("jax_cpu_collectives_implementation", "gloo")
       jax.distributed.initialize()
-    import jax  # pylint: disable=import-outside-toplevel,reimported
-    from absl import logging as absl_logging  # pylint: disable=import-outside-toplevel
-    absl_logging.set_verbosity(absl_logging.ERROR)
-    from sljax.train.loop import train  # pylint: disable=import-outside-toplevel
+    quiet_libraries()
+    from sljax.train.loop import train
     config, note, workdir = resolve(args, jax.default_backend())
     result = train(config, workdir, resume=args.resume, overwrite=args.overwrite,
-                   stop_after=args.stop_after, preset_note=note,
+                   stop_after=args.stop_after, preset_note=note, profile_dir=args.profile,
                    log=lambda line: print(line, flush=True),
                    progress=False if args.no_progress else None)
   except SljaxError as e:
@@ -134,8 +101,8 @@ def main(argv: list[str] | None = None) -> int:
   except KeyboardInterrupt:
     print("train.py: interrupted (continue with --resume)", file=sys.stderr)
     return 130
-  best = "n/a" if result.best_val_mae is None else f"{result.best_val_mae:.4f}"
-  last = "n/a" if result.last_val_mae is None else f"{result.last_val_mae:.4f}"
+  best = "n/a" if result.best_val is None else f"{result.best_val:.4f}"
+  last = "n/a" if result.last_val is None else f"{result.last_val:.4f}"
   print(f"done: step {result.step}, {result.epochs_done} epochs; val MAE last {last}, best "
         f"{best}; workdir {result.workdir}")
   return 0

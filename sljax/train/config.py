@@ -1,63 +1,118 @@
-"""Training configuration: one frozen dataclass, the paper's defaults written once, presets."""
+"""Training configuration: one frozen dataclass whose fields are the train.py flags, presets.
 
+Each field is written once, with its default (the paper preset), its help text and how its
+flag parses (`option`); `sljax.train.cli` generates the flags from the fields.
+"""
+
+import argparse
 import dataclasses
 import json
 from typing import Any
 
+from sljax.data.synthetic import DOMAINS
 from sljax.errors import SljaxError, require
 from sljax.losses.disparity import DISP_LOSSES
 from sljax.losses.weighting import STRATEGIES
+from sljax.nets import registry
 
-MODELS = ("psmnet", "unet-sl", "unet-disp")
+MODELS = registry.MODELS
 PRESETS = ("auto", "paper", "quick")
-# Fields that may differ between a run and its --resume (they do not change the trajectory).
-RESUME_MUTABLE = ("epochs", "preset", "val_every", "keep", "max_val")
+PRECISIONS = ("fp32", "bf16")
+
+
+def parse_size(text: str) -> tuple[int, int]:
+  """'256' -> (256, 256); '96x128' -> (96, 128) (height x width)."""
+  try:
+    parts = [int(p) for p in text.lower().split("x")]
+  except ValueError:
+    raise argparse.ArgumentTypeError(f"expected N or HEIGHTxWIDTH, got {text!r}") from None
+  if len(parts) == 1:
+    parts = parts * 2
+  if len(parts) != 2:
+    raise argparse.ArgumentTypeError(f"expected N or HEIGHTxWIDTH, got {text!r}")
+  return parts[0], parts[1]
+
+
+def option(default: Any, help: str, *, parse: Any = None, choices: tuple[str, ...] | None = None,
+           switch: tuple[tuple[str, str], tuple[str, str]] | None = None, resumable: bool = False,
+           flag: bool = True) -> Any:
+  """A TrainConfig field with its flag: help text, parser (default: the default's type),
+  choices, an on/off `switch` pair of (flag, help) for an optional bool, and whether a
+  --resume may change it (`resumable`: it does not change what the run computes)."""
+  # pylint: disable=redefined-builtin
+  return dataclasses.field(default=default, metadata={
+      "help": help, "parse": parse or type(default), "choices": choices, "switch": switch,
+      "resumable": resumable, "flag": flag})
 
 
 @dataclasses.dataclass(frozen=True)
 class TrainConfig:
   """Everything that determines a training run (SPEC 3-4 defaults = the paper preset)."""
-  model: str = "psmnet"            # psmnet (stl: plain; other strategies: the SL twin) | unet-*
-  strategy: str = "stl"            # stl | cg_a | cg_b | epr | unc (PSMNet only)
-  data: str | None = None          # scene-format folder; None = synthetic 'objects' on the fly
-  synth_n: int = 8000              # synthetic scenes (train + val), ~the paper's virtual set
-  synth_size: int = 256            # synthetic render size (square); batches are resized to size
-  fraction: str = "1"              # fraction of the training split, e.g. "1/16"
-  test_fraction: float = 0.2       # group-level held-out split (object level, SPEC 1)
-  epochs: int = 120
-  batch_size: int = 12             # reference PSMNet batch (global, over all devices)
-  lr: float = 1e-4                 # Adam, fixed (paper)
-  size: tuple[int, int] = (256, 256)
-  maxdisp: int = 96
-  seed: int = 0
-  disp_loss: str = "l2"            # paper L2; "smooth_l1" = reference PSMNet
-  gray: bool | None = None         # None: RGB for PSMNet, grayscale for the UNets (paper)
-  val_every: int = 1               # epochs between validations
-  save_every: int = 0              # steps between extra mid-epoch checkpoints (0 = epochs only)
-  keep: int = 3                    # last checkpoints kept (plus the best by val MAE)
-  max_val: int | None = None       # cap on validation scenes (None = whole held-out split)
-  init_from: str | None = None     # checkpoint workdir or converted PSMNet to start from
-  unet_depth: int = 4              # UNet levels (unet-sl, unet-disp)
-  unet_width: int = 32             # UNet channels at the first level
-  preset: str = "paper"
+  model: str = option("psmnet", "network: psmnet (stl: plain PSMNet; other strategies: the "
+                      "twin with the SL path), unet-sl or unet-disp", choices=MODELS)
+  strategy: str = option("stl", "loss weighting (PSMNet): stl = plain PSMNet; cg_a/cg_b/epr/unc "
+                         "= the twin with the SL path", choices=STRATEGIES)
+  data: str | None = option(None, "scene-format folder (default: synthetic scenes rendered on "
+                            "the fly)", parse=str)
+  domain: str = option("objects", "synthetic domain when --data is not given", choices=DOMAINS)
+  synth_n: int = option(8000, "synthetic scenes (train + held-out); ~the paper's virtual set")
+  synth_size: int = option(256, "synthetic render size (square); batches are resized to --size")
+  synth_t: int | None = option(None, "synthetic patterns per view (default: 8 binary for "
+                               "objects, 9 Gray for tissue)", parse=int)
+  fraction: str = option("1", "fraction of the training split, e.g. 1/16")
+  test_fraction: float = option(0.2, "held-out fraction of the groups (object level, SPEC 1)")
+  epochs: int = option(120, "training epochs", resumable=True)
+  batch_size: int = option(12, "global batch (all devices; the reference PSMNet's 12)")
+  lr: float = option(1e-4, "Adam learning rate (fixed, paper)")
+  lr_drop_epoch: int | None = option(None, "epoch from which the learning rate is 10x lower "
+                                     "(the PSMNet reference's step decay; default: fixed, as "
+                                     "the paper)", parse=int)
+  size: tuple[int, int] = option((256, 256), "training size N or HEIGHTxWIDTH (multiples of 16)",
+                                 parse=parse_size)
+  maxdisp: int = option(96, "PSMNet disparity range (multiple of 16)")
+  seed: int = option(0, "seed of the synthetic data, split, subset, initial weights and order")
+  disp_loss: str = option("l2", "l2 (paper) or smooth_l1 (reference PSMNet)",
+                          choices=DISP_LOSSES)
+  gray: bool | None = option(None, "input channels", switch=(
+      ("--gray", "grayscale inputs (default for the UNets)"),
+      ("--rgb", "RGB inputs (default for PSMNet)")))
+  precision: str = option("fp32", "fp32, or bf16: bfloat16 computation with float32 "
+                          "parameters, optimiser state, losses and disparity softmax",
+                          choices=PRECISIONS)
+  val_every: int = option(1, "epochs between validations", resumable=True)
+  save_every: int = option(0, "also checkpoint every N steps (default: at each epoch end only)")
+  keep: int = option(3, "checkpoints kept (the last N, plus the best by validation MAE)",
+                     resumable=True)
+  max_val: int | None = option(None, "cap on validation scenes", parse=int, resumable=True)
+  log_every: int = option(10, "steps between fetches of the step metrics from the device "
+                          "(every step is still logged)", resumable=True)
+  init_from: str | None = option(None, "start from a training workdir or a converted PSMNet "
+                                 "(sljax convert-psmnet)", parse=str)
+  corr_window: int = option(17, "window (px, odd) of the correlation that turns unet-sl's "
+                            "patterns into disparity (paper: 17 at 256x256)")
+  unet_depth: int = option(4, "UNet levels")
+  unet_width: int = option(32, "UNet channels at the first level")
+  preset: str = option("paper", "the preset the run started from", flag=False, resumable=True)
 
   @property
   def net(self) -> str:
-    """Network name for sljax.nets.build_model."""
-    if self.model == "psmnet":
-      return "psmnet" if self.strategy == "stl" else "psmnet-mtl"
-    return self.model
+    """Network name for sljax.nets.build_model (the twin for weighting strategies)."""
+    return registry.trained_net(self.model, self.strategy)
+
+  @property
+  def spec(self) -> registry.NetSpec:
+    """The trained network's entry in sljax.nets.registry.NETS."""
+    return registry.spec(self.net)
 
   @property
   def use_gray(self) -> bool:
     """Whether inputs are single-channel."""
-    return self.model != "psmnet" if self.gray is None else bool(self.gray)
+    return self.spec.gray if self.gray is None else bool(self.gray)
 
   @property
   def tasks(self) -> tuple[bool, bool]:
     """(needs SL targets, needs disparity targets)."""
-    return {"psmnet": (False, True), "psmnet-mtl": (True, True), "unet-sl": (True, False),
-            "unet-disp": (False, True)}[self.net]
+    return "sl" in self.spec.tasks, "disp" in self.spec.tasks
 
   def to_json(self) -> dict[str, Any]:
     """JSON-able dict (tuples become lists)."""
@@ -65,6 +120,10 @@ class TrainConfig:
     d["size"] = list(self.size)
     return d
 
+
+FIELDS = {f.name: f for f in dataclasses.fields(TrainConfig)}
+# Fields that may differ between a run and its --resume (they do not change the trajectory).
+RESUME_MUTABLE = tuple(name for name, f in FIELDS.items() if f.metadata["resumable"])
 
 PAPER = TrainConfig()
 # Small enough to finish in < 10 min on a 2-core CPU while visibly learning.
@@ -83,47 +142,59 @@ def preset_config(name: str, backend: str) -> TrainConfig:
 
 def validate(config: TrainConfig) -> None:
   """Checks the options that need no data; SljaxError naming the option."""
-  require(config.model in MODELS, f"--model: unknown model {config.model!r}; choose from {MODELS}")
-  require(config.strategy in STRATEGIES,
-          f"--strategy: unknown strategy {config.strategy!r}; choose from {STRATEGIES}")
-  require(config.model == "psmnet" or config.strategy == "stl",
+  for name, f in FIELDS.items():
+    choices = f.metadata["choices"]
+    value = getattr(config, name)
+    require(choices is None or value in choices,
+            f"--{name.replace('_', '-')}: unknown value {value!r}; choose from {choices}")
+  spec = config.spec
+  require(registry.spec(config.model).twin is not None or config.strategy == "stl",
           f"--strategy {config.strategy}: weighting strategies apply to the PSMNet twin; "
           f"{config.model} trains a single task (use --strategy stl or leave it out)")
-  require(config.disp_loss in DISP_LOSSES,
-          f"--disp-loss: unknown loss {config.disp_loss!r}; choose from {DISP_LOSSES}")
   require(config.maxdisp > 0 and config.maxdisp % 16 == 0,
           f"--maxdisp {config.maxdisp}: must be a positive multiple of 16")
   h, w = config.size
   require(h > 0 and w > 0 and h % 16 == 0 and w % 16 == 0,
           f"--size {h}x{w}: height and width must be positive multiples of 16")
-  require(config.epochs > 0, f"--epochs {config.epochs}: must be positive")
-  require(config.batch_size > 0, f"--batch-size {config.batch_size}: must be positive")
-  require(config.lr > 0, f"--lr {config.lr}: must be positive")
+  for name in ("epochs", "batch_size", "lr", "val_every", "log_every", "unet_depth",
+               "unet_width"):
+    require(getattr(config, name) > 0,
+            f"--{name.replace('_', '-')} {getattr(config, name)}: must be positive")
+  require(config.lr_drop_epoch is None or config.lr_drop_epoch >= 1,
+          f"--lr-drop-epoch {config.lr_drop_epoch}: must be at least 1")
   require(config.synth_n >= 2, f"--synth-n {config.synth_n}: need at least 2 scenes")
-  require(config.unet_depth > 0 and config.unet_width > 0,
-          f"--unet-depth/--unet-width: must be positive, got {config.unet_depth}, "
-          f"{config.unet_width}")
-  require(config.model == "psmnet" or (config.size[0] % 2**config.unet_depth == 0
-                                       and config.size[1] % 2**config.unet_depth == 0),
-          f"--size {config.size[0]}x{config.size[1]}: must be a multiple of "
-          f"2^unet_depth = {2**config.unet_depth}")
-  require(config.val_every > 0, f"--val-every {config.val_every}: must be positive")
+  require(config.corr_window > 0 and config.corr_window % 2 == 1,
+          f"--corr-window {config.corr_window}: must be a positive odd number")
+  require(config.synth_t is None or 1 <= config.synth_t <= 12,
+          f"--synth-t {config.synth_t}: must be in 1..12")
+  require("depth" not in spec.options or (h % 2**config.unet_depth == 0
+                                          and w % 2**config.unet_depth == 0),
+          f"--size {h}x{w}: must be a multiple of 2^unet_depth = {2**config.unet_depth}")
   require(config.save_every >= 0, f"--save-every {config.save_every}: must be >= 0")
   require(0 < config.test_fraction < 1,
           f"--test-fraction {config.test_fraction}: must be in (0, 1)")
 
 
+def normalized(d: dict[str, Any]) -> dict[str, Any]:
+  """A saved config dict with the fields it predates set to their defaults (older runs)."""
+  out = dict(d)
+  for name, f in FIELDS.items():
+    if name not in out:
+      out[name] = list(f.default) if isinstance(f.default, tuple) else f.default
+  return out
+
+
 def diff_configs(saved: dict[str, Any], new: dict[str, Any],
                  ignore: tuple[str, ...] = RESUME_MUTABLE) -> list[str]:
   """Names of the fields that differ between two config dicts (ignoring some)."""
+  saved, new = normalized(saved), normalized(new)
   keys = sorted(set(saved) | set(new))
   return [k for k in keys if k not in ignore and saved.get(k) != new.get(k)]
 
 
 def config_from_json(d: dict[str, Any]) -> TrainConfig:
   """TrainConfig from the dict written by to_json (unknown keys ignored)."""
-  names = {f.name for f in dataclasses.fields(TrainConfig)}
-  kw = {k: v for k, v in d.items() if k in names}
+  kw = {k: v for k, v in d.items() if k in FIELDS}
   if "size" in kw:
     kw["size"] = tuple(kw["size"])
   try:

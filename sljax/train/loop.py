@@ -1,39 +1,65 @@
-"""The training loop: data, validation, JSONL logs, checkpoints and exact resume.
+"""The training loop: setup, state, epochs of prefetched steps, validation, logs, checkpoints.
+
+Reading order: `train` runs a whole run in a few calls: `setup` (options, source, split,
+workdir), `create_train_state` or `restore_checkpoint`, then per epoch `run_epoch` (the
+steps) and `end_of_epoch` (validate, log, save). `LoopState` is the loop's bookkeeping and
+each checkpoint's metadata.
 
 Determinism: the data order of epoch e is a permutation drawn from (seed, e), the task weights
 of epoch e depend only on the epoch-mean losses of epochs < e, and the step needs no PRNG
-key, so the global step number alone fixes what a step computes. A resumed run restores the
-state and loop bookkeeping of the last checkpoint and repeats exactly what the uninterrupted
-run would have done.
+key, so the global step number alone fixes what a step computes. Batches are built ahead by
+background threads, but batch k of epoch e is a function of (seed, e, k) only. A resumed run
+restores the state and LoopState of the last checkpoint and repeats exactly what the
+uninterrupted run would have done.
+
+Step metrics stay on the device and are fetched every `log_every` steps and before every
+checkpoint, so the host never waits for a step before dispatching the next one; the NaN check
+runs at each fetch, and every step still gets its row in metrics.jsonl.
 """
 
+import collections
+import concurrent.futures
 import dataclasses
 import functools
+import itertools
 import json
 import math
 import os
 import shutil
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from flax import traverse_util
+from tqdm import tqdm
 
+from sljax.corr.correlation import sl_disparity
+from sljax.data import synthetic
+from sljax.data.dataset import (PART_FIELD, FolderSource, epoch_order, load_batch,
+                                split_indices, take_fraction)
 from sljax.errors import SljaxError, require
 from sljax.losses import weighting
+from sljax.losses.sl import sl_loss
+from sljax.metrics import DisparityAccumulator
+from sljax.nets import build_model, detach_sl, registry
 from sljax.train import checkpoint as ckpt
+from sljax.train import state as st
+from sljax.train import step as stp
 from sljax.train.config import TrainConfig, diff_configs, dumps, validate
 
 METRICS_FILE = "metrics.jsonl"
 EPOCHS_FILE = "epochs.jsonl"
-# Rough CPU seconds per training sample at 64x64 (maxdisp 32 for PSMNets) on a 2-core laptop,
-# used only for the first line's estimate; the progress bar then shows the measured ETA.
-_SEC_PER_SAMPLE_64 = {"psmnet": 0.11, "psmnet-mtl": 0.18, "unet-sl": 0.02, "unet-disp": 0.02}
+PREFETCH = 3          # batches built ahead of the step that needs them
+LOADER_THREADS = 2    # threads building them (decoding, resizing and rendering release the GIL)
+PROFILE_STEPS = (2, 5)  # --profile traces these steps after the run's (re)start: compiled by then
 _CACHE_BYTES = 2 << 30
+_TARGET_TEXT = {"disp": "disparity (disp0.pfm)", "sl": "structured-light patterns (sl0/)",
+                "sl_right": "right-view structured-light patterns (sl1/)"}
 
 
 class TrainingDiverged(SljaxError):
@@ -44,49 +70,48 @@ class TrainingDiverged(SljaxError):
 
 
 def open_source(config: TrainConfig):
-  """The scene source: a scene-format folder or synthetic 'objects' scenes rendered on the fly."""
+  """The scene source: a scene-format folder or synthetic scenes rendered on the fly."""
   if config.data is not None:
-    from sljax.data.dataset import FolderSource  # pylint: disable=import-outside-toplevel
     return FolderSource(config.data)
-  from sljax.data import synthetic  # pylint: disable=import-outside-toplevel
-  synth_cfg = synthetic.SynthConfig(size=config.synth_size, domain="objects")
-  return synthetic.SyntheticSource(config.synth_n, seed=config.seed, config=synth_cfg)
+  synth = synthetic.SynthConfig(size=config.synth_size, domain=config.domain, t=config.synth_t)
+  return synthetic.SyntheticSource(config.synth_n, seed=config.seed, config=synth)
 
 
 def batch_parts(config: TrainConfig, validation: bool = False) -> tuple[str, ...]:
   """Batch keys to load; validation of an SL network also loads disparity when it exists."""
-  from sljax.train.step import BATCH_PARTS  # pylint: disable=import-outside-toplevel
-  parts = BATCH_PARTS[config.net]
+  parts = config.spec.parts
   if validation and "disp" not in parts:
     parts = parts + ("disp",)
   return parts
 
 
-def check_source(source, config: TrainConfig) -> dict[str, Any]:
-  """Checks the first scene has what the network trains on; returns {'t', 'channels', 'has_disp'}."""
-  require(len(source) > 0, f"{config.data or 'synthetic data'}: no scenes")
-  scene = source[0]
+@dataclasses.dataclass(frozen=True)
+class DataInfo:
+  """What the first scene says about the data: patterns per view, input channels, disparity."""
+  t: int | None
+  channels: int
+  has_disp: bool
+
+
+def check_source(source, config: TrainConfig) -> DataInfo:
+  """Checks the first scene has every target the network trains on (SljaxError naming it)."""
   where = config.data or "synthetic data"
+  require(len(source) > 0, f"{where}: no scenes")
+  scene = source[0]
   name = getattr(source, "name", None)
   label = name(0) if callable(name) else scene.name
-  needs_sl, needs_disp = config.tasks
-  if needs_disp:
-    require(scene.disp0 is not None,
-            f"{where}: scene {label} has no disparity (disp0.pfm), which model {config.net} "
-            f"trains on")
-  if needs_sl:
-    require(scene.sl0 is not None,
-            f"{where}: scene {label} has no structured-light patterns (sl0/), which model "
-            f"{config.net} trains on")
-  if config.net == "unet-sl":
-    require(scene.sl1 is not None,
-            f"{where}: scene {label} has no right-view patterns (sl1/), which unet-sl trains on")
+  for part in config.spec.parts:
+    if part in _TARGET_TEXT:
+      require(getattr(scene, PART_FIELD[part][0]) is not None,
+              f"{where}: scene {label} has no {_TARGET_TEXT[part]}, which model {config.net} "
+              f"trains on")
   t = None if scene.sl0 is None else int(scene.sl0.shape[-1])
-  return {"t": t, "channels": 1 if config.use_gray else 3, "has_disp": scene.disp0 is not None}
+  return DataInfo(t, 1 if config.use_gray else 3, scene.disp0 is not None)
 
 
 class RowCache:
-  """Per-scene resized rows kept in RAM (the quick preset revisits every scene each epoch)."""
+  """Per-scene resized rows kept in RAM (small runs revisit every scene each epoch); safe to
+  call from the loader threads (at worst two threads load one scene twice)."""
 
   def __init__(self, source, config: TrainConfig, parts: Sequence[str], enabled: bool):
     self.source, self.config, self.parts, self.enabled = source, config, tuple(parts), enabled
@@ -94,14 +119,13 @@ class RowCache:
 
   def batch(self, indices: Sequence[int]) -> dict[str, np.ndarray]:
     """Stacked batch of the given scene indices (resized to config.size)."""
-    from sljax.data.dataset import load_batch  # pylint: disable=import-outside-toplevel
+    load = functools.partial(load_batch, self.source, size=self.config.size,
+                             gray=self.config.use_gray, parts=self.parts)
     if not self.enabled:
-      return load_batch(self.source, list(indices), size=self.config.size,
-                        gray=self.config.use_gray, parts=self.parts)
+      return load(list(indices))
     missing = [i for i in indices if i not in self.rows]
     if missing:
-      loaded = load_batch(self.source, missing, size=self.config.size,
-                          gray=self.config.use_gray, parts=self.parts)
+      loaded = load(missing)
       for k, i in enumerate(missing):
         self.rows[i] = {p: loaded[p][k] for p in self.parts}
     return {p: np.stack([self.rows[i][p] for i in indices]) for p in self.parts}
@@ -114,72 +138,55 @@ def bytes_per_scene(config: TrainConfig, t: int | None) -> int:
   return 4 * h * w * (2 * c + 2 + 2 * (t or 0))
 
 
-def epoch_order(train_idx: Sequence[int], seed: int, epoch: int) -> list[int]:
-  """Scene order of an epoch: a permutation drawn from (seed, epoch) only."""
-  perm = np.random.default_rng([seed, epoch]).permutation(len(train_idx))
-  return [int(train_idx[k]) for k in perm]
+def prefetch(fn: Callable[[Any], Any], items: Iterator[Any], ahead: int = PREFETCH,
+             threads: int = LOADER_THREADS) -> Iterator[Any]:
+  """fn(item) for each item, in order, computed by background threads `ahead` items early."""
+  items = iter(items)
+  with concurrent.futures.ThreadPoolExecutor(threads, thread_name_prefix="sljax-data") as pool:
+    queue = collections.deque(pool.submit(fn, x) for x in itertools.islice(items, ahead))
+    try:
+      while queue:
+        result = queue.popleft().result()
+        queue.extend(pool.submit(fn, x) for x in itertools.islice(items, 1))
+        yield result
+    finally:
+      for future in queue:
+        future.cancel()
 
 
-# ----------------------------------------------------------------------------- model
+# ----------------------------------------------------------------------------- model and state
 
 
 def model_kwargs(config: TrainConfig, channels: int, t: int | None) -> dict[str, Any]:
-  """Keyword arguments of sljax.nets.build_model for this run."""
+  """Keyword arguments of sljax.nets.build_model for this run (the options the net takes)."""
+  values = {"maxdisp": config.maxdisp, "t": t, "depth": config.unet_depth,
+            "base_width": config.unet_width}
   kw: dict[str, Any] = {"in_channels": channels}
-  if config.net.startswith("psmnet"):
-    kw["maxdisp"] = config.maxdisp
-  if config.net in ("psmnet-mtl", "unet-sl"):
-    kw["t"] = t
-  if config.net.startswith("unet"):
-    kw["depth"], kw["base_width"] = config.unet_depth, config.unet_width
+  kw.update({k: v for k, v in values.items() if k in config.spec.options})
   return kw
 
 
 @functools.lru_cache(maxsize=8)
 def compiled_steps(net: str, kwargs: tuple[tuple[str, Any], ...], maxdisp: int, disp_loss: str,
-                   lr: float, mesh) -> tuple[Any, Any, Any, Any]:
+                   lr: float, lr_drop_step: int | None, precision: str,
+                   mesh) -> tuple[Any, Any, Any, Any]:
   """(model, optimiser, train step, eval step), memoised so runs in one process share the
-  compiled steps (tests, notebooks, a resume in the same process)."""
-  # pylint: disable=import-outside-toplevel
-  from sljax.nets import build_model
-  from sljax.train import state as st
-  from sljax.train import step as stp
+  compiled steps (tests, notebooks, experiment grids, a resume in the same process)."""
   model = build_model(net, **dict(kwargs))
-  tx = st.make_optimizer(lr)
+  tx = st.make_optimizer(lr, lr_drop_step)
+  dtype = stp.COMPUTE_DTYPES[precision]
   return (model, tx,
           stp.make_train_step(model, net=net, maxdisp=maxdisp, disp_loss=disp_loss, tx=tx,
-                              mesh=mesh),
-          stp.make_eval_step(model, net=net, mesh=mesh))
-
-
-def _flatten(tree: Any) -> dict[tuple[str, ...], Any]:
-  out = {}
-  def walk(node, path):
-    if isinstance(node, dict) or hasattr(node, "items"):
-      for k, v in node.items():
-        walk(v, path + (str(k),))
-    else:
-      out[path] = node
-  walk(tree, ())
-  return out
-
-
-def _unflatten(flat: dict[tuple[str, ...], Any]) -> dict[str, Any]:
-  root: dict[str, Any] = {}
-  for path, v in flat.items():
-    node = root
-    for k in path[:-1]:
-      node = node.setdefault(k, {})
-    node[path[-1]] = v
-  return root
+                              mesh=mesh, dtype=dtype),
+          stp.make_eval_step(model, net=net, mesh=mesh, dtype=dtype))
 
 
 def load_init(path: str, config: TrainConfig) -> tuple[str, dict[str, Any]]:
-  """(source net name, variables) of an --init-from checkpoint/converted PSMNet."""
+  """(source net name, variables) of an --init-from checkpoint/converted PSMNet; a twin's
+  checkpoint gives its disparity path to a single-task run."""
   name, _, variables, _ = ckpt.load_for_inference(path)
-  if config.net == "psmnet" and name == "psmnet-mtl":
-    from sljax.nets import detach_sl  # pylint: disable=import-outside-toplevel
-    variables, name = detach_sl(variables), "psmnet"
+  if registry.spec(name).single == config.net:
+    variables, name = detach_sl(variables), config.net
   return name, variables
 
 
@@ -192,8 +199,8 @@ def merge_init(target: dict[str, Any], source: dict[str, Any], source_name: str,
   """
   out = {}
   for col in ("params", "batch_stats"):
-    tflat = _flatten(target.get(col, {}))
-    sflat = _flatten(source.get(col, {}))
+    tflat = traverse_util.flatten_dict(dict(target.get(col, {})))
+    sflat = traverse_util.flatten_dict(dict(source.get(col, {})))
     extra = sorted(set(sflat) - set(tflat))
     if extra:
       raise SljaxError(f"--init-from {where}: a {source_name} checkpoint does not fit model "
@@ -206,23 +213,39 @@ def merge_init(target: dict[str, Any], source: dict[str, Any], source_name: str,
     require(col == "batch_stats" or sflat, f"--init-from {where}: no parameters found")
     merged = dict(tflat)
     merged.update({p: jnp.asarray(v, tflat[p].dtype) for p, v in sflat.items()})
-    out[col] = _unflatten(merged) if merged else {}
+    out[col] = traverse_util.unflatten_dict(merged) if merged else {}
   return out
+
+
+def task_weights(config: TrainConfig, history: Sequence[Sequence[float]]) -> np.ndarray:
+  """The step's [w_sl, w_disp, unc] for the next epoch (single-task nets: their one task)."""
+  if config.spec.multi_task:
+    return weighting.step_weights(config.strategy, history)
+  return np.array([float(t in config.spec.tasks) for t in registry.TASKS] + [0.0], np.float32)
 
 
 # ----------------------------------------------------------------------------- workdir
 
 
 def default_workdir(config: TrainConfig) -> Path:
-  """runs/<model>-<strategy>-<seed> (UNets: runs/<model>-<seed>)."""
-  name = (f"{config.model}-{config.strategy}-{config.seed}" if config.model == "psmnet"
+  """runs/<model>-<strategy>-<seed> (single-task models: runs/<model>-<seed>)."""
+  strategies = registry.spec(config.model).twin is not None
+  name = (f"{config.model}-{config.strategy}-{config.seed}" if strategies
           else f"{config.model}-{config.seed}")
   return Path("runs") / name
 
 
+def _sync(name: str) -> None:
+  """Waits for every process (multi-process runs), e.g. between workdir checks and writes."""
+  if jax.process_count() > 1:
+    from jax.experimental import multihost_utils  # pylint: disable=import-outside-toplevel
+    multihost_utils.sync_global_devices(name)
+
+
 def prepare_workdir(workdir: Path, config_json: dict[str, Any], resume: bool,
                     overwrite: bool) -> bool:
-  """Checks the workdir against the run; returns whether there is a checkpoint to resume."""
+  """Checks the workdir against the run (every process, before any writes), then clears it
+  for --overwrite (the main process); returns whether there is a checkpoint to resume."""
   cfg_path = workdir / ckpt.CONFIG_FILE
   ckpt_dir = workdir / ckpt.CHECKPOINT_DIR
   has_ckpt = ckpt_dir.is_dir() and any(p.name.isdigit() for p in ckpt_dir.iterdir())
@@ -236,11 +259,12 @@ def prepare_workdir(workdir: Path, config_json: dict[str, Any], resume: bool,
     if not resume and (has_ckpt or (workdir / METRICS_FILE).exists()):
       raise SljaxError(f"{workdir}: holds this run already; pass --resume to continue it or "
                        "--overwrite to start again")
+  _sync("sljax-workdir-checked")
   if overwrite:
-    for name in (ckpt.CHECKPOINT_DIR,):
-      shutil.rmtree(workdir / name, ignore_errors=True)
-    for name in (METRICS_FILE, EPOCHS_FILE, ckpt.CONFIG_FILE):
-      (workdir / name).unlink(missing_ok=True)
+    if jax.process_index() == 0:
+      shutil.rmtree(ckpt_dir, ignore_errors=True)
+      for name in (METRICS_FILE, EPOCHS_FILE, ckpt.CONFIG_FILE):
+        (workdir / name).unlink(missing_ok=True)
     has_ckpt = False
   return has_ckpt and resume
 
@@ -260,22 +284,172 @@ def _truncate_jsonl(path: Path, keep: Callable[[dict[str, Any]], bool]) -> None:
   path.write_text("".join(l + "\n" for l in lines))
 
 
-def _finite(x: float) -> float | None:
-  return float(x) if math.isfinite(float(x)) else None
+# ----------------------------------------------------------------------------- bookkeeping
 
 
-# ----------------------------------------------------------------------------- main loop
+@dataclasses.dataclass(frozen=True)
+class LoopState:
+  """The loop's bookkeeping beside the TrainState; each checkpoint's metadata.
+
+  history: epoch-mean training (L_sl, L_disp) of the finished epochs (DWA reads it);
+  partial: (sum L_sl, sum L_disp, steps) of the current epoch so far.
+  """
+  step: int = 0
+  history: tuple[tuple[float, float], ...] = ()
+  partial: tuple[float, float, int] = (0.0, 0.0, 0)
+  best_val: float | None = None
+  last_val: float | None = None
+
+  def add_step(self, loss_sl: float, loss_disp: float) -> "LoopState":
+    """After one step with these (unweighted) training losses."""
+    s_sl, s_disp, n = self.partial
+    return dataclasses.replace(self, step=self.step + 1,
+                               partial=(s_sl + loss_sl, s_disp + loss_disp, n + 1))
+
+  def close_epoch(self) -> "LoopState":
+    """The epoch's mean losses join the history; the partial sums restart."""
+    s_sl, s_disp, n = self.partial
+    return dataclasses.replace(self, history=self.history + ((s_sl / n, s_disp / n),),
+                               partial=(0.0, 0.0, 0))
+
+  def validated(self, val_mae: float | None) -> "LoopState":
+    """After a validation that measured val_mae (None: nothing measured)."""
+    best = self.best_val
+    if val_mae is not None and (best is None or val_mae < best):
+      best = val_mae
+    return dataclasses.replace(self, last_val=val_mae, best_val=best)
+
+  def to_meta(self) -> dict[str, Any]:
+    """JSON metadata saved with a checkpoint."""
+    return {"step": self.step, "history": [list(e) for e in self.history],
+            "partial": list(self.partial), "best_val": self.best_val, "last_val": self.last_val}
+
+  @classmethod
+  def from_meta(cls, meta: dict[str, Any]) -> "LoopState":
+    """The LoopState saved by to_meta (runs saved before last_val existed: None)."""
+    s_sl, s_disp, n = meta["partial"]
+    return cls(step=int(meta["step"]),
+               history=tuple((float(a), float(b)) for a, b in meta["history"]),
+               partial=(float(s_sl), float(s_disp), int(n)), best_val=meta.get("best_val"),
+               last_val=meta.get("last_val"))
 
 
-@dataclasses.dataclass
-class RunResult:
-  """What a finished (or stopped) run reports."""
+class MetricWriter:
+  """The run's JSON lines: metrics.jsonl (a row per step), epochs.jsonl (a row per epoch).
+  Writes on the main process only."""
+
+  def __init__(self, workdir: Path, enabled: bool):
+    self.files = ({name: open(workdir / name, "a", encoding="utf-8")
+                   for name in (METRICS_FILE, EPOCHS_FILE)} if enabled else {})
+
+  def write(self, name: str, rows: Sequence[dict[str, Any]]) -> None:
+    """Appends rows to one of the files and flushes it."""
+    if name in self.files:
+      self.files[name].write("".join(json.dumps(r) + "\n" for r in rows))
+      self.files[name].flush()
+
+  def close(self) -> None:
+    """Closes the files."""
+    for f in self.files.values():
+      f.close()
+
+
+class StepProfiler:
+  """--profile: a jax.profiler trace of steps PROFILE_STEPS after the run's first step."""
+
+  def __init__(self, directory: str | None, first_step: int, log: Callable[[str], None]):
+    self.directory, self.log, self.active = directory, log, False
+    self.start, self.stop = (first_step + s for s in PROFILE_STEPS)
+
+  def before(self, step: int) -> None:
+    """Called before dispatching global step `step` (1-based)."""
+    if self.directory and step == self.start + 1:
+      jax.profiler.start_trace(self.directory)
+      self.active = True
+
+  def after(self, step: int, state: Any) -> None:
+    """Called after dispatching step `step`: ends the trace once its steps have run."""
+    if self.active and step == self.stop:
+      jax.block_until_ready(state)
+      self.close()
+      self.log(f"profile of steps {self.start + 1}-{self.stop} written to {self.directory}")
+
+  def close(self) -> None:
+    """Ends an open trace."""
+    if self.active:
+      jax.profiler.stop_trace()
+      self.active = False
+
+
+# ----------------------------------------------------------------------------- setup
+
+
+@dataclasses.dataclass(frozen=True)
+class Setup:
+  """A checked run: its data, split, workdir and model options (nothing compiled yet)."""
+  config: TrainConfig
   workdir: Path
-  step: int
-  epochs_done: int
-  best_val_mae: float | None
-  last_val_mae: float | None
-  history: list[list[float]]
+  source: Any
+  train_idx: tuple[int, ...]
+  val_idx: tuple[int, ...]
+  info: DataInfo
+  kwargs: dict[str, Any]
+  resume: bool
+  init: tuple[str, dict[str, Any]] | None = None  # --init-from: (source net, its variables)
+
+  @property
+  def steps_per_epoch(self) -> int:
+    """Full batches per epoch (the remainder of the shuffled scenes is dropped)."""
+    return len(self.train_idx) // self.config.batch_size
+
+  @property
+  def total_steps(self) -> int:
+    """Steps of the whole run."""
+    return self.steps_per_epoch * self.config.epochs
+
+
+def setup(config: TrainConfig, workdir: Path, resume: bool, overwrite: bool,
+          log: Callable[[str], None], preset_note: str = "") -> Setup:
+  """Checks the options, data and workdir (SljaxError before anything compiles), writes the
+  resolved config.json and announces the run."""
+  validate(config)
+  n_dev, n_proc = jax.device_count(), jax.process_count()
+  require(config.batch_size % n_dev == 0,
+          f"--batch-size {config.batch_size}: must be a multiple of the {n_dev} devices")
+  require(config.batch_size % n_proc == 0,
+          f"--batch-size {config.batch_size}: must be a multiple of the {n_proc} processes")
+  source = open_source(config)
+  train_idx, val_idx = split_indices(source, config.test_fraction, seed=config.seed)
+  train_idx = take_fraction(train_idx, config.fraction, seed=config.seed)
+  if config.max_val is not None:
+    val_idx = val_idx[:config.max_val]
+  require(len(train_idx) >= config.batch_size,
+          f"--batch-size {config.batch_size}: larger than the {len(train_idx)} training scenes "
+          f"(fraction {config.fraction} of {len(source)} scenes)")
+  require(len(val_idx) > 0, f"{config.data or 'synthetic data'}: the held-out split is empty")
+  steps_per_epoch = len(train_idx) // config.batch_size
+  log(announce(config, preset_note, steps_per_epoch, len(train_idx), len(val_idx)))
+  info = check_source(source, config)
+  kwargs = model_kwargs(config, info.channels, info.t)
+  config_json = dict(config.to_json(), net=config.net, model_kwargs=kwargs, t=info.t,
+                     gray=config.use_gray, steps_per_epoch=steps_per_epoch,
+                     n_train=len(train_idx), n_val=len(val_idx))
+  do_resume = prepare_workdir(workdir, config_json, resume, overwrite)
+  init = None
+  if config.init_from and not do_resume:
+    # Shapes are compared on an abstract init, so a mismatch errors before compiling anything.
+    model = build_model(config.net, **kwargs)
+    x = jax.ShapeDtypeStruct((1, *config.size, info.channels), jnp.float32)
+    abstract = jax.eval_shape(
+        lambda a, b: model.init(jax.random.PRNGKey(0), a, b, train=False), x, x)
+    init = load_init(config.init_from, config)
+    merge_init(dict(abstract), init[1], init[0], config, config.init_from)
+  if jax.process_index() == 0:
+    workdir.mkdir(parents=True, exist_ok=True)
+    (workdir / ckpt.CONFIG_FILE).write_text(dumps(config_json) + "\n")
+  _sync("sljax-workdir-ready")
+  return Setup(config, workdir, source, tuple(train_idx), tuple(val_idx), info, kwargs,
+               do_resume, init)
 
 
 def announce(config: TrainConfig, preset_note: str, steps_per_epoch: int,
@@ -283,15 +457,15 @@ def announce(config: TrainConfig, preset_note: str, steps_per_epoch: int,
   """The first output line: preset, run shape and the estimated time per epoch."""
   h, w = config.size
   scale = (h * w) / (64 * 64)
-  if config.net.startswith("psmnet"):
+  if "maxdisp" in config.spec.options:
     scale *= (0.5 + 0.5 * config.maxdisp / 32)
-  per_sample = _SEC_PER_SAMPLE_64[config.net] * scale
+  per_sample = config.spec.sec_per_sample_64 * scale
   if jax.default_backend() != "cpu":
     per_sample /= 100.0
   est = per_sample * steps_per_epoch * config.batch_size
-  return (f"sljax train: preset {config.preset}{preset_note}: {config.net}"
-          f"{'/' + config.strategy if config.model == 'psmnet' else ''}, {h}x{w}, maxdisp "
-          f"{config.maxdisp}, {config.epochs} epochs x {steps_per_epoch} steps of "
+  strategy = f"/{config.strategy}" if registry.spec(config.model).twin else ""
+  return (f"sljax train: preset {config.preset}{preset_note}: {config.net}{strategy}, {h}x{w}, "
+          f"maxdisp {config.maxdisp}, {config.epochs} epochs x {steps_per_epoch} steps of "
           f"{config.batch_size} ({n_train} train / {n_val} val scenes) on "
           f"{jax.device_count()} {jax.default_backend()} device(s); estimated "
           f"~{_fmt_seconds(est)} per epoch (measured ETA in the progress bar)")
@@ -307,201 +481,252 @@ def _fmt_seconds(s: float) -> str:
   return f"{s / 3600:.1f} h"
 
 
+# ----------------------------------------------------------------------------- state
+
+
+def create_train_state(run: Setup, model, tx) -> st.TrainState:
+  """Fresh state: initial weights from the seed, then those of --init-from where given."""
+  config = run.config
+  variables = st.init_variables(model, config.seed, *config.size, run.info.channels)
+  if run.init is not None:
+    variables = merge_init(variables, run.init[1], run.init[0], config, config.init_from)
+  return st.create_state(variables, tx)
+
+
+def restore_checkpoint(manager, state: st.TrainState, sharding) -> tuple[st.TrainState,
+                                                                           LoopState]:
+  """The TrainState and LoopState of the manager's latest checkpoint."""
+  step = manager.latest_step()
+  abstract = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding),
+                          state)
+  state, meta = ckpt.restore(manager, step, abstract)
+  loop = LoopState.from_meta(meta)
+  require(loop.step == int(state.step), f"{manager.directory}: checkpoint {step} is inconsistent")
+  return state, loop
+
+
+def _restart_logs(run: Setup, loop: LoopState) -> None:
+  """Drops the log lines after the checkpoint resumed from (all of them for a fresh start)."""
+  if jax.process_index() != 0:
+    return
+  spe = run.steps_per_epoch
+  _truncate_jsonl(run.workdir / METRICS_FILE, lambda r: r.get("step", 0) <= loop.step)
+  _truncate_jsonl(run.workdir / EPOCHS_FILE, lambda r: r.get("epoch", 0) <= loop.step // spe)
+
+
+# ----------------------------------------------------------------------------- the loop
+
+
+@dataclasses.dataclass(frozen=True)
+class Context:
+  """What the epoch functions share: the run, its compiled steps, data, logs and checkpoints."""
+  run: Setup
+  mesh: Any
+  train_step: Any
+  eval_step: Any
+  train_rows: RowCache
+  val_rows: RowCache
+  manager: Any
+  writer: MetricWriter
+  bar: Any
+  profiler: StepProfiler
+
+
+def train_batches(ctx: Context, first_step: int) -> Iterator[dict[str, jax.Array]]:
+  """Device batches of the global steps first_step + 1, ..., built ahead in the background."""
+  run = ctx.run
+  b, spe = run.config.batch_size, run.steps_per_epoch
+  rows = stp.process_rows(b)
+
+  @functools.lru_cache(maxsize=2)
+  def order(epoch: int) -> list[int]:
+    return epoch_order(run.train_idx, run.config.seed, epoch)
+
+  def build(step: int) -> dict[str, jax.Array]:
+    epoch, k = divmod(step, spe)
+    idx = order(epoch)[k * b:(k + 1) * b]
+    return stp.put_batch(ctx.train_rows.batch(idx[rows]), ctx.mesh)
+
+  return prefetch(build, range(first_step, run.total_steps))
+
+
+def fetch_metrics(ctx: Context, pending: list[tuple[int, Any]],
+                  loop: LoopState) -> tuple[LoopState, dict[str, float]]:
+  """Fetches the pending steps' metrics, checks them, logs a row per step and adds their
+  losses to the epoch sums; returns the new LoopState and the last row."""
+  config, spe = ctx.run.config, ctx.run.steps_per_epoch
+  rows = []
+  for step, m in zip([s for s, _ in pending], jax.device_get([m for _, m in pending])):
+    m = {k: float(v) for k, v in m.items() if config.strategy == "unc" or not k.startswith("sigma")}
+    if not math.isfinite(m["loss"]):
+      ctx.writer.write(METRICS_FILE, rows)
+      ctx.manager.wait_until_finished()
+      good = ctx.manager.latest_step()
+      raise TrainingDiverged(
+          f"non-finite loss ({m['loss']}) at step {step} (epoch {(step - 1) // spe + 1}); "
+          "stopped. " + (f"The last good checkpoint is step {good} in "
+                         f"{ctx.run.workdir / ckpt.CHECKPOINT_DIR}" if good is not None
+                         else "No checkpoint was saved yet") + "; try a lower --lr")
+    rows.append({"step": step, "epoch": (step - 1) // spe + 1, **m})
+    loop = loop.add_step(m["loss_sl"], m["loss_disp"])
+  ctx.writer.write(METRICS_FILE, rows)
+  ctx.bar.set_postfix(epoch=rows[-1]["epoch"], loss=f"{rows[-1]['loss']:.4g}", refresh=False)
+  ctx.bar.update(len(rows))
+  return loop, rows[-1]
+
+
+def save(ctx: Context, state: st.TrainState, loop: LoopState, val: float | None = None) -> None:
+  """Starts an async checkpoint of the state with the loop state as its metadata."""
+  ckpt.save(ctx.manager, loop.step, state, loop.to_meta(), val)
+
+
+def run_epoch(ctx: Context, state: st.TrainState, loop: LoopState,
+              batches: Iterator[dict[str, jax.Array]], stop_at: int
+              ) -> tuple[st.TrainState, LoopState, dict[str, float]]:
+  """The steps from loop.step to the end of its epoch (or stop_at); returns the new state,
+  loop state and the last step's metrics row."""
+  config, spe = ctx.run.config, ctx.run.steps_per_epoch
+  weights = jnp.asarray(task_weights(config, loop.history))
+  end = min((loop.step // spe + 1) * spe, stop_at)
+  pending, last = [], {}
+  for step in range(loop.step + 1, end + 1):
+    ctx.profiler.before(step)
+    state, m = ctx.train_step(state, next(batches), weights)
+    ctx.profiler.after(step, state)
+    pending.append((step, m))
+    checkpoint = bool(config.save_every) and step % config.save_every == 0 and step % spe
+    if len(pending) == config.log_every or step == end or checkpoint:
+      loop, last = fetch_metrics(ctx, pending, loop)
+      pending = []
+    if checkpoint:
+      save(ctx, state, loop)
+  return state, loop, last
+
+
+def end_of_epoch(ctx: Context, state: st.TrainState, loop: LoopState, last: dict[str, float],
+                 seconds: float, samples: int) -> LoopState:
+  """Closes the epoch: validation when due, its epochs.jsonl row and line, a checkpoint."""
+  config = ctx.run.config
+  loop = loop.close_epoch()
+  epoch = len(loop.history)
+  val: dict[str, float] = {}
+  if epoch % config.val_every == 0 or loop.step == ctx.run.total_steps:
+    val = validate_split(ctx, state)
+    loop = loop.validated(val.get("val_mae"))
+  rec = {"epoch": epoch, "step": loop.step, "loss_sl": loop.history[-1][0],
+         "loss_disp": loop.history[-1][1], "w_sl": last["w_sl"], "w_disp": last["w_disp"],
+         "samples_per_s": samples / max(seconds, 1e-9), "seconds": seconds}
+  rec.update({k: last[k] for k in ("sigma_sl", "sigma_disp") if k in last})
+  rec.update(val)
+  ctx.writer.write(EPOCHS_FILE, [rec])
+  needs_sl, needs_disp = config.tasks
+  text = [f"L_sl {rec['loss_sl']:.4g}"] * needs_sl + [f"L_disp {rec['loss_disp']:.4g}"] * needs_disp
+  if val.get("val_mae") is not None:
+    text.append(f"val MAE {val['val_mae']:.3f} px")
+  if val.get("val_sl") is not None:
+    text.append(f"val L_sl {val['val_sl']:.4f}")
+  ctx.bar.write(f"epoch {epoch}/{config.epochs}: {' '.join(text)} "
+                f"({rec['samples_per_s']:.1f} samples/s)")
+  save(ctx, state, loop, val.get("val_mae", val.get("val_sl")))
+  return loop
+
+
+@dataclasses.dataclass(frozen=True)
+class RunResult:
+  """What a finished (or stopped) run reports."""
+  workdir: Path
+  loop: LoopState
+
+  @property
+  def step(self) -> int:
+    """Global steps done."""
+    return self.loop.step
+
+  @property
+  def epochs_done(self) -> int:
+    """Finished epochs."""
+    return len(self.loop.history)
+
+  @property
+  def best_val(self) -> float | None:
+    """Best validation MAE (px) so far."""
+    return self.loop.best_val
+
+  @property
+  def last_val(self) -> float | None:
+    """The last validation's MAE (px)."""
+    return self.loop.last_val
+
+
 def train(config: TrainConfig, workdir: str | os.PathLike | None = None, *, resume: bool = False,
           overwrite: bool = False, stop_after: int | None = None, preset_note: str = "",
-          log: Callable[[str], None] = functools.partial(print, flush=True), progress: bool | None = None) -> RunResult:
+          profile_dir: str | None = None, log: Callable[[str], None] = functools.partial(
+              print, flush=True), progress: bool | Any | None = None) -> RunResult:
   """Runs (or resumes) training; every bad input raises SljaxError before any compilation.
 
   stop_after: stop once the global step reaches this value (as an interruption would; the last
   checkpoint is the one saved at or before it), for tests and for splitting long runs.
+  progress: None (a bar on the main process), True/False, or a bar to drive: an object with
+  tqdm's update(steps), set_postfix(**kw) and write(line), e.g. the experiment runner's.
   """
-  # pylint: disable=import-outside-toplevel
-  from sljax.data.dataset import split_indices, take_fraction
-  from sljax.nets import build_model
-  from sljax.train import state as st
-  from sljax.train import step as stp
-
-  validate(config)
   workdir = Path(workdir if workdir is not None else default_workdir(config)).absolute()
+  run = setup(config, workdir, resume, overwrite, log, preset_note)
   main_process = jax.process_index() == 0
-  n_dev = jax.device_count()
-  require(config.batch_size % n_dev == 0,
-          f"--batch-size {config.batch_size}: must be a multiple of the {n_dev} devices")
-  require(config.batch_size % jax.process_count() == 0,
-          f"--batch-size {config.batch_size}: must be a multiple of the {jax.process_count()} processes")
 
-  source = open_source(config)
-  train_idx, val_idx = split_indices(source, config.test_fraction, seed=config.seed)
-  train_idx = take_fraction(train_idx, config.fraction, seed=config.seed)
-  if config.max_val is not None:
-    val_idx = val_idx[:config.max_val]
-  require(len(train_idx) >= config.batch_size,
-          f"--batch-size {config.batch_size}: larger than the {len(train_idx)} training scenes "
-          f"(fraction {config.fraction} of {len(source)} scenes)")
-  require(len(val_idx) > 0, f"{config.data or 'synthetic data'}: the held-out split is empty")
-  steps_per_epoch = len(train_idx) // config.batch_size
-  total_steps = steps_per_epoch * config.epochs
-  log(announce(config, preset_note, steps_per_epoch, len(train_idx), len(val_idx)))
-  info = check_source(source, config)
-
-  kwargs = model_kwargs(config, info["channels"], info["t"])
-  config_json = dict(config.to_json(), net=config.net, model_kwargs=kwargs, t=info["t"],
-                     gray=config.use_gray, steps_per_epoch=steps_per_epoch,
-                     n_train=len(train_idx), n_val=len(val_idx))
-  do_resume = prepare_workdir(workdir, config_json, resume, overwrite)
-  model = build_model(config.net, **kwargs)
-  h, w = config.size
-  init_vars = None
-  if config.init_from and not do_resume:
-    # Shapes are compared on an abstract init, so a mismatch errors before compiling anything.
-    x = jax.ShapeDtypeStruct((1, h, w, info["channels"]), jnp.float32)
-    abstract = jax.eval_shape(
-        lambda a, b: model.init(jax.random.PRNGKey(0), a, b, train=False), x, x)
-    src_name, src_vars = load_init(config.init_from, config)
-    merge_init(dict(abstract), src_vars, src_name, config, config.init_from)
-    init_vars = src_vars
-
-  if main_process:
-    workdir.mkdir(parents=True, exist_ok=True)
-    (workdir / ckpt.CONFIG_FILE).write_text(dumps(config_json) + "\n")
-
-  # ---- state
+  # ---- compiled steps and state
   mesh = stp.make_mesh()
   repl, _ = stp.shardings(mesh)
+  drop = None if config.lr_drop_epoch is None else config.lr_drop_epoch * run.steps_per_epoch
   model, tx, train_step, eval_step = compiled_steps(
-      config.net, tuple(sorted(kwargs.items())), config.maxdisp, config.disp_loss, config.lr,
-      mesh)
-  variables = st.init_variables(model, config.seed, h, w, info["channels"])
-  if init_vars is not None:
-    variables = merge_init(variables, init_vars, "", config, config.init_from)
-  state = st.create_state(variables, tx)
+      config.net, tuple(sorted(run.kwargs.items())), config.maxdisp, config.disp_loss,
+      config.lr, drop, config.precision, mesh)
+  state = create_train_state(run, model, tx)
   manager = ckpt.make_manager(workdir / ckpt.CHECKPOINT_DIR, keep=config.keep)
-  history: list[list[float]] = []
-  partial = [0.0, 0.0, 0]
-  best_val: float | None = None
-  start_step = 0
-  if do_resume:
-    last = manager.latest_step()
-    abstract_state = jax.tree.map(
-        lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=repl), state)
-    state, meta = ckpt.restore(manager, last, abstract_state)
-    history = [list(map(float, e)) for e in meta["history"]]
-    partial = list(meta["partial"])
-    best_val = meta.get("best_val")
-    start_step = int(meta["step"])
-    require(start_step == int(state.step), f"{workdir}: checkpoint {last} is inconsistent")
-    log(f"resuming from step {start_step} (epoch {start_step // steps_per_epoch + 1})")
-    if main_process:
-      _truncate_jsonl(workdir / METRICS_FILE, lambda r: r.get("step", 0) <= start_step)
-      _truncate_jsonl(workdir / EPOCHS_FILE,
-                      lambda r: r.get("epoch", 0) <= start_step // steps_per_epoch)
-  elif main_process:
-    # A fresh start (possibly of a run killed before its first checkpoint): no stale lines.
-    for name in (METRICS_FILE, EPOCHS_FILE):
-      (workdir / name).unlink(missing_ok=True)
+  loop = LoopState()
+  if run.resume:
+    state, loop = restore_checkpoint(manager, state, repl)
+    log(f"resuming from step {loop.step} (epoch {loop.step // run.steps_per_epoch + 1})")
+  _restart_logs(run, loop)
   state = jax.device_put(state, repl)
 
-  cache_ok = len(source) * bytes_per_scene(config, info["t"]) < _CACHE_BYTES
-  train_rows = RowCache(source, config, batch_parts(config), cache_ok and config.data is None)
-  val_rows = RowCache(source, config, batch_parts(config, validation=info["has_disp"]),
-                      cache_ok)
-  rows = stp.process_rows(config.batch_size)
+  # ---- data and logs
+  cache_ok = len(run.source) * bytes_per_scene(config, run.info.t) < _CACHE_BYTES
+  own_bar = progress is None or isinstance(progress, bool)
+  bar = tqdm(total=run.total_steps, initial=loop.step, unit="step", dynamic_ncols=True,
+             disable=(not main_process) if progress is None else not progress,
+             file=sys.stderr) if own_bar else progress
+  ctx = Context(run=run, mesh=mesh, train_step=train_step, eval_step=eval_step,
+                train_rows=RowCache(run.source, config, batch_parts(config),
+                                    cache_ok and config.data is None),
+                val_rows=RowCache(run.source, config,
+                                  batch_parts(config, validation=run.info.has_disp), cache_ok),
+                manager=manager, writer=MetricWriter(workdir, main_process), bar=bar,
+                profiler=StepProfiler(profile_dir, loop.step, log))
+  stop_at = run.total_steps if stop_after is None else min(stop_after, run.total_steps)
+  batches = train_batches(ctx, loop.step)
 
-  def save(step: int, val_mae: float | None):
-    meta = {"step": step, "history": history, "partial": partial, "best_val": best_val}
-    ckpt.save(manager, step, state, meta, val_mae)
-
-  metrics_f = open(workdir / METRICS_FILE, "a") if main_process else None
-  epochs_f = open(workdir / EPOCHS_FILE, "a") if main_process else None
-  from tqdm import tqdm  # pylint: disable=import-outside-toplevel
-  bar = tqdm(total=total_steps, initial=start_step, unit="step", dynamic_ncols=True,
-             disable=(not main_process) if progress is None else not progress, file=sys.stderr)
-  last_val: float | None = None
-  step = start_step
+  # ---- epochs
   try:
-    while step < total_steps:
-      epoch = step // steps_per_epoch
-      k0 = step % steps_per_epoch
-      order = epoch_order(train_idx, config.seed, epoch)
-      weights = jnp.asarray(task_weights(config, history))
-      t_epoch, n_samples = time.perf_counter(), 0
-      for k in range(k0, steps_per_epoch):
-        idx = order[k * config.batch_size:(k + 1) * config.batch_size]
-        batch = stp.put_batch(train_rows.batch(idx[rows]), mesh)
-        state, m = train_step(state, batch, weights)
-        m = {key: float(v) for key, v in jax.device_get(m).items()
-             if config.strategy == "unc" or not key.startswith("sigma")}
-        step += 1
-        n_samples += config.batch_size
-        if not math.isfinite(m["loss"]):
-          manager.wait_until_finished()
-          good = manager.latest_step()
-          raise TrainingDiverged(
-              f"non-finite loss ({m['loss']}) at step {step} (epoch {epoch + 1}); stopped. "
-              + (f"The last good checkpoint is step {good} in {workdir / ckpt.CHECKPOINT_DIR}"
-                 if good is not None else "No checkpoint was saved yet")
-              + "; try a lower --lr")
-        partial[0] += m["loss_sl"]
-        partial[1] += m["loss_disp"]
-        partial[2] += 1
-        if metrics_f:
-          metrics_f.write(json.dumps({"step": step, "epoch": epoch + 1, **m}) + "\n")
-        bar.set_postfix(epoch=epoch + 1, loss=f"{m['loss']:.4g}", refresh=False)
-        bar.update(1)
-        end_of_epoch = k == steps_per_epoch - 1
-        if end_of_epoch:
-          history.append([partial[0] / partial[2], partial[1] / partial[2]])
-          partial = [0.0, 0.0, 0]
-          elapsed = time.perf_counter() - t_epoch
-          val = None
-          if (epoch + 1) % config.val_every == 0 or step == total_steps:
-            val = validate_split(eval_step, state, val_rows, val_idx, config, mesh, info)
-            last_val = val.get("val_mae")
-            if last_val is not None and (best_val is None or last_val < best_val):
-              best_val = last_val
-          if metrics_f:
-            metrics_f.flush()
-          rec = {"epoch": epoch + 1, "step": step, "loss_sl": history[-1][0],
-                 "loss_disp": history[-1][1], "w_sl": m["w_sl"], "w_disp": m["w_disp"],
-                 "samples_per_s": n_samples / max(elapsed, 1e-9), "seconds": elapsed}
-          for key in ("sigma_sl", "sigma_disp"):
-            if key in m:
-              rec[key] = m[key]
-          if val:
-            rec.update(val)
-          if epochs_f:
-            epochs_f.write(json.dumps(rec) + "\n")
-            epochs_f.flush()
-          mae_txt = "" if not val or val.get("val_mae") is None else f" val MAE {val['val_mae']:.3f} px"
-          sl_txt = "" if not val or val.get("val_sl") is None else f" val L_sl {val['val_sl']:.4f}"
-          needs_sl, needs_disp = config.tasks
-          loss_txt = " ".join(t for t, keep in ((f"L_sl {history[-1][0]:.4g}", needs_sl),
-                                                (f"L_disp {history[-1][1]:.4g}", needs_disp)) if keep)
-          bar.write(f"epoch {epoch + 1}/{config.epochs}: {loss_txt}{mae_txt}{sl_txt} "
-                    f"({rec['samples_per_s']:.1f} samples/s)")
-          save(step, None if not val else val.get("val_mae", val.get("val_sl")))
-        elif config.save_every and step % config.save_every == 0:
-          save(step, None)
-        if stop_after is not None and step >= stop_after:
-          bar.write(f"stopping at step {step} as asked (--stop-after)")
-          return RunResult(workdir, step, len(history), best_val, last_val, history)
-    return RunResult(workdir, step, len(history), best_val, last_val, history)
+    while loop.step < stop_at:
+      t0, first = time.perf_counter(), loop.step
+      state, loop, last = run_epoch(ctx, state, loop, batches, stop_at)
+      if loop.step % run.steps_per_epoch == 0:
+        loop = end_of_epoch(ctx, state, loop, last, time.perf_counter() - t0,
+                            (loop.step - first) * config.batch_size)
+    if loop.step < run.total_steps:
+      bar.write(f"stopping at step {loop.step} as asked (--stop-after)")
+    return RunResult(workdir, loop)
   finally:
-    bar.close()
+    batches.close()
+    ctx.profiler.close()
+    if own_bar:
+      bar.close()
     manager.wait_until_finished()
     manager.close()
-    for f in (metrics_f, epochs_f):
-      if f:
-        f.close()
+    ctx.writer.close()
 
 
-def task_weights(config: TrainConfig, history: Sequence[Sequence[float]]) -> np.ndarray:
-  """The step's [w_sl, w_disp, unc] for the next epoch (UNets: their single task)."""
-  if config.net == "unet-sl":
-    return np.array([1.0, 0.0, 0.0], np.float32)
-  if config.net == "unet-disp":
-    return np.array([0.0, 1.0, 0.0], np.float32)
-  return weighting.step_weights(config.strategy, history)
+# ----------------------------------------------------------------------------- validation
 
 
 def _gather(x: jax.Array) -> np.ndarray:
@@ -511,27 +736,26 @@ def _gather(x: jax.Array) -> np.ndarray:
   return np.asarray(multihost_utils.process_allgather(x, tiled=True))
 
 
-def validate_split(eval_step, state, rows: RowCache, val_idx: Sequence[int], config: TrainConfig,
-                   mesh, info: dict[str, Any]) -> dict[str, float]:
+def validate_split(ctx: Context, state: st.TrainState) -> dict[str, float]:
   """Validation MAE (px, over valid GT) of the final disparity, and SL metrics for SL nets.
 
   For unet-sl the disparity comes from the predicted patterns by correlation (SPEC 2).
   """
-  # pylint: disable=import-outside-toplevel
-  from sljax.losses.sl import sl_loss
-  from sljax.metrics import DisparityAccumulator
-  from sljax.train import step as stp
+  config, val_idx = ctx.run.config, ctx.run.val_idx
   b = config.batch_size
   disp_metrics = DisparityAccumulator()  # the same metrics as `sljax evaluate`
   sl_sum, sl_n = 0.0, 0
-  rows_slice = stp.process_rows(b)
-  for start in range(0, len(val_idx), b):
+  rows = stp.process_rows(b)
+
+  def load(start: int) -> tuple[int, dict[str, np.ndarray]]:
     idx = list(val_idx[start:start + b])
     n_real = len(idx)
     idx = idx + [idx[-1]] * (b - n_real)  # pad to the sharded batch size; padding ignored below
-    host = rows.batch(idx)
-    out = eval_step(state.params, state.batch_stats, stp.put_batch(
-        {k: v[rows_slice] for k, v in host.items()}, mesh))
+    return n_real, ctx.val_rows.batch(idx)
+
+  for n_real, host in prefetch(load, range(0, len(val_idx), b)):
+    out = ctx.eval_step(state.params, state.batch_stats,
+                        stp.put_batch({k: v[rows] for k, v in host.items()}, ctx.mesh))
     out = {k: _gather(v)[:n_real] for k, v in out.items()}
     if "sl_logits" in out:
       logits, targets = out["sl_logits"], host["sl"][:n_real]
@@ -544,9 +768,8 @@ def validate_split(eval_step, state, rows: RowCache, val_idx: Sequence[int], con
       if "disparity" in out:
         pred = out["disparity"]
       else:  # unet-sl: disparity from the predicted patterns by correlation (SPEC 2)
-        from sljax.corr.correlation import sl_disparity
         probs = [np.asarray(jax.nn.sigmoid(out[k])) for k in ("sl_logits", "sl_logits_right")]
-        pred = sl_disparity(*probs)[0]
+        pred = sl_disparity(*probs, window=config.corr_window)[0]
       gt = host["disp"][:n_real]
       # Scored where the training loss is: finite ground truth in [0, maxdisp).
       disp_metrics.add(pred, gt, mask=(gt >= 0) & (gt < config.maxdisp), name="validation")

@@ -20,8 +20,15 @@ class TrainState(struct.PyTreeNode):
   opt_state: Any
 
 
-def make_optimizer(lr: float) -> optax.GradientTransformation:
-  """Adam with a fixed learning rate (paper: 1e-4, betas 0.9/0.999)."""
+LR_DROP = 0.1  # the step decay's factor (the PSMNet reference's fine-tuning: 1e-3 -> 1e-4)
+
+
+def make_optimizer(lr: float, drop_step: int | None = None) -> optax.GradientTransformation:
+  """Adam (betas 0.9/0.999) with a fixed learning rate (paper: 1e-4), or one that drops to
+  LR_DROP * lr from step drop_step on (a function of the step count in the optimiser state,
+  so a resumed run follows it exactly)."""
+  if drop_step is not None:
+    lr = optax.piecewise_constant_schedule(lr, {int(drop_step): LR_DROP})
   return optax.adam(lr, b1=0.9, b2=0.999)
 
 

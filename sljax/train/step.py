@@ -17,19 +17,14 @@ import numpy as np
 import optax
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
-from sljax.errors import require
 from sljax.losses.disparity import disparity_loss, masked_mae
 from sljax.losses.sl import sl_loss
 from sljax.losses.weighting import UNCERTAINTY_KEY, combined_loss
+from sljax.nets import registry
 from sljax.train.state import TrainState, net_params
 
-# Batch keys each network trains on.
-BATCH_PARTS = {
-    "psmnet": ("left", "right", "disp"),
-    "psmnet-mtl": ("left", "right", "disp", "sl"),
-    "unet-sl": ("left", "right", "sl", "sl_right"),
-    "unet-disp": ("left", "right", "disp"),
-}
+# Computation dtypes of --precision; parameters, optimiser state and losses stay float32.
+COMPUTE_DTYPES = {"fp32": jnp.float32, "bf16": jnp.bfloat16}
 
 
 def make_mesh(devices: list[jax.Device] | None = None) -> Mesh:
@@ -45,40 +40,53 @@ def shardings(mesh: Mesh) -> tuple[NamedSharding, NamedSharding]:
 
 def task_losses(outputs: dict[str, jax.Array], batch: dict[str, jax.Array], net: str,
                 maxdisp: float, disp_kind: str) -> tuple[jax.Array, jax.Array]:
-  """(L_sl, L_disp) of a forward pass; a task the network lacks gives 0."""
+  """(L_sl, L_disp) in float32 of a forward pass; a task the network lacks gives 0."""
+  parts = registry.spec(net).parts
+  outputs = jax.tree.map(lambda x: x.astype(jnp.float32), outputs)
   zero = jnp.zeros((), jnp.float32)
   l_sl, l_disp = zero, zero
-  if "sl" in BATCH_PARTS[net]:
+  if "sl" in parts:
     logits, targets = outputs["sl_logits"], batch["sl"]
-    if "sl_right" in BATCH_PARTS[net]:
+    if "sl_right" in parts:
       # P_hat = [P_l; P_r] (paper 3.2): one loss over both views.
       logits = jnp.concatenate([logits, outputs["sl_logits_right"]], axis=-1)
       targets = jnp.concatenate([targets, batch["sl_right"]], axis=-1)
     l_sl = sl_loss(logits, targets)
-  if "disp" in BATCH_PARTS[net]:
+  if "disp" in parts:
     preds = outputs.get("disparities") or (outputs["disparity"],)
     l_disp = disparity_loss(preds, batch["disp"], maxdisp, disp_kind)
   return l_sl, l_disp
 
 
+def apply_model(model: nn.Module, params: dict[str, Any], batch_stats: dict[str, Any],
+                batch: dict[str, jax.Array], train: bool, dtype: Any = jnp.float32):
+  """model.apply on the batch's views computing in `dtype`: the parameters and images are cast
+  (their float32 masters are what the optimiser updates); BatchNorm statistics stay float32."""
+  def cast(x):
+    return x.astype(dtype) if jnp.issubdtype(x.dtype, jnp.floating) else x
+  variables = {"params": jax.tree.map(cast, net_params(params))}
+  if batch_stats:
+    variables["batch_stats"] = batch_stats
+  left, right = cast(batch["left"]), cast(batch["right"])
+  if train:
+    return model.apply(variables, left, right, train=True, mutable=["batch_stats"])
+  return model.apply(variables, left, right, train=False)
+
+
 def make_train_step(model: nn.Module, *, net: str, maxdisp: float, disp_loss: str,
-                    tx: optax.GradientTransformation, mesh: Mesh,
+                    tx: optax.GradientTransformation, mesh: Mesh, dtype: Any = jnp.float32,
                     compiler_options: dict[str, Any] | None = None
                     ) -> Callable[..., tuple[TrainState, dict[str, jax.Array]]]:
   """jit(step)(state, batch, weights) -> (new state, metrics); the state is donated.
 
   weights = weighting.step_weights(strategy, history). Metrics: loss (total), loss_sl,
   loss_disp, w_sl / w_disp (effective weights), sigma_sl / sigma_disp, grad_norm and the
-  training batch's MAE for disparity networks.
+  training batch's MAE for disparity networks. dtype: the computation dtype (COMPUTE_DTYPES).
   """
-  require(net in BATCH_PARTS, f"unknown network {net!r}")
+  registry.spec(net)
 
   def loss_fn(params, batch_stats, batch, weights):
-    variables = {"params": net_params(params)}
-    if batch_stats:
-      variables["batch_stats"] = batch_stats
-    outputs, updates = model.apply(variables, batch["left"], batch["right"], train=True,
-                                   mutable=["batch_stats"])
+    outputs, updates = apply_model(model, params, batch_stats, batch, True, dtype)
     l_sl, l_disp = task_losses(outputs, batch, net, maxdisp, disp_loss)
     u = params[UNCERTAINTY_KEY]
     total, eff = combined_loss(l_sl, l_disp, weights, u["log_sigma_sl"], u["log_sigma_disp"])
@@ -86,7 +94,7 @@ def make_train_step(model: nn.Module, *, net: str, maxdisp: float, disp_loss: st
            "sigma_disp": jnp.exp(u["log_sigma_disp"])}
     aux["w_sl"], aux["w_disp"] = eff[0], eff[1]
     if "disparity" in outputs and "disp" in batch:
-      s, n = masked_mae(outputs["disparity"], batch["disp"], maxdisp)
+      s, n = masked_mae(outputs["disparity"].astype(jnp.float32), batch["disp"], maxdisp)
       aux["mae"] = s / jnp.maximum(n, 1.0)
     return total, (aux, updates.get("batch_stats", {}))
 
@@ -104,20 +112,16 @@ def make_train_step(model: nn.Module, *, net: str, maxdisp: float, disp_loss: st
                  donate_argnums=(0,), compiler_options=compiler_options)
 
 
-def make_eval_step(model: nn.Module, *, net: str, mesh: Mesh,
+def make_eval_step(model: nn.Module, *, net: str, mesh: Mesh, dtype: Any = jnp.float32,
                    compiler_options: dict[str, Any] | None = None
                    ) -> Callable[..., dict[str, jax.Array]]:
-  """jit(eval)(params, batch_stats, batch) -> the evaluation-mode outputs that metrics need:
+  """jit(eval)(params, batch_stats, batch) -> the network's evaluation-mode outputs (float32):
   'disparity' (disparity networks), 'sl_logits' (+ 'sl_logits_right') (SL networks)."""
-  require(net in BATCH_PARTS, f"unknown network {net!r}")
+  keys = registry.spec(net).outputs
 
   def evaluate(params, batch_stats, batch):
-    variables = {"params": net_params(params)}
-    if batch_stats:
-      variables["batch_stats"] = batch_stats
-    outputs = model.apply(variables, batch["left"], batch["right"], train=False)
-    keys = ("disparity", "sl_logits", "sl_logits_right")
-    return {k: outputs[k] for k in keys if k in outputs}
+    outputs = apply_model(model, params, batch_stats, batch, False, dtype)
+    return {k: outputs[k].astype(jnp.float32) for k in keys}
 
   repl, data = shardings(mesh)
   return jax.jit(evaluate, in_shardings=(repl, repl, data), compiler_options=compiler_options)

@@ -1,0 +1,67 @@
+"""`sljax experiment run PLAN OUT` / `sljax experiment report OUT`: the paper's experiments."""
+
+import argparse
+
+
+def register(subparsers) -> None:
+  """Adds the `experiment` subcommand and its run / report / plans actions."""
+  p = subparsers.add_parser(
+      "experiment", help="run the grids behind the paper's tables, resumably, and report them",
+      description="Runs a plan (a grid of training runs: model and strategy, training fraction, "
+                  "seed, domain, fine-tuning, evaluation sets) under OUT, then reports every "
+                  "cell with means and 95% intervals over seeds and paired comparisons. "
+                  "Interrupt it at any time: the same command continues where it stopped.")
+  sub = p.add_subparsers(dest="action", metavar="ACTION", required=True)
+  r = sub.add_parser("run", help="train and score every unfinished cell of a plan",
+                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+  r.add_argument("plan", metavar="PLAN", help="table1, table2, table3 or fig7")
+  r.add_argument("out", metavar="OUT", help="experiment folder (shared by plans that share cells)")
+  r.add_argument("--scale", default="cpu",
+                 help="smoke (minutes, for tests), cpu (a 2-core CPU) or paper (an accelerator)")
+  r.add_argument("--seeds", type=int, default=3, help="seeds 0..N-1 (more can be added later)")
+  r.add_argument("--data", default=None,
+                 help="your scene-format folder: replaces synthetic objects (table2, table3) or "
+                      "synthetic tissue as the fine-tuning target (table1, fig7)")
+  r.add_argument("--eval-data", action="append", default=[], metavar="DIR",
+                 help="table3: also score on this scene-format folder (Middlebury, imported "
+                      "SCARED); repeatable")
+  r.add_argument("--no-progress", action="store_true", help="no progress bar")
+  r.set_defaults(func=run_plan)
+  rep = sub.add_parser("report", help="write OUT/report.md, report.json and figures",
+                       description="Reports every plan run under OUT (cells not finished yet "
+                                   "are listed as missing).")
+  rep.add_argument("out", metavar="OUT", help="experiment folder")
+  rep.set_defaults(func=report)
+  ls = sub.add_parser("plans", help="list the plans and scales")
+  ls.set_defaults(func=list_plans)
+
+
+def run_plan(args: argparse.Namespace) -> int:
+  """Runs the plan and says how to report it."""
+  from sljax.experiment import plans, runner  # pylint: disable=import-outside-toplevel
+  plan = plans.build_plan(args.plan, args.scale, args.seeds, args.data, tuple(args.eval_data))
+  res = runner.run(plan, args.out, progress=not args.no_progress)
+  print(f"{args.plan}: trained {res['trained']} cell(s), scored {res['evaluated']} set(s) in "
+        f"{res['seconds'] / 60:.1f} min; report with: sljax experiment report {args.out}")
+  return 0
+
+
+def report(args: argparse.Namespace) -> int:
+  """Writes the report and prints where."""
+  from sljax.experiment import report as rep  # pylint: disable=import-outside-toplevel
+  path = rep.write_report(args.out)
+  print(f"wrote {path} (+ report.json, figures/)")
+  return 0
+
+
+def list_plans(args: argparse.Namespace) -> int:
+  """Prints the plans and scales."""
+  del args
+  from sljax.experiment import plans  # pylint: disable=import-outside-toplevel
+  print(plans.__doc__.split("Plans:")[1].strip())
+  for scale in plans.SCALES.values():
+    print(f"scale {scale.name}: {scale.size}x{scale.size}, t = {scale.t}, maxdisp "
+          f"{scale.maxdisp}, {scale.objects_n} objects scenes, batch {scale.batch_size}, Adam "
+          f"{scale.lr:g}, epochs {scale.epochs} (1/16: {scale.small_epochs}), fine-tuning "
+          f"{scale.finetune_epochs} epochs on {scale.tissue_n} tissue scenes; {scale.note}")
+  return 0

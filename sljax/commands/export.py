@@ -1,0 +1,54 @@
+"""`sljax export MODEL OUT --size HxW`: the inference function as a jax.export artifact."""
+
+import argparse
+
+
+def register(subparsers) -> None:
+  """Adds the `export` subcommand."""
+  p = subparsers.add_parser(
+      "export", help="write a deployable file (serialised StableHLO) of a trained model",
+      description="Traces the inference of a trained model (a training workdir, its checkpoints "
+                  "folder or a converted PSMNet folder) for left and right views of HEIGHTxWIDTH "
+                  "pixels and any batch size, in pad or resize mode, with the weights baked in, "
+                  "and writes it with jax.export (StableHLO) to OUT, plus a JSON sidecar beside "
+                  "it (OUT with the suffix .json: input size, channels, mode, outputs, scaling). "
+                  "Load and run it with jax alone: exp = jax.export.deserialize(open(OUT, "
+                  "'rb').read()); out = exp.call(left, right), left and right float32 "
+                  "BxHxWxC in [0, 1]. The artifact runs on the platform it was made on.")
+  p.add_argument("model", metavar="MODEL",
+                 help="a training workdir, its checkpoints folder or a converted PSMNet folder")
+  p.add_argument("out", metavar="OUT", help="the file to write, e.g. psmnet_1024x1280.jax")
+  p.add_argument("--size", required=True, metavar="HxW",
+                 help="input height x width in pixels, e.g. 1024x1280")
+  p.add_argument("--mode", choices=("pad", "resize"), default="pad",
+                 help="pad (default): full resolution, padded as the PSMNet reference pads; "
+                      "resize: at the training size and back (fixed in the artifact)")
+  p.add_argument("--maxdisp", type=int, default=None,
+                 help="disparity range: cost volume depth of psmnet/psmnet-mtl (multiple of "
+                      "16), correlation range of unet-sl (default: the model's)")
+  p.add_argument("--overwrite", action="store_true", help="replace OUT and its sidecar")
+  p.set_defaults(func=run)
+
+
+def run(args) -> int:
+  """Exports and prints what was written."""
+  from pathlib import Path
+
+  from sljax import export
+  from sljax.errors import SljaxError
+
+  size = export.parse_size(args.size)
+  if args.model == "sgbm":
+    raise SljaxError("MODEL sgbm: the OpenCV baseline is not a JAX model; nothing to export")
+  if not Path(args.model).exists():
+    raise SljaxError(f"MODEL {args.model}: unknown model: no such checkpoint, training workdir "
+                     "or converted PSMNet folder")
+  out, side = Path(args.out), export.sidecar_path(args.out)
+  for p in (out, side):  # before the (slow) loading and tracing
+    if p.exists() and not args.overwrite:
+      raise SljaxError(f"{p}: exists (pass --overwrite to replace it)")
+  from sljax import inference
+  predictor = inference.load(args.model, mode=args.mode, maxdisp=args.maxdisp)
+  out, side = export.write_export(predictor, size, out, args.model, overwrite=args.overwrite)
+  print(f"wrote {out} ({out.stat().st_size / 2**20:.2f} MiB, {predictor.describe()}) and {side}")
+  return 0

@@ -1,0 +1,409 @@
+"""Experiment reports: every cell of every plan under OUT, means and 95% intervals over seeds,
+paired comparisons against the baseline arm, the paper's claims checked, figures.
+
+Writes OUT/report.md, OUT/report.json and OUT/figures/*.png. Everything in them is computed
+from the cells' evaluation files and training logs, so a report is a pure function of the
+finished cells: the same cells give the same report (timings are kept out of it; they are in
+each cell's done.json). Unfinished cells are listed as missing, never dropped silently.
+
+Statistics (sljax.experiment.stats): per arm, the mean over seeds with a Student-t 95%
+interval; per arm against the baseline, the mean of the per-seed differences (paired: same
+seed = same data, split, subset, order and shared initial weights) with its t interval, the
+paired t-test's two-sided p and the number of seeds where the arm was better. A claim "A beats
+B" holds at this scale when the whole interval of A - B lies below 0 (lower is better), is
+contradicted when it lies above 0, and is not shown otherwise.
+"""
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sljax.errors import require
+from sljax.experiment import stats
+from sljax.experiment.plans import HELDOUT, Plan, build_plan
+from sljax.experiment.runner import DONE_FILE, EVAL_DIR, PLAN_FILE, cell_dir, read_json
+from sljax.train.config import dumps
+
+# (key, header) of the disparity metrics every table shows; all lower-is-better.
+METRICS = (("mae", "Full MAE px"), ("seg_mae", "Seg MAE px"), ("bad_2", "bad-2 %"),
+           ("iqr", "IQR px"))
+DEPTH_METRICS = (("depth_mae_mm", "depth MAE mm"), ("depth_iqr_mm", "depth IQR mm"))
+# The paper's numbers (SPEC 5 and 2), for the tables' reference columns.
+PAPER = {
+    "table2": {"all": {"cg_b": (0.203, 0.380), "unc": (0.207, 0.381), "stl": (0.208, 0.382),
+                       "epr": (0.217, 0.384), "cg_a": (0.217, 0.389)},
+               "1/16": {"cg_a": (0.496, 0.745), "cg_b": (0.504, 0.808), "unc": (0.516, 0.778),
+                        "epr": (0.522, 0.781), "stl": (0.549, 0.790)}},
+    "table1": {"objects": {"unet-sl": (1.72, 1.45), "unet-disp": (0.52, 0.75)},
+               "tissue": {"unet-sl": (2.36, None), "unet-disp": (5.89, None)}},
+}
+TITLES = {
+    "table1": "Table 1: disparity from the SL network's patterns (unet-sl, by correlation) vs "
+              "the direct network (unet-disp)",
+    "table2": "Table 2: the five loss-weighting strategies on all and on 1/16 of the training "
+              "split",
+    "table3": "Table 3: generalisation of the full-data models to other data",
+    "fig7": "Fig. 7: fine-tuning the full-data models on scarce data",
+}
+
+
+def cell_metrics(out: Path, name: str, set_name: str) -> dict[str, float] | None:
+  """The pooled metrics of a cell's final checkpoint on a set (None when not scored yet)."""
+  rep = read_json(cell_dir(out, name) / EVAL_DIR / f"{set_name}.json")
+  if rep is None:
+    return None
+  full, seg = rep["pooled"].get("full", {}), rep["pooled"].get("seg", {})
+  m = {k: full.get(k) for k in ("mae", "bad_2", "iqr", "depth_mae_mm", "depth_iqr_mm")}
+  m["seg_mae"] = seg.get("mae")
+  return {k: v for k, v in m.items() if v is not None}
+
+
+def curve(out: Path, name: str) -> list[tuple[int, float]]:
+  """(epoch, validation MAE) of a cell's training log."""
+  path = cell_dir(out, name) / "epochs.jsonl"
+  if not path.exists():
+    return []
+  recs = [json.loads(l) for l in path.read_text().splitlines() if l.strip()]
+  return [(r["epoch"], r["val_mae"]) for r in recs if r.get("val_mae") is not None]
+
+
+def _verdict(diff: dict[str, float]) -> str:
+  if diff["n"] < 2 or math.isnan(diff["lo"]):
+    return "not testable (fewer than 2 seeds)"
+  if diff["hi"] < 0:
+    return "holds"
+  if diff["lo"] > 0:
+    return "does not hold (the opposite is shown)"
+  return "not shown (the interval includes 0)"
+
+
+def _fmt(x: float | None, digits: int = 3) -> str:
+  return "-" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.{digits}f}"
+
+
+def _fmt_ci(s: dict[str, float], digits: int = 3) -> str:
+  if s["n"] == 0:
+    return "-"
+  if s["n"] == 1 or math.isnan(s["lo"]):
+    return _fmt(s["mean"], digits)
+  return f"{_fmt(s['mean'], digits)} [{_fmt(s['lo'], digits)}, {_fmt(s['hi'], digits)}]"
+
+
+def _md_table(header: list[str], rows: list[list[str]]) -> list[str]:
+  return (["| " + " | ".join(header) + " |", "|" + "|".join(" --- " for _ in header) + "|"]
+          + ["| " + " | ".join(r) + " |" for r in rows] + [""])
+
+
+# ----------------------------------------------------------------------------- aggregation
+
+
+def _groups(plan: Plan) -> list[tuple[tuple[str, str], ...]]:
+  """The distinct factor tuples of a plan's cells, in plan order."""
+  seen: list[tuple[tuple[str, str], ...]] = []
+  for c in plan.cells:
+    if c.factors not in seen:
+      seen.append(c.factors)
+  return seen
+
+
+def _arms(plan: Plan) -> list[str]:
+  arms: list[str] = []
+  for c in plan.cells:
+    if c.arm not in arms:
+      arms.append(c.arm)
+  return arms
+
+
+def aggregate(out: Path, plan: Plan) -> dict[str, Any]:
+  """Per factor group and evaluation set: per-arm summaries and paired differences."""
+  result: dict[str, Any] = {"groups": []}
+  arms = _arms(plan)
+  for factors in _groups(plan):
+    cells = [c for c in plan.cells if c.factors == factors]
+    sets = [e.name for e in cells[0].evals]
+    group = {"factors": dict(factors), "sets": {}}
+    for set_name in sets:
+      per_arm: dict[str, dict[int, dict[str, float]]] = {a: {} for a in arms}
+      missing = []
+      for c in cells:
+        m = cell_metrics(out, c.name, set_name)
+        if m is None:
+          missing.append(c.name)
+        else:
+          per_arm[c.arm][c.seed] = m
+      keys = [k for k, _ in METRICS + DEPTH_METRICS
+              if any(k in m for seeds in per_arm.values() for m in seeds.values())]
+      summary = {a: {k: dict(stats.mean_ci([m[k] for m in seeds.values() if k in m]),
+                             values={s: m.get(k) for s, m in sorted(seeds.items())})
+                     for k in keys}
+                 for a, seeds in per_arm.items() if seeds}
+      paired = {}
+      base = per_arm.get(plan.baseline, {})
+      for a, seeds in per_arm.items():
+        if a == plan.baseline or not seeds:
+          continue
+        common = sorted(set(seeds) & set(base))
+        paired[a] = {k: stats.paired_test([seeds[s][k] for s in common if k in seeds[s]],
+                                          [base[s][k] for s in common if k in seeds[s]])
+                     for k in keys if all(k in seeds[s] and k in base[s] for s in common)}
+        dm = [stats.delta_m({k: seeds[s][k] for k in ("mae", "seg_mae", "bad_2", "iqr")
+                             if k in base[s]},
+                            {k: base[s][k] for k in ("mae", "seg_mae", "bad_2", "iqr")
+                             if k in base[s]}) for s in common]
+        paired[a]["delta_m"] = stats.mean_ci(dm)
+      group["sets"][set_name] = {"arms": summary, "paired": paired, "missing": missing}
+    curves = {}
+    for a in arms:
+      per_seed = [curve(out, c.name) for c in cells if c.arm == a]
+      per_seed = [cv for cv in per_seed if cv]
+      if per_seed:
+        epochs = sorted(set.intersection(*[{e for e, _ in cv} for cv in per_seed]))
+        curves[a] = [dict(stats.mean_ci([dict(cv)[e] for cv in per_seed]), epoch=e)
+                     for e in epochs]
+    group["curves"] = curves
+    result["groups"].append(group)
+  done = sum((cell_dir(out, c.name) / DONE_FILE).exists() for c in plan.cells)
+  result.update(cells=len(plan.cells), trained=done)
+  return result
+
+
+# ----------------------------------------------------------------------------- claims
+
+
+def claims(plan: Plan, agg: dict[str, Any]) -> list[dict[str, Any]]:
+  """The paper's claims for this plan, each with the measured interval and a verdict."""
+  out = []
+
+  def group(**factors):
+    for g in agg["groups"]:
+      if all(g["factors"].get(k) == v for k, v in factors.items()):
+        return g
+    return None
+
+  def add(text: str, g, set_name: str, arm: str, metric: str, sign: int = 1):
+    if g is None or set_name not in g["sets"]:
+      return
+    diff = g["sets"][set_name]["paired"].get(arm, {}).get(metric)
+    if diff is None or diff["n"] == 0:
+      out.append({"claim": text, "verdict": "no results yet"})
+      return
+    d = dict(diff)
+    if sign < 0:  # the claim is "baseline beats arm": test baseline - arm
+      d.update(mean=-diff["mean"], lo=-diff["hi"], hi=-diff["lo"])
+    out.append({"claim": text, "metric": metric, "set": set_name, "arm": arm,
+                "difference": d, "verdict": _verdict(d)})
+
+  if plan.name == "table2":
+    for frac in ("all", "1/16"):
+      g = group(data=frac)
+      for arm in ("cg_a", "cg_b", "epr", "unc"):
+        for metric, label in (("mae", "Full"), ("seg_mae", "Seg")):
+          add(f"{frac} data: {arm} has a lower {label} MAE than stl", g, HELDOUT, arm, metric)
+  elif plan.name == "table1":
+    for where in ("objects", "tissue", "data"):
+      g = group(data=where)
+      if g is None:
+        continue
+      if where == "objects":
+        add("objects: the direct network (unet-disp) has a lower Full MAE than unet-sl "
+            "(paper: 0.52 vs 1.72 px)", g, HELDOUT, "unet-sl", "mae", sign=-1)
+        add("objects: unet-disp has a lower Seg MAE than unet-sl (paper: 0.75 vs 1.45 px)", g,
+            HELDOUT, "unet-sl", "seg_mae", sign=-1)
+      else:
+        add(f"{where} (fine-tuned on scarce data): unet-sl's correlation disparity has a lower "
+            "MAE than unet-disp (paper: 2.36 vs 5.89 px)", g, HELDOUT, "unet-sl", "mae")
+  elif plan.name == "table3":
+    g = agg["groups"][0]
+    for set_name in g["sets"]:
+      for arm in ("cg_a", "cg_b", "epr", "unc"):
+        add(f"{set_name}: {arm} has a lower MAE than stl (paper: stl last everywhere)", g,
+            set_name, arm, "mae")
+  elif plan.name == "fig7":
+    for where in ("tissue", "data"):
+      g = group(data=where)
+      if g is None:
+        continue
+      for arm in ("cg_a", "cg_b", "epr", "unc"):
+        add(f"{where} fine-tuning: {arm} ends with a lower MAE than stl (paper: only unc)", g,
+            HELDOUT, arm, "mae")
+  return out
+
+
+# ----------------------------------------------------------------------------- figures
+
+
+def _figures(plan: Plan, agg: dict[str, Any], fig_dir: Path) -> list[str]:
+  """Bar charts with 95% intervals and validation curves; returns the file names."""
+  import matplotlib  # pylint: disable=import-outside-toplevel
+  matplotlib.use("Agg")
+  import matplotlib.pyplot as plt  # pylint: disable=import-outside-toplevel
+  fig_dir.mkdir(parents=True, exist_ok=True)
+  names = []
+  groups = agg["groups"]
+  panels = [(g, s) for g in groups for s in g["sets"]]
+  fig, axes = plt.subplots(1, len(panels), figsize=(3.2 * len(panels) + 1, 3.4), squeeze=False)
+  for ax, (g, set_name) in zip(axes[0], panels):
+    arms = [a for a in g["sets"][set_name]["arms"]]
+    for i, a in enumerate(arms):
+      s = g["sets"][set_name]["arms"][a].get("mae")
+      if not s or s["n"] == 0:
+        continue
+      err = None if math.isnan(s["lo"]) else [[s["mean"] - s["lo"]], [s["hi"] - s["mean"]]]
+      color = "0.6" if a == plan.baseline else "C0"
+      ax.bar(i, s["mean"], yerr=err, capsize=4, color=color)
+      vals = [v for v in s["values"].values() if v is not None]
+      ax.plot([i] * len(vals), vals, "k.", ms=4)
+    ax.set_xticks(range(len(arms)), arms, rotation=30)
+    ax.set_title(f"{', '.join(g['factors'].values())}: {set_name}", fontsize=9)
+    ax.set_ylabel("Full MAE (px)")
+  fig.suptitle(f"{plan.name}: mean and 95% interval over seeds (dots: seeds)", fontsize=10)
+  fig.tight_layout()
+  name = f"{plan.name}_bars.png"
+  fig.savefig(fig_dir / name, dpi=110)
+  plt.close(fig)
+  names.append(name)
+  with_curves = [g for g in groups if g["curves"]]
+  if with_curves:
+    fig, axes = plt.subplots(1, len(with_curves), figsize=(4.5 * len(with_curves), 3.4),
+                             squeeze=False)
+    for ax, g in zip(axes[0], with_curves):
+      for k, (a, pts) in enumerate(g["curves"].items()):
+        e = np.array([p["epoch"] for p in pts])
+        m = np.array([p["mean"] for p in pts])
+        style = "--" if a == plan.baseline else "-"
+        ax.plot(e, m, style, color=f"C{k}", label=a)
+        lo = np.array([p["lo"] for p in pts], float)
+        hi = np.array([p["hi"] for p in pts], float)
+        if np.isfinite(lo).all():
+          ax.fill_between(e, lo, hi, color=f"C{k}", alpha=0.15)
+      ax.set_xlabel("epoch")
+      ax.set_ylabel("validation MAE (px)")
+      ax.set_title(", ".join(g["factors"].values()), fontsize=9)
+      ax.legend(fontsize=7)
+    fig.suptitle(f"{plan.name}: validation MAE per epoch (mean, 95% band over seeds)",
+                 fontsize=10)
+    fig.tight_layout()
+    name = f"{plan.name}_curves.png"
+    fig.savefig(fig_dir / name, dpi=110)
+    plt.close(fig)
+    names.append(name)
+  return names
+
+
+# ----------------------------------------------------------------------------- markdown
+
+
+def _plan_markdown(out: Path, plan: Plan, agg: dict[str, Any], cl: list[dict[str, Any]],
+                   figs: list[str]) -> list[str]:
+  sc = plan.scale
+  lines = [f"## {TITLES[plan.name]}", "",
+           f"Scale `{sc.name}`: {sc.size}x{sc.size}, {sc.t} patterns per view, maxdisp "
+           f"{sc.maxdisp}, batch {sc.batch_size}, Adam {sc.lr:g}; {sc.note}. Seeds "
+           f"{', '.join(map(str, plan.seeds))}; {agg['trained']} of {agg['cells']} cells "
+           f"trained." + (f" Data: `{plan.data}`." if plan.data else ""), ""]
+  if cl:
+    lines += ["### The paper's claims at this scale", ""]
+    rows = []
+    for c in cl:
+      d = c.get("difference")
+      interval = (f"{_fmt(d['mean'])} [{_fmt(d['lo'])}, {_fmt(d['hi'])}], p = {_fmt(d['p'])}, "
+                  f"better in {d['wins']}/{d['n']} seeds" if d else "-")
+      rows.append([c["claim"], interval, c["verdict"]])
+    lines += _md_table(["claim", "difference (px; < 0 supports it) [95% CI]", "verdict"], rows)
+  for g in agg["groups"]:
+    label = ", ".join(f"{k} {v}" for k, v in g["factors"].items())
+    for set_name, res in g["sets"].items():
+      lines += [f"### {label}: scored on {'the held-out split' if set_name == HELDOUT else set_name}",
+                ""]
+      keys = [k for k, _ in METRICS + DEPTH_METRICS
+              if any(k in a for a in res["arms"].values())]
+      headers = dict(METRICS + DEPTH_METRICS)
+      rows = [[a, str(next(iter(s.values()))["n"])] + [_fmt_ci(s[k]) if k in s else "-"
+                                                         for k in keys]
+              for a, s in res["arms"].items()]
+      lines += ["Mean [95% interval] over seeds:", ""]
+      lines += _md_table(["arm", "seeds"] + [headers[k] for k in keys], rows)
+      if res["paired"]:
+        prow = []
+        for a, p in res["paired"].items():
+          cells = [a]
+          for k in ("mae", "seg_mae"):
+            if k in p:
+              cells.append(f"{_fmt_ci(p[k])}; p = {_fmt(p[k]['p'])}; {p[k]['wins']}/"
+                           f"{p[k]['n']}")
+            else:
+              cells.append("-")
+          cells.append(_fmt_ci(p["delta_m"], 2))
+          prow.append(cells)
+        lines += [f"Paired against {plan.baseline} (arm - {plan.baseline}; negative = better; "
+                  "p: paired t-test; seeds where the arm was better):", ""]
+        lines += _md_table(["arm", "Δ Full MAE px", "Δ Seg MAE px", "Δm % (MTAN)"], prow)
+      if res["missing"]:
+        lines += [f"Not scored yet: {', '.join(res['missing'])}.", ""]
+  if plan.name in PAPER:
+    lines += _rank_table(plan, agg)
+  lines += ["### Every seed", ""]
+  rows = []
+  for c in plan.cells:
+    for e in c.evals:
+      m = cell_metrics(out, c.name, e.name) or {}
+      cv = curve(out, c.name)
+      rows.append([c.name, e.name, str(c.seed)] + [_fmt(m.get(k)) for k, _ in METRICS]
+                  + [_fmt(min((v for _, v in cv), default=None))])
+  lines += _md_table(["cell", "set", "seed"] + [h for _, h in METRICS] + ["best val MAE"], rows)
+  lines += [f"![{f}](figures/{f})" for f in figs] + [""]
+  return lines
+
+
+def _rank_table(plan: Plan, agg: dict[str, Any]) -> list[str]:
+  """Arms ranked by mean Full MAE per group, beside the paper's ranking."""
+  lines = ["### Ranking (the paper's table form; mean over seeds, then the paper's value)", ""]
+  for g in agg["groups"]:
+    where = next(iter(g["factors"].values()))
+    paper = PAPER[plan.name].get(where)
+    res = g["sets"].get(HELDOUT)
+    if res is None or paper is None:
+      continue
+    for k, label, idx in (("mae", "Full", 0), ("seg_mae", "Seg", 1)):
+      ours = sorted((s[k]["mean"], a) for a, s in res["arms"].items() if k in s)
+      theirs = sorted((v[idx], a) for a, v in paper.items() if v[idx] is not None)
+      if not ours:
+        continue
+      rows = [[str(i + 1), f"{a} {_fmt(m)}" if i < len(ours) else "-",
+               f"{theirs[i][1]} {theirs[i][0]:.3f}" if i < len(theirs) else "-"]
+              for i, (m, a) in enumerate(ours)]
+      lines += [f"{where}, {label} MAE (px):", ""]
+      lines += _md_table(["rank", "sljax", "paper"], rows)
+  return lines
+
+
+def write_report(out: str | Path) -> Path:
+  """Writes OUT/report.md, OUT/report.json and OUT/figures/; returns the report.md path."""
+  out = Path(out)
+  record = read_json(out / PLAN_FILE)
+  require(record is not None, f"{out}: no {PLAN_FILE} (not an experiment folder; run "
+          "`sljax experiment run PLAN OUT` first)")
+  lines = ["# Experiment report", "",
+           "Every cell is scored with its final checkpoint on its held-out split (and the other "
+           "sets named), through sljax's one metrics function. Intervals are 95% Student-t "
+           "intervals over seeds; paired differences compare arms trained on the same seed "
+           "(same data, split, subset, order and shared initial weights).", ""]
+  data: dict[str, Any] = {}
+  for name in ("table1", "table2", "table3", "fig7"):
+    if name not in record["plans"]:
+      continue
+    args = record["plans"][name]
+    plan = build_plan(name, args["scale"], args["seeds"], args.get("data"),
+                      tuple(args.get("eval_data", ())))
+    agg = aggregate(out, plan)
+    cl = claims(plan, agg)
+    figs = _figures(plan, agg, out / "figures")
+    lines += _plan_markdown(out, plan, agg, cl, figs)
+    data[name] = {"args": args, "aggregate": agg, "claims": cl, "figures": figs}
+  (out / "report.md").write_text("\n".join(lines), encoding="utf-8")
+  from sljax.evaluate import json_safe  # pylint: disable=import-outside-toplevel
+  (out / "report.json").write_text(dumps(json_safe(data)) + "\n", encoding="utf-8")
+  return out / "report.md"

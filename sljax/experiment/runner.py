@@ -1,0 +1,273 @@
+"""The experiment runner: trains and scores every cell of a plan under OUT, resumably.
+
+OUT/plan.json            the plans run here and the spec of every cell (see Cell.spec)
+OUT/cells/NAME/          the cell's training workdir (config.json, checkpoints/, *.jsonl)
+OUT/cells/NAME/train.log its training output
+OUT/cells/NAME/done.json written once training finished: final step, seconds
+OUT/cells/NAME/eval/SET.json  the final checkpoint's evaluation report on that set
+
+Idempotent and resumable: a cell with done.json is not trained again, one with checkpoints
+continues exactly (train's --resume), an evaluation already written is not redone. A cell
+whose spec changed under an existing OUT is refused, never mixed in. Cells are scored with
+their final checkpoint (the last step), not the best by validation: validation uses the
+held-out split, and choosing on it would leak the test set into the result. A finished cell
+keeps that checkpoint only (the earlier ones are deleted), about 55-85 MB for a PSMNet at the
+cpu scale.
+"""
+
+import dataclasses
+import json
+import os
+import shutil
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from tqdm import tqdm
+
+from sljax.data.dataset import FolderSource, split_indices
+from sljax.data.synthetic import SynthConfig, SyntheticSource
+from sljax import inference
+from sljax.errors import SljaxError, require
+from sljax.evaluate import evaluate, json_safe
+from sljax.experiment.plans import HELDOUT, Cell, EvalSet, Plan, check_unique, describe
+from sljax.train import checkpoint as ckpt
+from sljax.train.config import dumps
+from sljax.train.loop import open_source, train
+
+PLAN_FILE = "plan.json"
+CELLS_DIR = "cells"
+DONE_FILE = "done.json"
+EVAL_DIR = "eval"
+LOG_FILE = "train.log"
+FORMAT_VERSION = 1
+
+
+def cell_dir(out: Path, name: str) -> Path:
+  """The workdir of a cell."""
+  return out / CELLS_DIR / name
+
+
+def read_json(path: Path) -> dict[str, Any] | None:
+  """A JSON object file, or None when absent."""
+  if not path.exists():
+    return None
+  from sljax.data.scene import read_json_object  # pylint: disable=import-outside-toplevel
+  return read_json_object(path, str(path))
+
+
+def _write_json(path: Path, obj: Any) -> None:
+  """Writes atomically (a killed runner never leaves half a file)."""
+  tmp = path.with_suffix(path.suffix + ".tmp")
+  tmp.write_text(dumps(obj) + "\n", encoding="utf-8")
+  os.replace(tmp, path)
+
+
+def plan_args(plan: Plan) -> dict[str, Any]:
+  """What rebuilds the plan (build_plan's arguments)."""
+  return {"scale": plan.scale.name, "seeds": len(plan.seeds), "data": plan.data,
+          "eval_data": list(plan.eval_data)}
+
+
+def register(out: Path, plan: Plan) -> dict[str, Any]:
+  """Records the plan in OUT/plan.json; SljaxError when a cell's spec differs from the one
+  already recorded there (a changed plan under an existing OUT)."""
+  check_unique(plan)
+  out.mkdir(parents=True, exist_ok=True)
+  record = read_json(out / PLAN_FILE) or {"version": FORMAT_VERSION, "plans": {}, "cells": {}}
+  for cell in plan.cells:
+    old, new = record["cells"].get(cell.name), cell.spec()
+    if old is not None and old != new:
+      diff = _first_difference(old, new)
+      raise SljaxError(f"{out}: cell {cell.name} was run with another configuration ({diff}); "
+                       "use another OUT for the changed plan")
+  previous = record["plans"].get(plan.name)
+  if previous is not None and previous["scale"] != plan.scale.name:
+    raise SljaxError(f"{out}: plan {plan.name} was run at scale {previous['scale']}, not "
+                     f"{plan.scale.name}; use another OUT")
+  args = plan_args(plan)
+  if previous is not None:  # more seeds or evaluation folders extend a plan; fewer keep it
+    args["seeds"] = max(args["seeds"], previous["seeds"])
+    args["eval_data"] = sorted(set(args["eval_data"]) | set(previous.get("eval_data", [])))
+  record["plans"][plan.name] = args
+  record["cells"].update({c.name: c.spec() for c in plan.cells})
+  _write_json(out / PLAN_FILE, record)
+  return record
+
+
+def _first_difference(old: Any, new: Any, path: str = "") -> str:
+  if isinstance(old, dict) and isinstance(new, dict):
+    for k in sorted(set(old) | set(new)):
+      if old.get(k) != new.get(k):
+        return _first_difference(old.get(k), new.get(k), f"{path}{k}.")
+  return f"{path.rstrip('.')}: {old!r} -> {new!r}"
+
+
+def final_checkpoint(out: Path, name: str) -> Path:
+  """The checkpoint folder of a finished cell's last step."""
+  done = read_json(cell_dir(out, name) / DONE_FILE)
+  require(done is not None, f"{cell_dir(out, name)}: cell {name} has not finished training")
+  return cell_dir(out, name) / ckpt.CHECKPOINT_DIR / str(done["step"])
+
+
+# ----------------------------------------------------------------------------- cost estimates
+
+
+def _seconds_per_step(cell: Cell) -> float:
+  """A rough CPU cost per training step, used to weigh the progress bar across cells."""
+  config = cell.config
+  h, w = config.size
+  scale = h * w / (64 * 64)
+  if "maxdisp" in config.spec.options:
+    scale *= 0.5 + 0.5 * config.maxdisp / 32
+  return config.spec.sec_per_sample_64 * scale * config.batch_size
+
+
+def _n_train(cell: Cell) -> int:
+  source = open_source(cell.config)
+  return len(split_indices(source, cell.config.test_fraction, seed=cell.config.seed)[0])
+
+
+def cell_steps(cell: Cell) -> int:
+  """Training steps of the cell."""
+  from sljax.data.dataset import parse_fraction  # pylint: disable=import-outside-toplevel
+  used = max(1, int(round(parse_fraction(cell.config.fraction) * _n_train(cell))))
+  return used // cell.config.batch_size * cell.config.epochs
+
+
+def _advance(bar, amount: float) -> None:
+  """Moves the bar on, never past its total (the totals are estimates in float seconds)."""
+  bar.update(max(0.0, min(amount, bar.total - bar.n)))
+
+
+class _CellBar:
+  """The grid's bar as one cell's train() sees it: a step adds the cell's estimated seconds;
+  the epoch lines go to the cell's log file."""
+
+  def __init__(self, bar, cell: Cell, weight: float, logfile):
+    self.bar, self.cell, self.weight, self.logfile = bar, cell, weight, logfile
+
+  def update(self, n: int) -> None:
+    """n training steps done."""
+    _advance(self.bar, n * self.weight)
+
+  def set_postfix(self, refresh: bool = False, **kw) -> None:
+    """Shows the cell and its epoch/loss."""
+    self.bar.set_postfix(cell=self.cell.name, **kw, refresh=refresh)
+
+  def write(self, line: str) -> None:
+    """A line of training output, to the cell's log."""
+    self.logfile.write(line + "\n")
+    self.logfile.flush()
+
+
+# ----------------------------------------------------------------------------- running
+
+
+def _eval_source(cell: Cell, evalset: EvalSet):
+  """(source, scene indices, label) of an evaluation set for a cell."""
+  config = cell.config
+  if evalset.kind == HELDOUT:
+    source = open_source(config)
+    return source, split_indices(source, config.test_fraction, seed=config.seed)[1]
+  if evalset.kind == "synthetic":
+    synth = SynthConfig(size=config.synth_size, domain=evalset.domain, t=config.synth_t)
+    source = SyntheticSource(evalset.n, seed=config.seed, config=synth)
+    return source, split_indices(source, config.test_fraction, seed=config.seed)[1]
+  source = FolderSource(evalset.path)
+  return source, list(range(len(source)))
+
+
+def evaluate_cell(out: Path, cell: Cell, evalset: EvalSet) -> dict[str, Any]:
+  """Scores the cell's final checkpoint on a set (resize protocol, the one metrics function)
+  and writes eval/SET.json."""
+  source, indices = _eval_source(cell, evalset)
+  predictor = inference.load(final_checkpoint(out, cell.name), mode="resize")
+  report = evaluate(predictor, source, indices, progress=False,
+                    info={"cell": cell.name, "set": evalset.name, "kind": evalset.kind})
+  path = cell_dir(out, cell.name) / EVAL_DIR / f"{evalset.name}.json"
+  path.parent.mkdir(parents=True, exist_ok=True)
+  _write_json(path, json_safe(report))
+  return report
+
+
+def train_cell(out: Path, cell: Cell, bar, weight: float) -> dict[str, Any]:
+  """Trains (or resumes) one cell and writes done.json."""
+  wd = cell_dir(out, cell.name)
+  config = cell.config
+  if cell.init_cell is not None:
+    config = dataclasses.replace(config, init_from=str(final_checkpoint(out, cell.init_cell)))
+  ckpt_dir = wd / ckpt.CHECKPOINT_DIR
+  saved = [int(p.name) for p in ckpt_dir.iterdir() if p.name.isdigit()] if ckpt_dir.is_dir() else []
+  wd.mkdir(parents=True, exist_ok=True)
+  t0 = time.perf_counter()
+  with open(wd / LOG_FILE, "a", encoding="utf-8") as logfile:
+    cell_bar = _CellBar(bar, cell, weight, logfile)
+    _advance(bar, max(saved, default=0) * weight)  # a resumed cell's steps already done
+    # resume=True also restarts a cell killed before its first checkpoint (nothing to keep).
+    result = train(config, wd, resume=True, log=cell_bar.write, progress=cell_bar)
+  for path in ckpt_dir.iterdir():  # a finished cell needs its final checkpoint only
+    if path.name.isdigit() and int(path.name) != result.step:
+      shutil.rmtree(path)
+  epochs = [json.loads(l) for l in (wd / "epochs.jsonl").read_text().splitlines()]
+  done = {"step": result.step, "epochs": result.epochs_done, "last_val_mae": result.last_val,
+          "train_seconds": sum(r["seconds"] for r in epochs),
+          "wall_seconds_last_call": time.perf_counter() - t0}
+  _write_json(wd / DONE_FILE, done)
+  return done
+
+
+def pending(out: Path, plan: Plan) -> list[tuple[Cell, bool, list[EvalSet]]]:
+  """(cell, needs training, evaluation sets still to score) for every unfinished cell."""
+  todo = []
+  for cell in plan.cells:
+    wd = cell_dir(out, cell.name)
+    trained = (wd / DONE_FILE).exists()
+    evals = [e for e in cell.evals if not (wd / EVAL_DIR / f"{e.name}.json").exists()]
+    if not trained or evals:
+      todo.append((cell, not trained, evals))
+  return todo
+
+
+def run(plan: Plan, out: str | os.PathLike, *, progress: bool = True,
+        log: Callable[[str], None] = print) -> dict[str, Any]:
+  """Trains and scores every unfinished cell of the plan under OUT; returns {'trained',
+  'evaluated', 'seconds'}."""
+  out = Path(out)
+  register(out, plan)
+  todo = pending(out, plan)
+  log(describe(plan) + f"; {len(plan.cells) - len(todo)} cell(s) already finished under {out}")
+  weights = {cell.name: _seconds_per_step(cell) for cell, _, _ in todo}
+  # Scoring a scene costs about a third of a training sample.
+  eval_cost = {(c.name, e.name): weights[c.name] / c.config.batch_size / 3
+               * len(_eval_source(c, e)[1]) for c, _, evals in todo for e in evals}
+  total = (sum(cell_steps(c) * weights[c.name] for c, needs, _ in todo if needs)
+           + sum(eval_cost.values()))
+  t0 = time.perf_counter()
+  trained = evaluated = 0
+  bar = tqdm(total=total, disable=not progress or not todo, dynamic_ncols=True,
+             bar_format="{l_bar}{bar}| {percentage:3.0f}% [{elapsed}<{remaining}] {postfix}",
+             desc=f"{plan.name} ({len(todo)} cells)")
+  try:
+    for k, (cell, needs_training, evals) in enumerate(todo, 1):
+      t_cell = time.perf_counter()
+      if needs_training:
+        done = train_cell(out, cell, bar, weights[cell.name])
+        trained += 1
+      else:
+        done = read_json(cell_dir(out, cell.name) / DONE_FILE)
+      scores = []
+      for evalset in evals:
+        report = evaluate_cell(out, cell, evalset)
+        _advance(bar, eval_cost[cell.name, evalset.name])
+        evaluated += 1
+        full = report["pooled"].get("full", {})
+        if full.get("mae") is not None:
+          scores.append(f"{evalset.name} MAE {full['mae']:.3f} px")
+      bar.write(f"[{k}/{len(todo)}] {cell.name}: step {done['step']}"
+                + (f"; {', '.join(scores)}" if scores else "")
+                + f" ({(time.perf_counter() - t_cell) / 60:.1f} min)")
+  finally:
+    bar.close()
+  return {"trained": trained, "evaluated": evaluated, "seconds": time.perf_counter() - t0}

@@ -1,0 +1,212 @@
+"""Depth from stereo pairs: find the pairs, run a predictor, write disparity, depth and points.
+
+Inputs (`find_pairs`):
+- LEFT RIGHT: two image files; calib.txt beside LEFT is used when present.
+- a folder of scene folders (docs/format.md: any folder holding im0.png and im1.png); each
+  scene's own calib.txt is used when present.
+- a folder holding left/ and right/ image folders, paired by file name; PAIRS_DIR/calib.txt is
+  used for every pair when present.
+An explicit calibration file replaces all of these.
+
+Outputs per pair (`OUTPUT_FILES`; into OUT for a single pair, OUT/<pair name>/ otherwise):
+disparity.pfm (float32, inf = unknown) and disparity.png (colour map with a scale bar); with a
+calibration, depth_mm.pfm (float32 mm, inf = unknown), depth_mm.png (16-bit mm, 0 = unknown or
+over 65535 mm) and cloud.ply (binary PLY, x y z float mm in the left camera frame + red green
+blue uchar from the left view; see sljax.geometry); for structured-light models confidence.pfm
+and confidence.png (in [0, 1], higher is surer).
+"""
+
+import dataclasses
+import os
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from sljax import geometry, inference
+from sljax.baselines import SGBMConfig, SGBMPredictor
+from sljax.data.calib import Calib, read_calib
+from sljax.data.dataset import find_scenes
+from sljax.data.pfm import write_pfm
+from sljax.data.scene import read_image
+from sljax.errors import SljaxError
+from sljax.viz import Panel, save_panels
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".ppm", ".pgm")
+OUTPUT_FILES = ("disparity.pfm", "disparity.png", "depth_mm.pfm", "depth_mm.png", "cloud.ply",
+                "confidence.pfm", "confidence.png")
+
+
+@dataclasses.dataclass(frozen=True)
+class Pair:
+  """One stereo pair to predict: image files, its calibration, and its output sub-folder."""
+  name: str  # "" for a single pair written straight into the output folder
+  left: Path
+  right: Path
+  calib: Calib | None = None
+  calib_path: Path | None = None
+
+
+def _image_files(folder: Path) -> dict[str, Path]:
+  return {p.name: p for p in sorted(folder.iterdir())
+          if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES}
+
+
+def _read_calib(path: Path | None) -> Calib | None:
+  return None if path is None else read_calib(path)
+
+
+def find_pairs(inputs: list[str], calib: str | None = None) -> list[Pair]:
+  """The pairs named by the command line's inputs (see the module docstring)."""
+  if calib is not None and not Path(calib).is_file():
+    raise SljaxError(f"--calib {calib}: no such file")
+  explicit = Path(calib) if calib is not None else None
+  given = _read_calib(explicit)
+  if len(inputs) == 2:
+    left, right = (Path(p) for p in inputs)
+    for p, which in ((left, "LEFT"), (right, "RIGHT")):
+      if not p.is_file():
+        raise SljaxError(f"{which} {p}: no such image file" +
+                         (" (a folder: give one PAIRS_DIR instead)" if p.is_dir() else ""))
+    beside = left.parent / "calib.txt"
+    path = explicit or (beside if beside.is_file() else None)
+    return [Pair("", left, right, given if explicit else _read_calib(path), path)]
+  if len(inputs) != 1:
+    raise SljaxError(f"expected LEFT RIGHT image files or one PAIRS_DIR, got {len(inputs)} paths")
+  root = Path(inputs[0])
+  if not root.is_dir():
+    raise SljaxError(f"PAIRS_DIR {root}: " + ("is a file; give LEFT and RIGHT image files"
+                                              if root.is_file() else "no such folder"))
+  if (root / "left").is_dir() or (root / "right").is_dir():
+    return _folder_pairs(root, explicit, given)
+  try:
+    scenes = find_scenes(root)
+  except SljaxError:
+    raise SljaxError(f"PAIRS_DIR {root}: holds neither scene folders (im0.png, im1.png) nor "
+                     "left/ and right/ image folders") from None
+  pairs = []
+  for scene in scenes:
+    name = scene.relative_to(root).as_posix()
+    name = root.resolve().name if name == "." else name
+    if not (scene / "im1.png").is_file():
+      raise SljaxError(f"scene {scene}: im1.png: missing")
+    own = scene / "calib.txt"
+    path = explicit or (own if own.is_file() else None)
+    pairs.append(Pair(name, scene / "im0.png", scene / "im1.png",
+                      given if explicit else _read_calib(path), path))
+  return pairs
+
+
+def _folder_pairs(root: Path, explicit: Path | None, given: Calib | None) -> list[Pair]:
+  """left/<name> with right/<name>, every name in both folders."""
+  for side in ("left", "right"):
+    if not (root / side).is_dir():
+      raise SljaxError(f"{root / side}: missing (left/ and right/ go together)")
+  left, right = _image_files(root / "left"), _image_files(root / "right")
+  if not left:
+    raise SljaxError(f"{root / 'left'}: no images ({', '.join(IMAGE_SUFFIXES)})")
+  only = sorted(set(left) ^ set(right))
+  if only:
+    side = "right" if only[0] in left else "left"
+    raise SljaxError(f"{root / side / only[0]}: missing (every image in left/ needs one of the "
+                     f"same name in right/ and back; {len(only)} unpaired)")
+  shared = root / "calib.txt"
+  path = explicit or (shared if shared.is_file() else None)
+  calib = given if explicit else _read_calib(path)
+  return [Pair(Path(n).stem, left[n], right[n], calib, path) for n in left]
+
+
+def output_dir(out: Path, pair: Pair) -> Path:
+  """Where a pair's files go."""
+  return out / pair.name if pair.name else out
+
+
+def check_outputs(out: Path, pairs: list[Pair], overwrite: bool) -> None:
+  """Refuses (one line) when any output file of any pair exists and overwrite is off."""
+  if out.exists() and not out.is_dir():
+    raise SljaxError(f"--out {out}: exists and is not a folder")
+  if overwrite:
+    return
+  for pair in pairs:
+    for f in OUTPUT_FILES:
+      path = output_dir(out, pair) / f
+      if path.exists():
+        raise SljaxError(f"{path}: exists (pass --overwrite to replace it)")
+
+
+def load_predictor(model: str, mode: str = "pad", maxdisp: int | None = None):
+  """'sgbm' (OpenCV StereoSGBM) or a checkpoint / converted PSMNet folder."""
+  if model == "sgbm":
+    return SGBMPredictor(SGBMConfig(num_disparities=maxdisp))
+  if not Path(model).exists():
+    raise SljaxError(f"MODEL {model}: unknown model: no such checkpoint, training workdir or "
+                     "converted PSMNet folder (or use 'sgbm')")
+  return inference.load(model, mode=mode, maxdisp=maxdisp)
+
+
+def read_pair(pair: Pair) -> tuple[np.ndarray, np.ndarray]:
+  """The two views as float32 HxWxC in [0, 1]; SljaxError when they differ in size."""
+  left, right = read_image(pair.left), read_image(pair.right)
+  if left.shape[:2] != right.shape[:2]:
+    raise SljaxError(f"{pair.right}: size {right.shape[1]}x{right.shape[0]} differs from "
+                     f"{pair.left} ({left.shape[1]}x{left.shape[0]})")
+  return left, right
+
+
+def _colour_png(path: Path, values: np.ndarray, title: str, label: str, cmap: str,
+                vmin: float | None = None, vmax: float | None = None) -> None:
+  finite = values[np.isfinite(values)]
+  if vmin is None:
+    vmin = float(finite.min()) if finite.size else 0.0
+  if vmax is None:
+    vmax = float(finite.max()) if finite.size else 1.0
+  vmax = vmax if vmax > vmin else vmin + 1.0
+  h, w = values.shape
+  save_panels(path, [Panel(title, values, cmap=cmap, vmin=vmin, vmax=vmax, label=label)],
+              ncols=1, tile_inches=max(3.0, min(8.0, 6.0 * w / max(h, w))))
+
+
+def write_outputs(folder: Path, pair: Pair, left: np.ndarray, out: dict[str, np.ndarray],
+                  max_depth: float | None = None) -> dict[str, Any]:
+  """Writes one pair's files (see the module docstring); returns a summary for the report."""
+  folder.mkdir(parents=True, exist_ok=True)
+  label = pair.name or pair.left.name
+  disp = out["disparity"]
+  write_pfm(folder / "disparity.pfm", disp)
+  _colour_png(folder / "disparity.png", disp, f"{label}: disparity", "px", "turbo")
+  summary: dict[str, Any] = {"pair": label, "known_disparity": float(np.isfinite(disp).mean())}
+  if "confidence" in out:
+    write_pfm(folder / "confidence.pfm", out["confidence"])
+    _colour_png(folder / "confidence.png", out["confidence"], f"{label}: confidence", "",
+                "viridis", 0.0, 1.0)
+  if pair.calib is not None:
+    depth = geometry.depth_mm(disp, pair.calib, max_depth)
+    write_pfm(folder / "depth_mm.pfm", depth)
+    png = geometry.depth_png16(depth)
+    if not cv2.imwrite(os.fspath(folder / "depth_mm.png"), png):
+      raise SljaxError(f"{folder / 'depth_mm.png'}: could not write image")
+    xyz, rgb = geometry.point_cloud(disp, pair.calib, left, max_depth)
+    geometry.write_ply(folder / "cloud.ply", xyz, rgb,
+                       comment=f"sljax predict {label}: x y z in mm, left camera frame "
+                               "(x right, y down, z forward)")
+    summary.update(points=len(xyz),
+                   png_zero_but_known=int((np.isfinite(depth) & (png == 0)).sum()))
+  return summary
+
+
+def predict_pairs(predictor, pairs: list[Pair], out: Path, max_depth: float | None = None,
+                  progress: bool = True) -> list[dict[str, Any]]:
+  """Runs the predictor on every pair (progress bar) and writes its files; returns summaries."""
+  summaries = []
+  for pair in tqdm(pairs, desc="predict", unit="pair", disable=None if progress else True):
+    left, right = read_pair(pair)
+    if pair.calib is not None:  # before the (slow) prediction
+      geometry.check_calib_size(pair.calib, left.shape[:2], str(pair.calib_path))
+    try:
+      res = predictor(left, right, calib=pair.calib)
+    except SljaxError as e:
+      raise SljaxError(f"{pair.left}: {e}") from None
+    summaries.append(write_outputs(output_dir(out, pair), pair, left, res, max_depth))
+  return summaries

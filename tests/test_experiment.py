@@ -1,0 +1,182 @@
+"""sljax experiment: a smoke plan end to end, idempotence, exact continuation after kill -9,
+the pairing of stl and the multi-task strategies, refusal of a changed plan."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+from sljax import cli
+from sljax.data.dataset import epoch_order
+from sljax.experiment import plans, report, runner
+from sljax.nets import build_model, detach_sl
+from sljax.train import loop
+from sljax.train import state as train_state
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def smoke_out(tmp_path_factory):
+  """table1 at the smoke scale, one seed, run uninterrupted."""
+  out = tmp_path_factory.mktemp("exp") / "out"
+  assert cli.main(["experiment", "run", "table1", str(out), "--scale", "smoke", "--seeds", "1",
+                   "--no-progress"]) == 0
+  assert cli.main(["experiment", "report", str(out)]) == 0
+  return out
+
+
+def test_smoke_plan_runs_end_to_end_and_a_second_run_trains_nothing(smoke_out, capsys):
+  plan = plans.build_plan("table1", "smoke", 1)
+  for cell in plan.cells:
+    wd = runner.cell_dir(smoke_out, cell.name)
+    assert (wd / runner.DONE_FILE).exists() and (wd / "eval" / "heldout.json").exists()
+    final = json.loads((wd / runner.DONE_FILE).read_text())["step"]
+    assert [p.name for p in (wd / "checkpoints").iterdir() if p.name.isdigit()] == [str(final)]
+  # The tissue cells started from the objects cells' final checkpoints.
+  cfg = json.loads((runner.cell_dir(smoke_out, "unet-sl-tissue-ft-s0") / "config.json")
+                   .read_text())
+  assert cfg["init_from"].endswith("cells/unet-sl-objects-s0/checkpoints/30")
+  assert cfg["domain"] == "tissue" and cfg["synth_t"] == 5
+  md = (smoke_out / "report.md").read_text()
+  assert "Table 1" in md and "unet-sl" in md and "figures/table1_bars.png" in md
+  assert (smoke_out / "figures" / "table1_bars.png").stat().st_size > 1000
+  capsys.readouterr()
+  before = {p: p.stat().st_mtime_ns for p in smoke_out.rglob("*") if p.is_file()}
+  assert cli.main(["experiment", "run", "table1", str(smoke_out), "--scale", "smoke",
+                   "--seeds", "1", "--no-progress"]) == 0
+  assert "trained 0 cell(s), scored 0 set(s)" in capsys.readouterr().out
+  after = {p: p.stat().st_mtime_ns for p in smoke_out.rglob("*") if p.is_file()}
+  changed = [p for p in before if after.get(p) != before[p] and p.name != runner.PLAN_FILE]
+  assert not changed, changed
+
+
+_KILLED = textwrap.dedent("""
+    import os, signal, sys
+    from sljax.experiment import plans, runner
+    from sljax.train import loop
+    fetch = loop.fetch_metrics
+    def fetch_then_die(ctx, pending, state):
+      state, last = fetch(ctx, pending, state)
+      if ctx.run.workdir.name == "unet-disp-objects-s0" and state.step >= 17:
+        ctx.manager.wait_until_finished()  # resume from the checkpoint of step 15
+        os.kill(os.getpid(), signal.SIGKILL)
+      return state, last
+    loop.fetch_metrics = fetch_then_die
+    runner.run(plans.build_plan("table1", "smoke", 1), sys.argv[1], progress=False)
+""")
+
+
+def test_killed_runner_continues_to_the_same_report(smoke_out, tmp_path):
+  out = tmp_path / "out"
+  env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(ROOT))
+  proc = subprocess.run([sys.executable, "-c", _KILLED, str(out)], env=env, capture_output=True,
+                        text=True, timeout=600)
+  assert proc.returncode == -signal.SIGKILL, proc.stderr[-2000:]
+  killed = runner.cell_dir(out, "unet-disp-objects-s0")
+  assert not (killed / runner.DONE_FILE).exists() and (killed / "checkpoints" / "15").is_dir()
+  assert cli.main(["experiment", "run", "table1", str(out), "--scale", "smoke", "--seeds", "1",
+                   "--no-progress"]) == 0
+  assert cli.main(["experiment", "report", str(out)]) == 0
+  for name in ("report.json", "report.md"):
+    a = (smoke_out / name).read_text().replace(str(smoke_out), "OUT")
+    b = (out / name).read_text().replace(str(out), "OUT")
+    assert a == b, name
+
+
+def test_changed_plan_under_an_existing_out_is_refused(smoke_out, capsys, tmp_path):
+  out = tmp_path / "out"
+  out.mkdir()
+  record = json.loads((smoke_out / runner.PLAN_FILE).read_text())
+  record["cells"]["unet-sl-objects-s0"]["config"]["lr"] = 0.5
+  (out / runner.PLAN_FILE).write_text(json.dumps(record))
+  code = cli.main(["experiment", "run", "table1", str(out), "--scale", "smoke", "--seeds", "1"])
+  err = capsys.readouterr().err
+  assert code == 2 and err.count("\n") == 1, err
+  assert "cell unet-sl-objects-s0 was run with another configuration (config.lr: 0.5 -> 0.001)" \
+      in err
+  code = cli.main(["experiment", "run", "table1", str(smoke_out), "--scale", "cpu"])
+  err = capsys.readouterr().err
+  assert code == 2 and err.count("\n") == 1 and "another configuration" in err, err
+
+
+def test_bad_plan_arguments(capsys, tmp_path):
+  for argv, needle in ((["nope", "o"], "unknown plan 'nope'"),
+                       (["table2", "o", "--scale", "huge"], "--scale huge"),
+                       (["table2", "o", "--seeds", "0"], "--seeds 0"),
+                       (["table2", "o", "--data", str(tmp_path / "none")], "does not exist"),
+                       (["table2", "o", "--eval-data", str(tmp_path)], "--eval-data applies")):
+    assert cli.main(["experiment", "run", *argv]) == 2
+    err = capsys.readouterr().err
+    assert needle in err and err.count("\n") == 1, err
+  assert cli.main(["experiment", "report", str(tmp_path)]) == 2
+  assert "not an experiment folder" in capsys.readouterr().err
+
+
+def test_stl_and_unc_are_paired_within_a_seed(tmp_path):
+  """At one seed, stl and unc train on the same scenes, split, subset and order (batches
+  identical in what they share), and start from equal disparity-path weights; seeds differ."""
+  plan = plans.build_plan("table2", "smoke", 2)
+  by = {(c.arm, c.factors, c.seed): c for c in plan.cells}
+  small = (("data", "1/16"),)
+  stl, unc = by["stl", small, 0], by["unc", small, 0]
+  assert stl.config.net == "psmnet" and unc.config.net == "psmnet-mtl"
+  runs = [loop.setup(c.config, tmp_path / c.name, resume=False, overwrite=False,
+                     log=lambda line: None) for c in (stl, unc, by["stl", small, 1])]
+  (tr_s, va_s), (tr_u, va_u), (tr_1, _) = [(r.train_idx, r.val_idx) for r in runs]
+  assert tr_s == tr_u and va_s == va_u and tr_s != tr_1
+  for epoch in range(3):
+    assert epoch_order(tr_s, 0, epoch) == epoch_order(tr_u, 0, epoch)
+  rows = [loop.RowCache(loop.open_source(c.config), c.config, loop.batch_parts(c.config), False)
+          .batch(epoch_order(tr_s, 0, 0)[:2]) for c in (stl, unc)]
+  for part in ("left", "right", "disp"):
+    np.testing.assert_array_equal(rows[0][part], rows[1][part])
+  assert "sl" in rows[1] and "sl" not in rows[0]
+  # Initial weights: everything stl has, unc has with equal values (the twin's extra SL path
+  # aside); another seed differs.
+  h, w = stl.config.size
+  inits = [train_state.init_variables(build_model(c.config.net, maxdisp=c.config.maxdisp,
+                                                  t=c.config.synth_t), c.config.seed, h, w, 3)
+           for c in (stl, unc, by["stl", small, 1])]
+  plain, twin, other = inits[0], detach_sl(inits[1]), inits[2]
+  leaves = jax.tree.leaves_with_path(plain)
+  assert len(leaves) == len(jax.tree.leaves(twin)) > 100
+  for (path, a), b in zip(leaves, jax.tree.leaves(twin), strict=True):
+    np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=str(path))
+  assert any(not np.array_equal(a, b) for a, b in zip(jax.tree.leaves(plain),
+                                                      jax.tree.leaves(other)))
+
+
+def test_every_plan_builds_at_every_scale():
+  for name in plans.PLANS:
+    for scale in plans.SCALES:
+      plan = plans.build_plan(name, scale, 2)
+      plans.check_unique(plan)
+      assert len({c.seed for c in plan.cells}) == 2
+      if scale != "paper":  # (the paper scale's 8000 scenes take long to split here)
+        assert all(runner.cell_steps(c) > 0 for c in plan.cells), (name, scale)
+  t2 = plans.build_plan("table2", "cpu", 3)
+  assert len(t2.cells) == 30 and {c.arm for c in t2.cells} == set(
+      ("stl", "cg_a", "cg_b", "epr", "unc"))
+  fig7 = plans.build_plan("fig7", "cpu", 1)
+  shared = {c.name for c in fig7.cells} & {c.name for c in t2.cells}
+  assert len(shared) == 5  # fig7 fine-tunes table2's full-data cells, it does not retrain them
+  t3 = plans.build_plan("table3", "cpu", 1)
+  assert {c.name for c in t3.cells} <= {c.name for c in t2.cells}
+  assert {e.name for e in t3.cells[0].evals} == {"heldout", "tissue"}
+
+
+def test_report_of_partial_results_lists_the_missing(tmp_path):
+  out = tmp_path / "out"
+  runner.register(out, plans.build_plan("table2", "smoke", 1))
+  path = report.write_report(out)
+  md = path.read_text()
+  assert "0 of 10 cells trained" in md and "Not scored yet" in md
+  assert "no results yet" in md

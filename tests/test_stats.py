@@ -1,0 +1,69 @@
+"""Experiment statistics against closed forms, published quantiles and hand computations."""
+
+import math
+
+import numpy as np
+import pytest
+
+from sljax.experiment import stats
+
+
+@pytest.mark.parametrize("t", [-7.0, -1.3, 0.0, 0.4, 2.5, 30.0])
+def test_t_cdf_closed_forms(t):
+  # df = 1 is the Cauchy distribution, df = 2 has F(t) = 1/2 + t / (2 sqrt(2 + t^2)).
+  assert stats.t_cdf(t, 1) == pytest.approx(0.5 + math.atan(t) / math.pi, abs=1e-12)
+  assert stats.t_cdf(t, 2) == pytest.approx(0.5 + t / (2 * math.sqrt(2 + t * t)), abs=1e-12)
+
+
+@pytest.mark.parametrize("df, q", [(1, 12.706205), (2, 4.302653), (3, 3.182446), (4, 2.776445),
+                                   (9, 2.262157), (29, 2.045230)])
+def test_t_quantile_matches_tables(df, q):
+  assert stats.t_quantile(0.975, df) == pytest.approx(q, abs=2e-6)
+  assert stats.t_quantile(0.025, df) == pytest.approx(-q, abs=2e-6)
+
+
+def test_mean_ci_by_hand():
+  # 1, 2, 3, 6: mean 3, sd sqrt(14/3), half width t(0.975, 3) * sd / 2.
+  ci = stats.mean_ci([1.0, 2.0, 3.0, 6.0])
+  half = 3.182446 * math.sqrt(14.0 / 3.0) / 2.0
+  assert ci["mean"] == 3.0 and ci["n"] == 4
+  assert ci["lo"] == pytest.approx(3.0 - half, abs=1e-5)
+  assert ci["hi"] == pytest.approx(3.0 + half, abs=1e-5)
+  one = stats.mean_ci([2.5])
+  assert one["mean"] == 2.5 and math.isnan(one["lo"]) and math.isnan(one["sd"])
+
+
+def test_paired_test_on_a_small_table():
+  # Three seeds; the strategy beats the baseline by 1, 2 and 3 px: d = -1, -2, -3.
+  strategy = [0.5, 1.0, 1.5]
+  baseline = [1.5, 3.0, 4.5]
+  res = stats.paired_test(strategy, baseline)
+  assert res["mean"] == pytest.approx(-2.0) and res["sd"] == pytest.approx(1.0)
+  t = -2.0 / (1.0 / math.sqrt(3.0))
+  assert res["t"] == pytest.approx(t)
+  # df = 2: p = 2 (1 - F(|t|)) = 1 - |t| / sqrt(2 + t^2).
+  assert res["p"] == pytest.approx(1.0 - abs(t) / math.sqrt(2.0 + t * t), abs=1e-10)
+  half = 4.302653 / math.sqrt(3.0)
+  assert (res["lo"], res["hi"]) == (pytest.approx(-2 - half, abs=1e-5),
+                                    pytest.approx(-2 + half, abs=1e-5))
+  assert res["wins"] == 3
+  same = stats.paired_test([1.0, 2.0], [1.0, 2.0])
+  assert same["t"] == 0.0 and same["p"] == 1.0 and same["wins"] == 0
+  with pytest.raises(ValueError):
+    stats.paired_test([1.0], [1.0, 2.0])
+
+
+def test_delta_m_by_hand():
+  base = {"mae": 2.0, "bad_2": 10.0}
+  assert stats.delta_m({"mae": 1.0, "bad_2": 12.0}, base) == pytest.approx((50.0 - 20.0) / 2)
+  assert stats.delta_m(base, base) == 0.0
+
+
+def test_incomplete_beta_symmetry_and_bounds():
+  for a, b, x in ((2.0, 3.0, 0.3), (0.5, 4.5, 0.9), (10.0, 0.5, 0.99)):
+    assert stats.incomplete_beta(a, b, x) == pytest.approx(
+        1.0 - stats.incomplete_beta(b, a, 1.0 - x), abs=1e-12)
+  # I_x(1, 1) = x; I_x(a, 1) = x^a.
+  assert stats.incomplete_beta(1.0, 1.0, 0.37) == pytest.approx(0.37)
+  assert stats.incomplete_beta(3.0, 1.0, 0.5) == pytest.approx(0.125)
+  assert np.isclose(stats.incomplete_beta(2.0, 2.0, 0.0), 0.0)

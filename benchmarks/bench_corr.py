@@ -16,11 +16,11 @@ host CPU), "shifts" is the shift-major JAX formulation that `sl_disparity` used 
 import argparse
 import json
 import os
-import subprocess
-import sys
 import time
 
 import numpy as np
+
+from common import machine, run_child
 
 # (H, W, t, u): the paper's virtual set and a SCARED-sized frame.
 SIZES = [(256, 256, 8, 64), (1024, 1280, 9, 320)]
@@ -51,7 +51,6 @@ def naive_pixels_per_s(t: int, u: int, crop: int = 6, window: int = WINDOW) -> f
 
 def _implementations():
   os.environ.setdefault("JAX_PLATFORMS", "cpu")
-  sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
   from sljax.corr import correlation
 
   def rows(pl, pr, u):
@@ -97,18 +96,6 @@ def child_memory(h: int, w: int, t: int, u: int, name: str) -> None:
   print(json.dumps({"ok": True}))
 
 
-def run_child(args: list[str]) -> tuple[dict, float]:
-  """Runs this file with args in a fresh process; returns its JSON line and peak RSS in MiB."""
-  proc = subprocess.Popen([sys.executable, os.path.abspath(__file__)] + args,
-                          stdout=subprocess.PIPE, text=True)
-  out = proc.stdout.read()
-  _, status, usage = os.wait4(proc.pid, 0)
-  code = os.waitstatus_to_exitcode(status)
-  if code != 0:
-    raise SystemExit(f"benchmark child {' '.join(args)} failed with exit code {code}")
-  return json.loads(out.strip().splitlines()[-1]), usage.ru_maxrss / 1024  # Linux: KiB
-
-
 def main() -> None:
   """Prints the table."""
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -125,14 +112,14 @@ def main() -> None:
       child_time(*size, args.repeats)
     return
 
-  print(f"CPU cores: {os.cpu_count()}; times are minimums over {args.repeats} interleaved repeats")
+  print(f"{machine()}\ntimes are minimums over {args.repeats} interleaved repeats")
   print(f"{'size':>10} {'t':>2} {'u':>4} {'rows s':>7} {'(cpu s)':>7} {'shifts s':>8} "
         f"{'(cpu s)':>7} {'shifts/rows':>11} {'rows px/s':>9} {'naive px/s':>10} "
         f"{'rows/naive':>10} {'peak MiB rows/shifts':>20} {'identical':>9}")
   for h, w, t, u in (SIZES[:1] if args.quick else SIZES):
     size = f"{h},{w},{t},{u}"
-    res, _ = run_child(["--child", size, "--repeats", str(args.repeats)])
-    mem = {name: run_child(["--child", size, "--memory", name])[1] for name in ("rows", "shifts")}
+    res, _ = run_child(__file__, ["--child", size, "--repeats", str(args.repeats)])
+    mem = {name: run_child(__file__, ["--child", size, "--memory", name])[1] for name in ("rows", "shifts")}
     rows, shifts = res["rows"], res["shifts"]
     naive = naive_pixels_per_s(t, u)
     px = h * w / rows["seconds"]

@@ -12,11 +12,11 @@ the first call (tracing + compilation + run), the best later call, and the peak 
 import argparse
 import json
 import os
-import subprocess
-import sys
 import time
 
 import numpy as np
+
+from common import machine, run_child
 
 
 def random_variables(name: str, kwargs: dict, seed: int = 0) -> dict:
@@ -44,7 +44,6 @@ def random_variables(name: str, kwargs: dict, seed: int = 0) -> dict:
 def child(name: str, h: int, w: int, maxdisp: int, repeats: int) -> None:
   """One model, pad mode, one pair; prints a JSON line with the timings."""
   os.environ.setdefault("JAX_PLATFORMS", "cpu")
-  sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
   from sljax import inference
 
   kwargs = {"maxdisp": maxdisp, "in_channels": 3}
@@ -66,18 +65,6 @@ def child(name: str, h: int, w: int, maxdisp: int, repeats: int) -> None:
   print(json.dumps({"first_call_s": first, "later_call_s": best, "outputs": sorted(out)}))
 
 
-def run_child(args: list[str]) -> tuple[dict, float]:
-  """This file with args in a fresh process; its JSON line and peak RSS in GiB."""
-  proc = subprocess.Popen([sys.executable, os.path.abspath(__file__)] + args,
-                          stdout=subprocess.PIPE, text=True)
-  out = proc.stdout.read()
-  _, status, usage = os.wait4(proc.pid, 0)
-  code = os.waitstatus_to_exitcode(status)
-  if code != 0:
-    raise SystemExit(f"child {' '.join(args)} failed with exit code {code}")
-  return json.loads(out.strip().splitlines()[-1]), usage.ru_maxrss / 2**20  # KiB -> GiB
-
-
 def main() -> None:
   """Prints the table."""
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -91,13 +78,13 @@ def main() -> None:
   if args.child:
     child(args.child, h, w, args.maxdisp, args.repeats)
     return
-  print(f"pad mode, {w}x{h} RGB pair, maxdisp {args.maxdisp}, batch 1, CPU cores: "
-        f"{os.cpu_count()}")
+  print(machine())
+  print(f"pad mode, {w}x{h} RGB pair, maxdisp {args.maxdisp}, batch 1")
   print(f"{'model':>11} {'first call s':>12} {'later call s':>12} {'peak RSS GiB':>12}")
   for name in args.models.split(","):
-    res, rss = run_child(["--child", name, "--size", args.size, "--maxdisp", str(args.maxdisp),
+    res, rss = run_child(__file__, ["--child", name, "--size", args.size, "--maxdisp", str(args.maxdisp),
                           "--repeats", str(args.repeats)])
-    print(f"{name:>11} {res['first_call_s']:>12.1f} {res['later_call_s']:>12.1f} {rss:>12.2f}")
+    print(f"{name:>11} {res['first_call_s']:>12.1f} {res['later_call_s']:>12.1f} {rss / 1024:>12.2f}")
 
 
 if __name__ == "__main__":

@@ -1,43 +1,40 @@
-"""Speed of sljax's networks on this machine beside same-shaped PyTorch layer stacks.
+"""Speed of sljax's networks on this machine beside PyTorch: the reference PSMNet or stacks.
 
-Prints two tables: per-layer 3D convolution micro benchmarks (sljax fast path, plain
+Prints the machine (CPU model, ISA flags, cores, jax / jaxlib / torch versions) and two
+tables: per-layer 3D convolution micro benchmarks (sljax fast path, plain
 lax.conv_general_dilated, PyTorch) and whole models (UNet, PSMNet, the multi-task twin) at
-SIZE x SIZE, maxdisp 96, batch 1, forward (evaluation mode) and forward+backward (training
-mode), with JAX/PyTorch time ratios. Times are the minimum over --repeats runs after one
-warm-up (compilation excluded).
+SIZE x SIZE, maxdisp 96, forward (evaluation mode) and forward+backward (training mode, the
+paper's loss), with sljax/PyTorch time ratios. Times are the minimum over --repeats runs
+after one warm-up (compilation excluded).
 
-PyTorch is imported only here (pip install "sljax[torch]"); its stacks below mirror the
-shapes and layer types of sljax's models, written for this benchmark.
+With --reference DIR (a local checkout of JiaRenChang/PSMNet, which the project neither
+ships nor fetches) PSMNet is compared with the reference model itself, at batch 2 by
+default (the reference cannot train at batch 1 on 256x256: its 64x64 SPP pool leaves one
+value per channel for BatchNorm). Without it, and for the other models, the PyTorch side is
+a stack written here with the same shapes and layer types, labelled "stack".
+
+PyTorch is imported only here (pip install "sljax[torch]").
 
   python benchmarks/bench_nets.py                 # everything
   python benchmarks/bench_nets.py --part micro    # layers only
-  python benchmarks/bench_nets.py --part models --models psmnet --with-lax
+  python benchmarks/bench_nets.py --part models --models psmnet --reference ~/src/PSMNet
 """
 
 from __future__ import annotations
 
 import argparse
 import os
-import time
-from collections.abc import Callable
+import sys
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from common import best_time, machine  # first: puts this checkout's sljax on the path
+from sljax.losses.disparity import PSMNET_OUTPUT_WEIGHTS, disparity_loss
 from sljax.nets import build_model
 from sljax.nets import conv3d as c3
-
-
-def best_time(fn: Callable[[], object], repeats: int) -> float:
-  """Minimum wall time of fn() over `repeats` runs after one warm-up."""
-  fn()
-  best = float("inf")
-  for _ in range(repeats):
-    t0 = time.perf_counter()
-    fn()
-    best = min(best, time.perf_counter() - t0)
-  return best
 
 
 # ------------------------------------------------------------------------- PyTorch stacks
@@ -205,11 +202,48 @@ def torch_models():
   return torch, PSM, UNet
 
 
-def torch_time(torch, model, size, repeats, train):
+def reference_psmnet(directory: str, maxdisp: int):
+  """JiaRenChang/PSMNet's stackhourglass model, imported from a local copy."""
+  import torch
+  path = Path(directory).expanduser()
+  if not (path / "models" / "stackhourglass.py").is_file():
+    raise SystemExit(f"{directory}: no models/stackhourglass.py here; --reference takes a "
+                     "checkout of JiaRenChang/PSMNet")
+  import warnings
+  warnings.filterwarnings("ignore", message=".*upsample.*")  # deprecated, used by the reference
+  torch.Tensor.cuda = lambda self, *a, **k: self  # the reference moves its buffers by hand
+  sys.path.insert(0, str(path))
+  from models.stackhourglass import PSMNet
+  return PSMNet(maxdisp)
+
+
+def inputs(batch: int, size: int, maxdisp: int):
+  """Random left, right (NHWC) and ground truth with some values beyond maxdisp (masked)."""
+  rng = np.random.RandomState(0)
+  left, right = (rng.rand(batch, size, size, 3).astype(np.float32) for _ in range(2))
+  return left, right, (rng.rand(batch, size, size) * maxdisp * 1.1).astype(np.float32)
+
+
+def torch_loss(out, gt, maxdisp):
+  """The paper's loss (disparity_loss: weighted masked L2) plus the mean of other outputs."""
+  if isinstance(out, (tuple, list)):  # the reference returns its three predictions
+    out = {"disparities": list(out)}
+  mask = (gt >= 0) & (gt < maxdisp)
+  total = 0.0
+  for w, p in zip(PSMNET_OUTPUT_WEIGHTS, out.get("disparities", [])):
+    p = p.reshape(gt.shape)  # the reference's are [B, 1, H, W]
+    total = total + w * (p[mask] - gt[mask]).pow(2).mean()
+  for k, v in out.items():
+    if k != "disparities":
+      total = total + v.mean()
+  return total
+
+
+def torch_time(torch, model, batch, size, maxdisp, repeats, train):
   """PyTorch forward (eval, no grad) or forward+backward (train) time."""
-  g = torch.Generator().manual_seed(0)
-  left = torch.rand(1, 3, size, size, generator=g)
-  right = torch.rand(1, 3, size, size, generator=g)
+  left, right, gt = inputs(batch, size, maxdisp)
+  left, right = (torch.tensor(a.transpose(0, 3, 1, 2).copy()) for a in (left, right))
+  gt = torch.tensor(gt)
   if not train:
     model.eval()
 
@@ -219,47 +253,48 @@ def torch_time(torch, model, size, repeats, train):
     return best_time(fwd, repeats)
   model.train()
   # PyTorch refuses batch statistics over one value (the 1x1 map of the 64x64 SPP pool at
-  # batch 1); those tiny BN layers run with running statistics instead (negligible time).
+  # batch 1); the stacks' tiny BN layers then run with running statistics (negligible time).
   for m in model.modules():
-    if getattr(m, "is_spp_branch", False):
+    if batch == 1 and getattr(m, "is_spp_branch", False):
       m.eval()
 
   def step():
     model.zero_grad(set_to_none=True)
-    out = model(left, right)
-    loss = sum(v.mean() if not isinstance(v, list) else sum(p.mean() for p in v)
-               for v in out.values())
-    loss.backward()
+    torch_loss(model(left, right), gt, maxdisp).backward()
   return best_time(step, repeats)
 
 
-def jax_time(name, size, maxdisp, repeats, train, impl=None):
+def jax_loss(out, gt, maxdisp):
+  """torch_loss's twin: disparity_loss on the training outputs plus the mean of the others."""
+  total = disparity_loss(out["disparities"], gt, maxdisp) if "disparities" in out else 0.0
+  for k, v in out.items():
+    if k == "disparities" or (k == "disparity" and "disparities" in out):
+      continue
+    for a in (v if isinstance(v, tuple) else (v,)):
+      total = total + jnp.mean(a)
+  return total
+
+
+def jax_time(name, batch, size, maxdisp, repeats, train, impl=None):
   """sljax forward (eval) or forward+backward (train) time; impl sets SLJAX_CONV3D."""
   old = os.environ.get("SLJAX_CONV3D")
   if impl is not None:
     os.environ["SLJAX_CONV3D"] = impl  # read when the model is traced
   try:
     model = build_model(name, maxdisp=maxdisp)
-    rng = np.random.RandomState(0)
-    left = jnp.asarray(rng.rand(1, size, size, 3).astype(np.float32))
-    right = jnp.asarray(rng.rand(1, size, size, 3).astype(np.float32))
-    variables = jax.jit(model.init)(jax.random.PRNGKey(0), left, right)
+    left, right, gt = (jnp.asarray(a) for a in inputs(batch, size, maxdisp))
+    variables = jax.jit(model.init)(jax.random.PRNGKey(0), left[:1], right[:1])
     if not train:
       f = jax.jit(lambda v, l, r: model.apply(v, l, r, train=False))
       return best_time(lambda: jax.block_until_ready(f(variables, left, right)), repeats)
 
-    def loss(params, l, r):
+    def loss(params, l, r, g):
       out, _ = model.apply({**variables, "params": params}, l, r, train=True,
                            mutable=["batch_stats"])
-      total = 0.0
-      for k, v in out.items():
-        if k == "disparity" and "disparities" in out:
-          continue
-        for a in (v if isinstance(v, tuple) else (v,)):
-          total = total + jnp.mean(a)
-      return total
+      return jax_loss(out, g, maxdisp)
     g = jax.jit(jax.grad(loss))
-    return best_time(lambda: jax.block_until_ready(g(variables["params"], left, right)), repeats)
+    return best_time(lambda: jax.block_until_ready(g(variables["params"], left, right, gt)),
+                     repeats)
   finally:
     if impl is not None:
       if old is None:
@@ -338,14 +373,18 @@ def main() -> None:
   ap.add_argument("--models", default="unet-sl,psmnet,psmnet-mtl")
   ap.add_argument("--size", type=int, default=256)
   ap.add_argument("--maxdisp", type=int, default=96)
+  ap.add_argument("--batch", type=int, default=None,
+                  help="batch size of the model table (default: 2 with --reference, else 1)")
   ap.add_argument("--repeats", type=int, default=3)
+  ap.add_argument("--reference", metavar="DIR", default=None,
+                  help="local checkout of JiaRenChang/PSMNet: compare psmnet with it")
   ap.add_argument("--with-lax", action="store_true",
                   help="also time the plain lax 3D convolution (slow: minutes)")
   args = ap.parse_args()
+  batch = args.batch or (2 if args.reference else 1)
   import torch
-  print(f"jax {jax.__version__} backend {jax.default_backend()} ({os.cpu_count()} CPUs), "
-        f"torch {torch.__version__} ({torch.get_num_threads()} threads); conv3d auto -> "
-        f"{c3.conv_impl()}")
+  print(machine(torch))
+  print(f"conv3d auto -> {c3.conv_impl()}; times: minimum of {args.repeats} after a warm-up")
   if args.part in ("all", "micro"):
     print(f"\n3D convolution layers, {args.size}x{args.size} maxdisp {args.maxdisp} shapes: "
           "fwd ms, fwd+bwd ms (ratio to torch)")
@@ -355,19 +394,25 @@ def main() -> None:
     torch_.manual_seed(0)
     stacks = {"unet-sl": lambda: UNet(16), "unet-disp": lambda: UNet(1),
               "psmnet": lambda: PSM(args.maxdisp), "psmnet-mtl": lambda: PSM(args.maxdisp, 8)}
-    print(f"\nModels at {args.size}x{args.size}, maxdisp {args.maxdisp}, batch 1 (seconds)")
-    print(f"{'model':12s} {'mode':8s} {'sljax':>8s} {'torch':>8s} {'ratio':>6s}"
-          + (f" {'lax':>8s} {'ratio':>6s}" if args.with_lax else ""))
+    print(f"\nModels at {args.size}x{args.size}, maxdisp {args.maxdisp}, batch {batch} "
+          "(seconds; ratio = sljax / PyTorch)")
+    print("| model | mode | PyTorch side | sljax s | PyTorch s | ratio |"
+          + (" lax s | ratio |" if args.with_lax else ""))
+    print("| --- | --- | --- | ---: | ---: | ---: |" + (" ---: | ---: |" if args.with_lax else ""))
     for name in args.models.split(","):
-      tm = stacks[name]()
+      if name == "psmnet" and args.reference:
+        side, tm = "reference", reference_psmnet(args.reference, args.maxdisp)
+      else:
+        side, tm = "stack", stacks[name]()
       for train in (False, True):
         mode = "fwd+bwd" if train else "fwd"
-        tj = jax_time(name, args.size, args.maxdisp, args.repeats, train)
-        tt = torch_time(torch_, tm, args.size, args.repeats, train)
-        line = f"{name:12s} {mode:8s} {tj:8.3f} {tt:8.3f} {tj / tt:6.2f}"
+        tj = jax_time(name, batch, args.size, args.maxdisp, args.repeats, train)
+        tt = torch_time(torch_, tm, batch, args.size, args.maxdisp, args.repeats, train)
+        line = f"| {name} | {mode} | {side} | {tj:.2f} | {tt:.2f} | {tj / tt:.2f}x |"
         if args.with_lax and name.startswith("psmnet"):
-          tl = jax_time(name, args.size, args.maxdisp, max(1, args.repeats - 2), train, "lax")
-          line += f" {tl:8.3f} {tl / tt:6.2f}"
+          tl = jax_time(name, batch, args.size, args.maxdisp, max(1, args.repeats - 2), train,
+                        "lax")
+          line += f" {tl:.2f} | {tl / tt:.2f}x |"
         print(line, flush=True)
 
 

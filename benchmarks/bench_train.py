@@ -16,8 +16,6 @@ compiles, and validation are left out). Prints where it ran (CPU, devices, versi
 import argparse
 import dataclasses
 import json
-import os
-import platform
 import tempfile
 import time
 from pathlib import Path
@@ -25,6 +23,8 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from common import machine
 
 from sljax.data.dataset import split_indices
 from sljax.data.scene import write_scene
@@ -35,18 +35,6 @@ from sljax.train import loop
 from sljax.train import state as st
 from sljax.train import step as stp
 from sljax.train.config import PAPER, QUICK, TrainConfig
-
-
-def machine() -> str:
-  """One line: CPU model, cores, devices and versions."""
-  cpu = platform.processor() or "?"
-  try:
-    with open("/proc/cpuinfo", encoding="utf-8") as f:
-      cpu = next(l.split(":", 1)[1].strip() for l in f if l.startswith("model name"))
-  except (OSError, StopIteration):
-    pass
-  return (f"{cpu}, {os.cpu_count()} cores; {jax.device_count()} x {jax.devices()[0].device_kind}"
-          f" ({jax.default_backend()}); jax {jax.__version__}")
 
 
 def config_for(args) -> TrainConfig:

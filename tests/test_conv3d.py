@@ -158,3 +158,82 @@ def test_bfloat16_inputs_compute_in_bfloat16():
       assert got.dtype == jnp.bfloat16
       np.testing.assert_allclose(np.asarray(got, np.float32), np.asarray(want), rtol=0.05,
                                  atol=0.15)
+
+
+# Block sizes (in values of one input plane) that force every blocking of `_blocked`: one
+# plane per block, chunks of planes, whole batch items, and one block for everything.
+BLOCKINGS = [1, 2, 3, 10 ** 9]
+
+
+@pytest.mark.parametrize("planes", BLOCKINGS)
+@pytest.mark.parametrize("x_shape,k_shape,strides,padding", CONV_CASES[:4])
+def test_blocked_folded_conv_equals_lax(monkeypatch, planes, x_shape, k_shape, strides,
+                                        padding):
+  """Every block shape (loops over batch items and plane chunks) gives lax's conv and grads."""
+  monkeypatch.setattr(c3, "BLOCK_VALUES", planes * int(np.prod(x_shape[2:])))
+  x, k = _data(7, x_shape, k_shape)
+
+  def ref(x, k):
+    return lax.conv_general_dilated(x, k, strides, padding, dimension_numbers=DIMS)
+
+  _check_against(ref, lambda x, k: c3.conv3d(x, k, strides, padding, impl="fast"), x, k, 8)
+
+
+@pytest.mark.parametrize("planes", [1, 10 ** 9])
+def test_blocked_transposed_conv_equals_lax(monkeypatch, planes):
+  x_shape, k_shape, strides, padding = TRANSPOSE_CASES[1]
+  monkeypatch.setattr(c3, "BLOCK_VALUES", planes * int(np.prod(x_shape[2:])))
+  x, k = _data(9, x_shape, k_shape)
+
+  def ref(x, k):
+    return lax.conv_general_dilated(x, k, (1, 1, 1), padding, lhs_dilation=strides,
+                                    dimension_numbers=DIMS)
+
+  _check_against(ref, lambda x, k: c3.conv_transpose3d(x, k, strides, padding, impl="fast"),
+                 x, k, 10)
+
+
+@pytest.mark.parametrize("padding", [((1, 1),) * 3, ((0, 2), (1, 0), (2, 1))])
+def test_tap_products_path_for_few_outputs_equals_lax(padding):
+  """PSMNet's 32 -> 1 classifiers take the tap-product path (27 taps x 1 output <= 32)."""
+  x, k = _data(11, (2, 4, 5, 6, 32), (3, 3, 3, 32, 1))
+
+  def ref(x, k):
+    return lax.conv_general_dilated(x, k, (1, 1, 1), padding, dimension_numbers=DIMS)
+
+  _check_against(ref, lambda x, k: c3.tap_products_conv3d(x, k, padding), x, k, 12)
+  _check_against(ref, lambda x, k: c3.conv3d(x, k, (1, 1, 1), padding, impl="fast"), x, k, 12)
+
+
+@pytest.mark.parametrize("rows", [1, 2, 10 ** 9])
+@pytest.mark.parametrize("strides,padding,dilation", [
+    ((1, 1), ((1, 1), (1, 1)), (1, 1)),
+    ((2, 2), ((1, 1), (1, 1)), (1, 1)),       # PSMNet's firstconv stride 2
+    ((1, 1), ((2, 2), (2, 2)), (2, 2)),       # dilated residual blocks
+    ((2, 1), ((0, 2), (1, 0)), (1, 3)),       # odd ones
+    ((1, 1), "SAME", (1, 1)),
+])
+def test_blocked_conv2d_equals_lax(monkeypatch, rows, strides, padding, dilation):
+  """conv2d's row-blocked kernel gradient equals XLA's, for every blocking."""
+  x, k = _data(13, (2, 9, 7, 3), (3, 3, 3, 4))
+  monkeypatch.setattr(c3, "BLOCK_VALUES", rows * 9 * 3)
+
+  def ref(x, k):
+    return lax.conv_general_dilated(x, k, strides, padding, rhs_dilation=dilation,
+                                    dimension_numbers=("NHWC", "HWIO", "NHWC"))
+
+  _check_against(ref, lambda x, k: c3.conv2d(x, k, strides, padding, dilation, impl="fast"),
+                 x, k, 14)
+
+
+def test_conv2d_module_equals_flax_conv():
+  x = jnp.asarray(np.random.RandomState(15).randn(2, 8, 8, 3), jnp.float32)
+  ours = c3.Conv2D(4, (3, 3), strides=2, padding=((1, 1), (1, 1)), kernel_dilation=1)
+  theirs = nn.Conv(4, (3, 3), strides=2, padding=((1, 1), (1, 1)))
+  v = theirs.init(jax.random.PRNGKey(0), x)
+  assert jax.tree.map(jnp.shape, ours.init(jax.random.PRNGKey(0), x)) == \
+      jax.tree.map(jnp.shape, v)
+  _assert_close(ours.apply(v, x), theirs.apply(v, x))
+  # As nn.Conv: bfloat16 parameters and input (what --precision bf16 passes) stay bfloat16.
+  vb = jax.tree.map(lambda a: a.astype(jnp.bfloat16), v)
+  assert ours.apply(vb, x.astype(jnp.bfloat16)).dtype == jnp.bfloat16

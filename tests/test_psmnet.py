@@ -7,8 +7,9 @@ import pytest
 
 from sljax.errors import SljaxError
 from sljax.nets import build_model
+from sljax.nets.layers import linear_resize_matrix, linear_resize_phases
 from sljax.nets.psmnet import (Hourglass, cost_volume, disparity_regression, reference_key,
-                               spp_pool, upsample_cost)
+                               regress_upsampled, spp_pool, upsample_cost)
 
 H, W, MAXDISP = 32, 64, 16
 # unsafe_rbg compiles the initialisers far faster than threefry on the CPU.
@@ -245,3 +246,43 @@ def test_reference_keys():
   # 16 + 3 + 3 + 3 residual blocks, no layer1 / layer4 downsample.
   assert not any(k.startswith(("feature_extraction.layer1.0.downsample",
                                "feature_extraction.layer4.0.downsample")) for k in keys)
+
+
+@pytest.mark.parametrize("n_in,n_out", [(4, 16), (3, 12), (24, 96), (5, 10), (3, 9)])
+def test_linear_resize_phases_rebuild_the_matrix(n_in, n_out):
+  """Each phase (s, w0, w1) reproduces its rows of the interpolation matrix, edges included."""
+  phases = linear_resize_phases(n_in, n_out, False)
+  m = linear_resize_matrix(n_in, n_out, False)
+  f = n_out // n_in
+  for i in range(n_in):
+    for r, (s, w0, w1) in enumerate(phases):
+      row = np.zeros(n_in)
+      row[min(max(i + s, 0), n_in - 1)] += w0
+      row[min(max(i + s + 1, 0), n_in - 1)] += w1
+      np.testing.assert_allclose(m[f * i + r], row, atol=1e-6)
+  assert linear_resize_phases(n_in, n_out, True) is None  # align_corners: the fallback
+  assert linear_resize_phases(4, 10, False) is None       # no integer factor
+
+
+@pytest.mark.parametrize("d4,maxdisp,align_corners", [(4, 16, False), (3, 12, False),
+                                                      (4, 16, True), (4, 14, False)])
+def test_regress_upsampled_equals_the_composition(d4, maxdisp, align_corners):
+  """The phase head gives disparity_regression(upsample_cost(...)), value and gradient."""
+  rng = np.random.RandomState(3)
+  cost = jnp.asarray(rng.randn(2, d4, 5, 6).astype(np.float32) * 3)
+  w = jnp.asarray(rng.randn(2, 20, 24).astype(np.float32))
+
+  def ref(c):
+    return disparity_regression(upsample_cost(c, maxdisp, 20, 24, align_corners))
+
+  def fast(c):
+    return regress_upsampled(c, maxdisp, 20, 24, align_corners)
+
+  def value_and_grad(f):
+    return jax.jit(jax.value_and_grad(lambda c: jnp.sum(f(c) * w)))(cost)
+
+  (want, want_grad), (got, got_grad) = value_and_grad(ref), value_and_grad(fast)
+  np.testing.assert_allclose(float(got), float(want), rtol=1e-5)
+  np.testing.assert_allclose(np.asarray(jax.jit(fast)(cost)), np.asarray(jax.jit(ref)(cost)),
+                             rtol=1e-5, atol=1e-5)
+  np.testing.assert_allclose(np.asarray(got_grad), np.asarray(want_grad), rtol=1e-4, atol=1e-5)

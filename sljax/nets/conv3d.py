@@ -23,6 +23,7 @@ Gradients come from autodiff through these formulations (tests compare them with
 
 from __future__ import annotations
 
+import functools
 import os
 from collections.abc import Sequence
 from typing import Any, Callable
@@ -116,28 +117,272 @@ def _conv2d(x: jax.Array, kernel: jax.Array, strides: Sequence[int], padding) ->
                                   dimension_numbers=("NHWC", "HWIO", "NHWC"))
 
 
+# Output planes are computed in blocks whose input holds about this many values (512 KiB of
+# float32, an L2 cache): XLA:CPU's 2D convolutions and, above all, their kernel gradients
+# run several times faster on such blocks than on a whole folded volume at once (measured
+# at PSMNet's shapes with benchmarks/bench_nets.py --part micro). One (batch, depth) plane
+# is the smallest block; blocks run in a loop, so the program stays small.
+BLOCK_VALUES = 1 << 17
+
+
+def _block_shape(n: int, count: int, plane_values: int) -> tuple[int, int]:
+  """(batch, plane) counts per block: whole ranges of several batch items, or plane chunks.
+
+  Both divide their totals, so that every block has the same shape.
+  """
+  per = max(1, BLOCK_VALUES // max(1, plane_values))
+  if per >= count:
+    return max(d for d in range(1, n + 1) if n % d == 0 and d * count <= per), count
+  return 1, max(d for d in range(1, per + 1) if count % d == 0)
+
+
+def _blocked(n: int, count: int, plane_values: int, body: Callable, init):
+  """Runs body(n0, z0, nb, tz, carry) over all blocks (a loop when there are several)."""
+  if count == 0:
+    return init
+  nb, tz = _block_shape(n, count, plane_values)
+  zblocks = count // tz
+  total = (n // nb) * zblocks
+  if total == 1:
+    return body(0, 0, nb, tz, init)
+  return lax.fori_loop(0, total, lambda i, c: body((i // zblocks) * nb, (i % zblocks) * tz,
+                                                   nb, tz, c), init)
+
+
+def _depth_plan(depth: int, kd: int, sd: int, padding: tuple[int, int]):
+  """Output planes split into those whose kd taps all lie inside the input and the others.
+
+  Output plane z reads input planes sd*z + a - lo, a < kd. Returns (do, first, count,
+  edges): the interior planes first .. first + count - 1 read no padding (so the input
+  needs no padded copy); edges lists (z, valid taps) for the rest.
+  """
+  lo, hi = padding
+  do = (depth + lo + hi - kd) // sd + 1
+  first = min(max(0, -(-lo // sd)), do)
+  last = min((depth - kd + lo) // sd, do - 1)
+  count = max(0, last - first + 1)
+  edges = [(z, [a for a in range(kd) if 0 <= sd * z + a - lo < depth])
+           for z in range(do) if not first <= z < first + count]
+  return do, first, count, edges
+
+
+def _tap_planes(x: jax.Array, n0, z0, nb: int, tz: int, kd: int, sd: int,
+                lo: int) -> list[jax.Array]:
+  """Input planes sd*z + a - lo of the interior block z0 .. z0 + tz - 1, [nb * tz, H, W, C]."""
+  if tz == 1:
+    return [lax.dynamic_slice(x, (n0, sd * z0 + a - lo, 0, 0, 0), (nb, 1) + x.shape[2:]
+                              ).reshape((nb,) + x.shape[2:]) for a in range(kd)]
+  size = (nb, sd * (tz - 1) + kd) + x.shape[2:]
+  xin = lax.dynamic_slice(x, (n0, sd * z0 - lo, 0, 0, 0), size)
+  return [lax.slice_in_dim(xin, a, a + sd * (tz - 1) + 1, sd, axis=1).reshape((nb * tz,) + size[2:])
+          for a in range(kd)]
+
+
+def _fold_forward(x: jax.Array, kernel: jax.Array, strides: tuple[int, int, int],
+                  padding: tuple[tuple[int, int], ...]) -> jax.Array:
+  n, depth = x.shape[:2]
+  kd, sd, lo = kernel.shape[0], strides[0], padding[0][0]
+  do, first, count, edges = _depth_plan(depth, kd, sd, padding[0])
+
+  def conv(xa, a):
+    return _conv2d(xa, kernel[a], strides[1:], padding[1:])
+
+  out_hw = [(x.shape[2 + i] + sum(padding[1 + i]) - kernel.shape[1 + i]) // strides[1 + i] + 1
+            for i in range(2)]
+  out = jnp.zeros((n, do, *out_hw, kernel.shape[4]), x.dtype)
+  for z, taps in edges:
+    y = sum((conv(x[:, sd * z + a - lo], a) for a in taps), jnp.zeros_like(out[:, 0]))
+    out = out.at[:, z].set(y)
+
+  def body(n0, z0, nb, tz, out):
+    y = None
+    for a, xa in enumerate(_tap_planes(x, n0, first + z0, nb, tz, kd, sd, lo)):
+      ya = conv(xa, a)
+      y = ya if y is None else y + ya
+    return lax.dynamic_update_slice(out, y.reshape((nb, tz) + y.shape[1:]),
+                                    (n0, first + z0, 0, 0, 0))
+
+  return _blocked(n, count, int(np.prod(x.shape[2:])), body, out)
+
+
+def _conv2d_kernel_grad(x: jax.Array, dy: jax.Array, kernel_size: Sequence[int],
+                        strides: Sequence[int], padding,
+                        dilation: Sequence[int] = (1, 1)) -> jax.Array:
+  """dL/dk of conv2d(x, k) for output gradient dy, as one plain NHWC convolution.
+
+  k[i, j, c, o] = sum_{b,y,x} x_pad[b, s*y + d*i, s*x + d*j, c] dy[b, y, x, o]: a convolution
+  of x (channels as the batch, batch as the channels) with dy dilated by s as its kernel and
+  output stride d. XLA builds the same, but written out it stays a library convolution
+  inside loops (XLA leaves its own form to a slow generic kernel there).
+  """
+  xt = jnp.transpose(x, (3, 1, 2, 0))
+  dt = jnp.transpose(dy, (1, 2, 0, 3))
+  pads = [(lo, (k - 1) * d + s * (o - 1) + 1 - size - lo) for k, s, d, o, size, (lo, _) in
+          zip(kernel_size, strides, dilation, dy.shape[1:3], x.shape[1:3], padding)]
+  g = lax.conv_general_dilated(xt, dt, tuple(dilation), pads, rhs_dilation=tuple(strides),
+                               dimension_numbers=("NHWC", "HWIO", "NHWC"))
+  return jnp.transpose(g, (1, 2, 0, 3))
+
+
+def _input_grad_padding(kernel_shape, strides, padding, x_shape, y_shape):
+  """Padding of the s-dilated output gradient whose conv with the flipped kernel is dL/dx."""
+  pads = []
+  for i in range(3):
+    k, s, lo = kernel_shape[i], strides[i], padding[i][0]
+    lo_t = k - 1 - lo
+    pads.append((lo_t, x_shape[1 + i] - (y_shape[1 + i] - 1) * s - 1 - lo_t + k - 1))
+  return tuple(pads)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(2, 3))
+def _fold(x, kernel, strides, padding):
+  return _fold_forward(x, kernel, strides, padding)
+
+
+def _fold_fwd(x, kernel, strides, padding):
+  return _fold_forward(x, kernel, strides, padding), (x, kernel)
+
+
+def _fold_bwd(strides, padding, res, dy):
+  x, kernel = res
+  # dL/dx: the transposed convolution, i.e. a convolution of the stride-dilated dy with the
+  # flipped kernel (in/out swapped); stride 1 is another folded conv, stride s the phases.
+  flipped = jnp.flip(kernel, (0, 1, 2)).swapaxes(3, 4)
+  pads = _input_grad_padding(kernel.shape, strides, padding, x.shape, dy.shape)
+  if strides == (1, 1, 1):
+    dx = _fold(dy, flipped, strides, pads)
+  else:
+    dx = phase_conv_transpose3d(dy, flipped, strides, pads)
+  return dx, _fold_kernel_grad(x, dy, kernel.shape, strides, padding)
+
+
+_fold.defvjp(_fold_fwd, _fold_bwd)
+
+
+def _fold_kernel_grad(x: jax.Array, dy: jax.Array, kernel_shape: Sequence[int],
+                      strides: tuple[int, int, int], padding) -> jax.Array:
+  """dL/dkernel of the folded conv: per depth tap, blocked 2D kernel gradients, summed."""
+  n, depth = x.shape[:2]
+  kd, sd, lo = kernel_shape[0], strides[0], padding[0][0]
+  _, first, count, edges = _depth_plan(depth, kd, sd, padding[0])
+
+  def grad(xa, dya):
+    return _conv2d_kernel_grad(xa, dya, kernel_shape[1:3], strides[1:], padding[1:])
+
+  dk = [jnp.zeros(tuple(kernel_shape[1:]), dy.dtype) for _ in range(kd)]
+  for z, taps in edges:
+    for a in taps:
+      dk[a] = dk[a] + grad(x[:, sd * z + a - lo], dy[:, z])
+
+  def body(n0, z0, nb, tz, dk):
+    dyb = lax.dynamic_slice(dy, (n0, first + z0, 0, 0, 0), (nb, tz) + dy.shape[2:])
+    dyb = dyb.reshape((nb * tz,) + dy.shape[2:])
+    return tuple(g + grad(xa, dyb)
+                 for g, xa in zip(dk, _tap_planes(x, n0, first + z0, nb, tz, kd, sd, lo)))
+
+  return jnp.stack(_blocked(n, count, int(np.prod(x.shape[2:])), body, tuple(dk)))
+
+
+def tap_products_conv3d(x: jax.Array, kernel: jax.Array, padding) -> jax.Array:
+  """Exact stride-1 3D conv for few outputs: all tap products in one matmul, then a shifted sum.
+
+  z[p, t] = x[p] . kernel[t] for the kd*kh*kw taps t (a [P, cin] x [cin, taps*cout] product),
+  y[o] = sum_t z[o + t - lo, t]. For PSMNet's 32 -> 1 classifiers z is smaller than x and
+  the whole layer, gradients included, runs several times faster than as convolutions with
+  one output channel.
+  """
+  kd, kh, kw, cin, cout = kernel.shape
+  n = x.shape[0]
+  taps = kd * kh * kw
+  z = jnp.dot(x.reshape(-1, cin), kernel.transpose(3, 0, 1, 2, 4).reshape(cin, taps * cout))
+  z = z.reshape(x.shape[:4] + (taps, cout))
+  zero = jnp.zeros((), x.dtype)
+  z = lax.pad(z, zero, ((0, 0, 0), *((lo, hi, 0) for lo, hi in padding), (0, 0, 0), (0, 0, 0)))
+  out = [z.shape[1 + i] - kernel.shape[i] + 1 for i in range(3)]
+  y = None
+  for t, (a, i, j) in enumerate(np.ndindex(kd, kh, kw)):
+    yt = lax.slice(z, (0, a, i, j, t, 0), (n, a + out[0], i + out[1], j + out[2], t + 1, cout))
+    y = yt if y is None else y + yt
+  return y.reshape((n, *out, cout))
+
+
 def fold_conv3d(x: jax.Array, kernel: jax.Array, strides: Sequence[int], padding) -> jax.Array:
   """Exact 3D conv as a sum over depth taps of 2D convs with depth folded into the batch.
 
-  y[:, z] = sum_a conv2d(x_padded[:, s*z + a], kernel[a]). XLA:CPU runs 2D convolutions
-  several times faster than 3D ones (and their gradients, notably for stride 2), so this
-  is the CPU path; slicing the depth of NDHWC data is contiguous, so the folding is cheap.
+  y[:, z] = sum_a conv2d(x_padded[:, s*z + a], kernel[a]), computed over blocks of output
+  planes (`BLOCK_VALUES`). XLA:CPU runs 2D convolutions several times faster than 3D ones,
+  and both on small blocks. The gradient is written out (custom VJP) so that it reuses the
+  same machinery: dL/dx is a folded convolution (or phases, for strides), dL/dkernel a sum
+  of blocked 2D kernel gradients.
   """
-  n, _, _, _, c = x.shape
-  kd = kernel.shape[0]
-  sd = strides[0]
+  strides = tuple(int(v) for v in strides)
   pad = _explicit_padding(padding, x.shape, kernel.shape[:3], strides)
-  # Negative padding crops; lax.pad handles both signs.
-  xp = lax.pad(x, jnp.zeros((), x.dtype), ((0, 0, 0), (*pad[0], 0), (0, 0, 0), (0, 0, 0),
-                                            (0, 0, 0)))
-  dp = xp.shape[1]
-  do = (dp - kd) // sd + 1
-  y = None
-  for a in range(kd):
-    xa = lax.slice_in_dim(xp, a, a + sd * (do - 1) + 1, sd, axis=1)
-    ya = _conv2d(xa.reshape((n * do,) + xa.shape[2:]), kernel[a], strides[1:], pad[1:])
-    y = ya if y is None else y + ya
-  return y.reshape((n, do) + y.shape[1:])
+  if strides == (1, 1, 1) and np.prod(kernel.shape[:3]) * kernel.shape[4] <= kernel.shape[3]:
+    return tap_products_conv3d(x, kernel, pad)
+  return _fold(x, kernel, strides, pad)
+
+
+def _conv2d_dilated(x, kernel, strides, padding, dilation):
+  return lax.conv_general_dilated(x, kernel, tuple(strides), tuple(padding),
+                                  rhs_dilation=tuple(dilation),
+                                  dimension_numbers=("NHWC", "HWIO", "NHWC"))
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(2, 3, 4))
+def _conv2d_blocked(x, kernel, strides, padding, dilation):
+  return _conv2d_dilated(x, kernel, strides, padding, dilation)
+
+
+def _conv2d_blocked_fwd(x, kernel, strides, padding, dilation):
+  return _conv2d_dilated(x, kernel, strides, padding, dilation), (x, kernel)
+
+
+def _conv2d_blocked_bwd(strides, padding, dilation, res, dy):
+  x, kernel = res
+  dx = jax.vjp(lambda x: _conv2d_dilated(x, kernel, strides, padding, dilation), x)[1](dy)[0]
+  # dL/dkernel over blocks of output rows (and whole images when they are small).
+  n, ho = dy.shape[:2]
+  kh, sh, dh = kernel.shape[0], strides[0], dilation[0]
+  zero = jnp.zeros((), x.dtype)
+  xp = lax.pad(x, zero, ((0, 0, 0), (*padding[0], 0), (*padding[1], 0), (0, 0, 0)))
+  row_values = xp.shape[2] * xp.shape[3]
+  _, rows = _block_shape(n, ho, row_values)
+  hb = -(-ho // rows) * rows
+  need = sh * (hb - 1) + (kh - 1) * dh + 1
+  xp = lax.pad(xp, zero, ((0, 0, 0), (0, max(0, need - xp.shape[1]), 0), (0, 0, 0), (0, 0, 0)))
+  dyp = lax.pad(dy, zero, ((0, 0, 0), (0, hb - ho, 0), (0, 0, 0), (0, 0, 0)))
+
+  def body(n0, r0, nb, rows, dk):
+    xin = lax.dynamic_slice(xp, (n0, sh * r0, 0, 0),
+                            (nb, sh * (rows - 1) + (kh - 1) * dh + 1) + xp.shape[2:])
+    dyb = lax.dynamic_slice(dyp, (n0, r0, 0, 0), (nb, rows) + dy.shape[2:])
+    return dk + _conv2d_kernel_grad(xin, dyb, kernel.shape[:2], strides, ((0, 0), (0, 0)),
+                                    dilation)
+
+  dk = _blocked(n, ho, row_values, body, jnp.zeros(kernel.shape, kernel.dtype))
+  return dx, dk
+
+
+
+_conv2d_blocked.defvjp(_conv2d_blocked_fwd, _conv2d_blocked_bwd)
+
+
+def conv2d(x: jax.Array, kernel: jax.Array, strides: Sequence[int] = (1, 1), padding=((1, 1),) * 2,
+           dilation: Sequence[int] = (1, 1), impl: str | None = None) -> jax.Array:
+  """NHWC 2D convolution equal to lax.conv_general_dilated; on CPU its kernel gradient is blocked.
+
+  The forward pass and dL/dx are XLA's own; dL/dkernel is summed over blocks of output rows
+  (`BLOCK_VALUES`), which XLA:CPU computes 1.3-1.6x faster than in one piece at PSMNet's
+  feature-extraction shapes.
+  """
+  strides, dilation = tuple(int(v) for v in strides), tuple(int(v) for v in dilation)
+  if isinstance(padding, str):
+    eff = [(k - 1) * d + 1 for k, d in zip(kernel.shape[:2], dilation)]
+    padding = lax.padtype_to_pads(x.shape[1:3], eff, strides, padding)
+  padding = tuple((int(lo), int(hi)) for lo, hi in padding)
+  if conv_impl(impl) == "lax":
+    return _conv2d_dilated(x, kernel, strides, padding, dilation)
+  return _conv2d_blocked(x, kernel, strides, padding, dilation)
 
 
 def _phase_selection(k: int, s: int, lo: int) -> tuple[np.ndarray, int]:
@@ -155,16 +400,7 @@ def _phase_selection(k: int, s: int, lo: int) -> tuple[np.ndarray, int]:
   return sel, emin
 
 
-def phase_conv_transpose3d(x: jax.Array, kernel: jax.Array, strides: Sequence[int],
-                           padding: Sequence[tuple[int, int]]) -> jax.Array:
-  """Exact stride-s transposed conv via sub-pixel (phase) decomposition.
-
-  Equal to conv of the s-dilated input padded by `padding` with `kernel` (unflipped), but
-  never multiplies the inserted zeros: each of the s^3 output phases is a stride-1 conv of
-  the undilated input; all phases share one conv with s^3*cout output channels whose kernel
-  (over the union of input offsets) is gathered from `kernel` by 0/1 selection, then the
-  phases are interleaved (pixel shuffle) and the output cropped to its exact size.
-  """
+def _phase_forward(x, kernel, strides, padding):
   n, cout = x.shape[0], kernel.shape[4]
   sels, pads, lq, lengths = [], [], [], []
   for dim in range(3):
@@ -185,6 +421,51 @@ def phase_conv_transpose3d(x: jax.Array, kernel: jax.Array, strides: Sequence[in
   y = y.reshape(n, lq[0], lq[1], lq[2], sd, sh, sw, cout)
   y = y.transpose(0, 1, 4, 2, 5, 3, 6, 7).reshape(n, lq[0] * sd, lq[1] * sh, lq[2] * sw, cout)
   return y[:, :lengths[0], :lengths[1], :lengths[2]]
+
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(2, 3))
+def _phase(x, kernel, strides, padding):
+  return _phase_forward(x, kernel, strides, padding)
+
+
+def _phase_fwd(x, kernel, strides, padding):
+  return _phase_forward(x, kernel, strides, padding), (x, kernel)
+
+
+def _phase_bwd(strides, padding, res, dy):
+  # The transposed conv is the adjoint of the stride-s conv with the flipped, in/out-swapped
+  # kernel w; so dL/dx is that strided (folded) conv of dy and dL/dw its kernel gradient
+  # with dy as input and x as output gradient, both cheaper than differentiating the phases.
+  x, kernel = res
+  w = jnp.flip(kernel, (0, 1, 2)).swapaxes(3, 4)
+  pads = []
+  for i in range(3):
+    k, s, lo = kernel.shape[i], strides[i], padding[i][0]
+    front = k - 1 - lo
+    pads.append((front, s * (x.shape[1 + i] - 1) + k - front - dy.shape[1 + i]))
+  pads = tuple(pads)
+  dx = _fold(dy, w, strides, pads)
+  dw = _fold_kernel_grad(dy, x, w.shape, strides, pads)
+  return dx, jnp.flip(dw, (0, 1, 2)).swapaxes(3, 4)
+
+
+_phase.defvjp(_phase_fwd, _phase_bwd)
+
+
+def phase_conv_transpose3d(x: jax.Array, kernel: jax.Array, strides: Sequence[int],
+                           padding: Sequence[tuple[int, int]]) -> jax.Array:
+  """Exact stride-s transposed conv via sub-pixel (phase) decomposition.
+
+  Equal to conv of the s-dilated input padded by `padding` with `kernel` (unflipped), but
+  never multiplies the inserted zeros: each of the s^3 output phases is a stride-1 conv of
+  the undilated input; all phases share one conv with s^3*cout output channels whose kernel
+  (over the union of input offsets) is gathered from `kernel` by 0/1 selection, then the
+  phases are interleaved (pixel shuffle) and the output cropped to its exact size.
+  """
+  strides = tuple(int(v) for v in strides)
+  padding = tuple((int(lo), int(hi)) for lo, hi in padding)
+  return _phase(x, kernel, strides, padding)
 
 
 def conv3d(x: jax.Array, kernel: jax.Array, strides: Sequence[int] = (1, 1, 1),
@@ -267,6 +548,36 @@ class ConvTranspose3D(nn.Module):
     dtype = self.dtype or jnp.result_type(x, kernel)
     y = conv_transpose3d(x.astype(dtype), kernel.astype(dtype), _triple(self.strides),
                          transpose_padding(ks, self.padding, self.output_padding), self.impl)
+    if self.use_bias:
+      bias = self.param("bias", self.bias_init, (self.features,), jnp.float32)
+      y = y + bias.astype(dtype)
+    return y
+
+
+class Conv2D(nn.Module):
+  """Drop-in for a 2D nn.Conv on NHWC input (same params): XLA's convolution, blocked kernel grad."""
+
+  features: int
+  kernel_size: Sequence[int] = (3, 3)
+  strides: int | Sequence[int] = (1, 1)
+  padding: PaddingLike = "SAME"
+  kernel_dilation: int | Sequence[int] = (1, 1)
+  use_bias: bool = True
+  kernel_init: Initializer = nn.initializers.lecun_normal()
+  bias_init: Initializer = nn.initializers.zeros_init()
+  dtype: Any = None  # computation dtype; None: that of the input and kernel (as nn.Conv)
+  impl: str | None = None
+
+  @nn.compact
+  def __call__(self, x: jax.Array) -> jax.Array:
+    """Applies the convolution to x (N, H, W, C)."""
+    ks = tuple(self.kernel_size)
+    pair = lambda v: (v, v) if isinstance(v, int) else tuple(v)
+    kernel = self.param("kernel", self.kernel_init, ks + (x.shape[-1], self.features), jnp.float32)
+    pad = self.padding if isinstance(self.padding, str) else resolve_padding(self.padding, ks)
+    dtype = self.dtype or jnp.result_type(x, kernel)
+    y = conv2d(x.astype(dtype), kernel.astype(dtype), pair(self.strides), pad,
+               pair(self.kernel_dilation), self.impl)
     if self.use_bias:
       bias = self.param("bias", self.bias_init, (self.features,), jnp.float32)
       y = y + bias.astype(dtype)

@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sljax.nets.conv3d import Conv3D
+from sljax.nets.conv3d import Conv2D, Conv3D
 
 BN_MOMENTUM = 0.9  # flax convention: running = momentum * running + (1 - momentum) * batch
 BN_EPSILON = 1e-5
@@ -47,10 +47,10 @@ class ConvBN2D(nn.Module):
   def __call__(self, x: jax.Array, train: bool) -> jax.Array:
     """Applies conv then BN (batch statistics when train, running averages otherwise)."""
     p = self.padding
-    x = nn.Conv(self.features, (self.kernel_size, self.kernel_size),
-                strides=(self.strides, self.strides), padding=((p, p), (p, p)),
-                kernel_dilation=(self.dilation, self.dilation), use_bias=False,
-                kernel_init=conv_init, name="conv")(x)
+    x = Conv2D(self.features, (self.kernel_size, self.kernel_size),
+               strides=(self.strides, self.strides), padding=((p, p), (p, p)),
+               kernel_dilation=(self.dilation, self.dilation), use_bias=False,
+               kernel_init=conv_init, name="conv")(x)
     return batch_norm("bn")(x, use_running_average=not train)
 
 
@@ -90,6 +90,43 @@ def linear_resize_matrix(n_in: int, n_out: int, align_corners: bool) -> np.ndarr
   np.add.at(m, (np.arange(n_out), i0), 1.0 - w1)
   np.add.at(m, (np.arange(n_out), i1), w1)
   return m.astype(np.float32)
+
+
+@functools.lru_cache(maxsize=256)
+def linear_resize_phases(n_in: int, n_out: int, align_corners: bool
+                         ) -> tuple[tuple[int, float, float], ...] | None:
+  """`linear_resize_matrix` as f = n_out / n_in phases, or None where it has no such form.
+
+  Phase r gives output f*i + r = w0 * x[i + s] + w1 * x[i + s + 1] with x edge-extended by
+  one sample on both sides; returns ((s, w0, w1), ...) for r = 0..f-1. This holds for an
+  integer factor with align_corners=False (PyTorch's clamping at the ends is the edge
+  extension) and is verified against the matrix, row by row.
+  """
+  if align_corners or n_out % n_in or n_in < 2:
+    return None
+  f = n_out // n_in
+  m = linear_resize_matrix(n_in, n_out, False).astype(np.float64)
+  mid = n_in // 2
+  phases = []
+  for r in range(f):
+    row = m[f * mid + r]
+    cols = np.flatnonzero(row)
+    s = int(cols[0]) - mid if len(cols) else 0
+    if len(cols) == 1 and row[cols[0]] == 1.0:
+      phases.append((s, 1.0, 0.0))
+    elif len(cols) == 2 and cols[1] == cols[0] + 1:
+      phases.append((s, float(row[cols[0]]), float(row[cols[1]])))
+    else:
+      return None
+  ext = np.concatenate([[0], np.arange(n_in), [n_in - 1]])  # edge extension by one sample
+  want = np.zeros_like(m)
+  for r, (s, w0, w1) in enumerate(phases):
+    if s < -1 or s > 0:
+      return None
+    for i in range(n_in):
+      want[f * i + r, ext[i + s + 1]] += w0
+      want[f * i + r, ext[i + s + 2]] += w1
+  return tuple(phases) if np.allclose(want, m, rtol=0, atol=1e-6) else None
 
 
 def resize_linear(x: jax.Array, sizes: Sequence[int], axes: Sequence[int],

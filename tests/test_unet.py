@@ -111,3 +111,42 @@ def test_bad_inputs_raise(kwargs, shapes, match):
   a, b = (jax.ShapeDtypeStruct(s, jnp.float32) for s in shapes)
   with pytest.raises(SljaxError, match=match):
     jax.eval_shape(lambda x, y: model.init(KEY, x, y), a, b)
+
+
+def test_upconv_equals_flax_conv_transpose():
+  """UpConv2x2 (a product and a reshape) is nn.ConvTranspose 2x2 stride 2: values, grads."""
+  import flax.linen as nn
+  from sljax.nets.layers import UpConv2x2
+  rng = np.random.RandomState(0)
+  x = jnp.asarray(rng.randn(2, 3, 5, 4), jnp.float32)
+  theirs = nn.ConvTranspose(6, (2, 2), strides=(2, 2), padding="VALID")
+  v = theirs.init(jax.random.PRNGKey(0), x)
+  v = jax.tree.map(lambda a: jnp.asarray(rng.randn(*a.shape), jnp.float32), v)
+  ours = UpConv2x2(6)
+  assert jax.tree.map(jnp.shape, ours.init(jax.random.PRNGKey(0), x)) == \
+      jax.tree.map(jnp.shape, v)
+  w = jnp.asarray(rng.randn(2, 6, 10, 6), jnp.float32)
+
+  def value_and_grads(m):
+    return jax.value_and_grad(lambda v, x: jnp.sum(m.apply(v, x) * w), argnums=(0, 1))(v, x)
+
+  (a, (ga_v, ga_x)), (b, (gb_v, gb_x)) = value_and_grads(ours), value_and_grads(theirs)
+  np.testing.assert_allclose(np.asarray(ours.apply(v, x)), np.asarray(theirs.apply(v, x)),
+                             rtol=1e-5, atol=1e-5)
+  np.testing.assert_allclose(float(a), float(b), rtol=1e-5)
+  np.testing.assert_allclose(np.asarray(ga_x), np.asarray(gb_x), rtol=1e-5, atol=1e-5)
+  for p, q in zip(jax.tree.leaves(ga_v), jax.tree.leaves(gb_v)):
+    np.testing.assert_allclose(np.asarray(p), np.asarray(q), rtol=1e-5, atol=1e-5)
+
+
+def test_max_pool_equals_flax_max_pool():
+  """max_pool_2x2 equals nn.max_pool, values and gradients (random data: no ties)."""
+  import flax.linen as nn
+  from sljax.nets.layers import max_pool_2x2
+  rng = np.random.RandomState(1)
+  x = jnp.asarray(rng.randn(2, 6, 8, 3), jnp.float32)
+  w = jnp.asarray(rng.randn(2, 3, 4, 3), jnp.float32)
+  ref = lambda x: nn.max_pool(x, (2, 2), strides=(2, 2))
+  np.testing.assert_array_equal(np.asarray(max_pool_2x2(x)), np.asarray(ref(x)))
+  g = [jax.grad(lambda x: jnp.sum(f(x) * w))(x) for f in (max_pool_2x2, ref)]
+  np.testing.assert_array_equal(np.asarray(g[0]), np.asarray(g[1]))

@@ -70,6 +70,42 @@ class ConvBN3D(nn.Module):
     return batch_norm("bn")(x, use_running_average=not train)
 
 
+class UpConv2x2(nn.Module):
+  """nn.ConvTranspose(features, (2, 2), strides=(2, 2), padding="VALID"), same parameters.
+
+  With stride = kernel size the output blocks do not overlap: output pixel (2i + a, 2j + c)
+  is x[i, j] times the kernel tap (1 - a, 1 - c), one matrix product and a reshape. XLA:CPU
+  runs the transposed convolution's kernel gradient as a slow generic convolution (40% of
+  the UNet's training step at 256x256); as a product it is a matrix product too.
+  """
+
+  features: int
+  kernel_init: nn.initializers.Initializer = nn.initializers.lecun_normal()
+  bias_init: nn.initializers.Initializer = nn.initializers.zeros_init()
+
+  @nn.compact
+  def __call__(self, x: jax.Array) -> jax.Array:
+    """Upsamples NHWC x by 2 in height and width."""
+    kernel = self.param("kernel", self.kernel_init, (2, 2, x.shape[-1], self.features),
+                        jnp.float32)
+    bias = self.param("bias", self.bias_init, (self.features,), jnp.float32)
+    dtype = jnp.result_type(x, kernel)
+    b, h, w, _ = x.shape
+    y = jnp.einsum("bhwi,acio->bhawco", x.astype(dtype), kernel[::-1, ::-1].astype(dtype))
+    return y.reshape(b, 2 * h, 2 * w, self.features) + bias.astype(dtype)
+
+
+def max_pool_2x2(x: jax.Array) -> jax.Array:
+  """nn.max_pool(x, (2, 2), strides=(2, 2)) on NHWC x with even height and width.
+
+  A reshape and a max: XLA:CPU's max-pool gradient (select-and-scatter) is several times
+  slower than that of a plain reduction. Ties share the gradient instead of going to one
+  position; after a ReLU the usual tie is a window of zeros, whose gradient is zero anyway.
+  """
+  b, h, w, c = x.shape
+  return jnp.max(x.reshape(b, h // 2, 2, w // 2, 2, c), axis=(2, 4))
+
+
 @functools.lru_cache(maxsize=256)
 def linear_resize_matrix(n_in: int, n_out: int, align_corners: bool) -> np.ndarray:
   """(n_out, n_in) matrix of PyTorch's 1D linear interpolation weights.

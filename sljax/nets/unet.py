@@ -26,7 +26,7 @@ import jax
 import jax.numpy as jnp
 
 from sljax.errors import require
-from sljax.nets.layers import ConvBN2D, conv_init
+from sljax.nets.layers import ConvBN2D, UpConv2x2, conv_init, max_pool_2x2
 
 HEADS = ("sl", "disp")
 INPUT_ZERO = 0.5  # the [0, 1] input that the centring 2x - 1 maps to 0: the pad value at test time
@@ -78,12 +78,11 @@ class UNet(nn.Module):
     for level in range(self.depth):
       x = DoubleConv(self.base_width * 2 ** level, name=f"down{level}")(x, train)
       skips.append(x)
-      x = nn.max_pool(x, (2, 2), strides=(2, 2))
+      x = max_pool_2x2(x)  # even sizes: the input is padded to a multiple of 2^depth
     x = DoubleConv(self.base_width * 2 ** self.depth, name="bottleneck")(x, train)
     for level in reversed(range(self.depth)):
       feat = self.base_width * 2 ** level
-      x = nn.ConvTranspose(feat, (2, 2), strides=(2, 2), padding="VALID", kernel_init=conv_init,
-                           name=f"upconv{level}")(x)
+      x = UpConv2x2(feat, kernel_init=conv_init, name=f"upconv{level}")(x)
       x = jnp.concatenate([skips[level], x], axis=-1)
       x = DoubleConv(feat, name=f"up{level}")(x, train)
     x = x[:, :h, :w]

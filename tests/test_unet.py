@@ -140,11 +140,15 @@ def test_upconv_equals_flax_conv_transpose():
 
 
 def test_max_pool_equals_flax_max_pool():
-  """max_pool_2x2 equals nn.max_pool, values and gradients (random data: no ties)."""
+  """max_pool_2x2 equals nn.max_pool, values and gradients, ties included (first maximum)."""
   import flax.linen as nn
   from sljax.nets.layers import max_pool_2x2
   rng = np.random.RandomState(1)
-  x = jnp.asarray(rng.randn(2, 6, 8, 3), jnp.float32)
+  x = rng.randn(2, 6, 8, 3).astype(np.float32)
+  x[0, :2, :2] = 1.5   # ties: a flat window, and a window with two equal maxima
+  x[1, 2:4, 4:6] = np.maximum(x[1, 2:4, 4:6], 0)
+  x[1, 2, 5] = x[1, 3, 4] = 9.0
+  x = jnp.asarray(x)
   w = jnp.asarray(rng.randn(2, 3, 4, 3), jnp.float32)
   ref = lambda x: nn.max_pool(x, (2, 2), strides=(2, 2))
   np.testing.assert_array_equal(np.asarray(max_pool_2x2(x)), np.asarray(ref(x)))

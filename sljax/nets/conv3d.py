@@ -140,6 +140,8 @@ def _blocked(n: int, count: int, plane_values: int, body: Callable, init):
   """Runs body(n0, z0, nb, tz, carry) over all blocks (a loop when there are several)."""
   if count == 0:
     return init
+  if not isinstance(n, int):  # a symbolic batch (jax.export): one block of everything
+    return body(0, 0, n, count, init)
   nb, tz = _block_shape(n, count, plane_values)
   zblocks = count // tz
   total = (n // nb) * zblocks

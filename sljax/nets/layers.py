@@ -95,15 +95,38 @@ class UpConv2x2(nn.Module):
     return y.reshape(b, 2 * h, 2 * w, self.features) + bias.astype(dtype)
 
 
+def _windows_2x2(x: jax.Array) -> jax.Array:
+  """[B, H, W, C] -> [B, H/2, W/2, C, 4]: each 2x2 window's values in row-major order."""
+  b, h, w, c = x.shape
+  return x.reshape(b, h // 2, 2, w // 2, 2, c).transpose(0, 1, 3, 5, 2, 4).reshape(
+      b, h // 2, w // 2, c, 4)
+
+
+@jax.custom_vjp
 def max_pool_2x2(x: jax.Array) -> jax.Array:
   """nn.max_pool(x, (2, 2), strides=(2, 2)) on NHWC x with even height and width.
 
-  A reshape and a max: XLA:CPU's max-pool gradient (select-and-scatter) is several times
-  slower than that of a plain reduction. Ties share the gradient instead of going to one
-  position; after a ReLU the usual tie is a window of zeros, whose gradient is zero anyway.
+  The gradient goes to the first maximum of each window, as XLA's select-and-scatter (and
+  PyTorch) do, but as an argmax and a one-hot: XLA:CPU's select-and-scatter is several times
+  slower. Splitting ties instead (jnp.max's own gradient) changes training on images with flat
+  regions, where ties are common.
   """
-  b, h, w, c = x.shape
-  return jnp.max(x.reshape(b, h // 2, 2, w // 2, 2, c), axis=(2, 4))
+  return jnp.max(_windows_2x2(x), axis=-1)
+
+
+def _max_pool_fwd(x):
+  win = _windows_2x2(x)
+  return jnp.max(win, axis=-1), jnp.argmax(win, axis=-1)
+
+
+def _max_pool_bwd(first, g):
+  b, h2, w2, c = g.shape
+  win = jax.nn.one_hot(first, 4, dtype=g.dtype) * g[..., None]
+  return (win.reshape(b, h2, w2, c, 2, 2).transpose(0, 1, 4, 2, 5, 3).reshape(
+      b, 2 * h2, 2 * w2, c),)
+
+
+max_pool_2x2.defvjp(_max_pool_fwd, _max_pool_bwd)
 
 
 @functools.lru_cache(maxsize=256)

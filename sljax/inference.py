@@ -241,7 +241,8 @@ def _jitted_forward():
 
 # The twin (psmnet-mtl) runs as two programs when its cost volume would exceed this many bytes:
 # PSMNet on the disparity path's variables, then the SL path alone (`SLOnly`). Same values;
-# the two 3D stacks are never alive together (1024x1280, maxdisp 192: peak 9.2 -> 6.2 GiB).
+# the two 3D stacks are never alive together (1024x1280, maxdisp 192: peak 9.2 -> 6.2 GiB when
+# measured before issue 13's blocked convolutions; 4.0 GiB since).
 TWIN_SPLIT_BYTES = 256 * 2**20
 
 

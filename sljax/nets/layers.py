@@ -96,34 +96,34 @@ class UpConv2x2(nn.Module):
 
 
 def _windows_2x2(x: jax.Array) -> jax.Array:
-  """[B, H, W, C] -> [B, H/2, W/2, C, 4]: each 2x2 window's values in row-major order."""
+  """[B, H, W, C] -> [B, H/2, 2, W/2, 2, C] (a reshape: no data moves)."""
   b, h, w, c = x.shape
-  return x.reshape(b, h // 2, 2, w // 2, 2, c).transpose(0, 1, 3, 5, 2, 4).reshape(
-      b, h // 2, w // 2, c, 4)
+  return x.reshape(b, h // 2, 2, w // 2, 2, c)
 
 
 @jax.custom_vjp
 def max_pool_2x2(x: jax.Array) -> jax.Array:
   """nn.max_pool(x, (2, 2), strides=(2, 2)) on NHWC x with even height and width.
 
-  The gradient goes to the first maximum of each window, as XLA's select-and-scatter (and
-  PyTorch) do, but as an argmax and a one-hot: XLA:CPU's select-and-scatter is several times
-  slower. Splitting ties instead (jnp.max's own gradient) changes training on images with flat
-  regions, where ties are common.
+  The gradient goes to the first maximum of each window (row-major), as XLA's
+  select-and-scatter (and PyTorch) do, but as elementwise masks on a reshape: XLA:CPU's
+  select-and-scatter is several times slower. Splitting ties instead (jnp.max's own gradient)
+  changes training on images with flat regions, where ties are common.
   """
-  return jnp.max(_windows_2x2(x), axis=-1)
+  return jnp.max(_windows_2x2(x), axis=(2, 4))
 
 
 def _max_pool_fwd(x):
+  return max_pool_2x2(x), x
+
+
+def _max_pool_bwd(x, g):
   win = _windows_2x2(x)
-  return jnp.max(win, axis=-1), jnp.argmax(win, axis=-1)
-
-
-def _max_pool_bwd(first, g):
-  b, h2, w2, c = g.shape
-  win = jax.nn.one_hot(first, 4, dtype=g.dtype) * g[..., None]
-  return (win.reshape(b, h2, w2, c, 2, 2).transpose(0, 1, 4, 2, 5, 3).reshape(
-      b, 2 * h2, 2 * w2, c),)
+  eq = win == jnp.max(win, axis=(2, 4), keepdims=True)
+  e00, e01, e10, e11 = eq[:, :, 0, :, 0], eq[:, :, 0, :, 1], eq[:, :, 1, :, 0], eq[:, :, 1, :, 1]
+  first = [[e00, e01 & ~e00], [e10 & ~(e00 | e01), e11 & ~(e00 | e01 | e10)]]
+  sel = jnp.stack([jnp.stack(row, axis=3) for row in first], axis=2)  # [B, H/2, 2, W/2, 2, C]
+  return (jnp.where(sel, g[:, :, None, :, None], 0).reshape(x.shape).astype(g.dtype),)
 
 
 max_pool_2x2.defvjp(_max_pool_fwd, _max_pool_bwd)

@@ -15,8 +15,7 @@ import json
 import tempfile
 from pathlib import Path
 
-import jax
-
+from common import machine  # first: puts this checkout's sljax on the path
 from sljax.train import loop
 from sljax.train.config import QUICK
 
@@ -36,8 +35,7 @@ def main() -> None:
       wd = Path(tmp) / precision
       loop.train(config, wd, log=lambda line: None, progress=False)
       runs[precision] = [json.loads(l) for l in (wd / loop.EPOCHS_FILE).read_text().splitlines()]
-  print(f"\nquick preset, psmnet/{args.strategy}, seed {args.seed}, on "
-        f"{jax.devices()[0].device_kind} ({jax.default_backend()})\n")
+  print(f"\n{machine()}\nquick preset, psmnet-mtl/{args.strategy}, seed {args.seed}\n")
   print("| epoch | val MAE fp32 px | val MAE bf16 px | bf16 - fp32 | s/epoch fp32 | s/epoch bf16 |")
   print("| --- | --- | --- | --- | --- | --- |")
   for a, b in zip(runs["fp32"], runs["bf16"]):

@@ -46,9 +46,11 @@ def test_paired_test_on_a_small_table():
   half = 4.302653 / math.sqrt(3.0)
   assert (res["lo"], res["hi"]) == (pytest.approx(-2 - half, abs=1e-5),
                                     pytest.approx(-2 + half, abs=1e-5))
-  assert res["wins"] == 3
+  assert res["wins"] == 3 and res["losses"] == 0
   same = stats.paired_test([1.0, 2.0], [1.0, 2.0])
-  assert same["t"] == 0.0 and same["p"] == 1.0 and same["wins"] == 0
+  assert same["t"] == 0.0 and same["p"] == 1.0 and same["wins"] == 0 and same["losses"] == 0
+  mixed = stats.paired_test([1.0, 3.0, 2.0], [2.0, 2.0, 2.0])
+  assert (mixed["wins"], mixed["losses"]) == (1, 1)
   with pytest.raises(ValueError):
     stats.paired_test([1.0], [1.0, 2.0])
 
@@ -67,3 +69,19 @@ def test_incomplete_beta_symmetry_and_bounds():
   assert stats.incomplete_beta(1.0, 1.0, 0.37) == pytest.approx(0.37)
   assert stats.incomplete_beta(3.0, 1.0, 0.5) == pytest.approx(0.125)
   assert np.isclose(stats.incomplete_beta(2.0, 2.0, 0.0), 0.0)
+
+
+def test_claim_of_the_baseline_counts_its_own_wins():
+  """A claim that the baseline beats an arm flips the difference and counts the baseline's wins."""
+  from types import SimpleNamespace
+  from sljax.experiment.report import claims
+  diff = stats.paired_test([2.0, 2.1, 1.9], [1.0, 1.0, 1.0])  # unet-sl - unet-disp: all worse
+  agg = {"groups": [{"factors": {"data": "objects"},
+                     "sets": {"heldout": {"paired": {"unet-sl": {"mae": diff,
+                                                                  "seg_mae": diff}}}}}]}
+  first = claims(SimpleNamespace(name="table1"), agg)[0]
+  assert "unet-disp) has a lower Full MAE" in first["claim"]
+  d = first["difference"]
+  assert d["mean"] == pytest.approx(-1.0) and d["hi"] < 0
+  assert (d["wins"], d["losses"]) == (3, 0)
+  assert first["verdict"] == "holds"

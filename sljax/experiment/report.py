@@ -192,7 +192,8 @@ def claims(plan: Plan, agg: dict[str, Any]) -> list[dict[str, Any]]:
       return
     d = dict(diff)
     if sign < 0:  # the claim is "baseline beats arm": test baseline - arm
-      d.update(mean=-diff["mean"], lo=-diff["hi"], hi=-diff["lo"])
+      d.update(mean=-diff["mean"], lo=-diff["hi"], hi=-diff["lo"], wins=diff.get("losses"),
+               losses=diff["wins"])
     out.append({"claim": text, "metric": metric, "set": set_name, "arm": arm,
                 "difference": d, "verdict": _verdict(d)})
 

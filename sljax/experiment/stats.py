@@ -96,13 +96,13 @@ def paired_test(a: Sequence[float], b: Sequence[float],
                 confidence: float = CONFIDENCE) -> dict[str, float]:
   """Paired comparison of a against b (same seeds, same order): the mean difference a - b with
   its t interval, the paired t statistic and its two-sided p-value, and how many pairs have
-  a < b ('wins', i.e. a better for lower-is-better metrics)."""
+  a < b ('wins', i.e. a better for lower-is-better metrics) and a > b ('losses')."""
   a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
   if a.shape != b.shape:
     raise ValueError(f"paired samples differ in length: {a.size} and {b.size}")
   d = a - b
   out = mean_ci(d, confidence)
-  out["wins"] = int(np.sum(d < 0))
+  out["wins"], out["losses"] = int(np.sum(d < 0)), int(np.sum(d > 0))
   out["t"], out["p"] = math.nan, math.nan
   if d.size >= 2:
     if out["sd"] > 0:

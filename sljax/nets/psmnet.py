@@ -47,7 +47,6 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax import lax
 
 from sljax.errors import require
 from sljax.nets.conv3d import Conv3D, ConvTranspose3D

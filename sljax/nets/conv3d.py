@@ -112,8 +112,10 @@ def _explicit_padding(padding, x_shape: Sequence[int], kernel_size: Sequence[int
   return tuple((int(lo), int(hi)) for lo, hi in padding)
 
 
-def _conv2d(x: jax.Array, kernel: jax.Array, strides: Sequence[int], padding) -> jax.Array:
+def _conv2d(x: jax.Array, kernel: jax.Array, strides: Sequence[int], padding,
+            dilation: Sequence[int] = (1, 1)) -> jax.Array:
   return lax.conv_general_dilated(x, kernel, tuple(strides), tuple(padding),
+                                  rhs_dilation=tuple(dilation),
                                   dimension_numbers=("NHWC", "HWIO", "NHWC"))
 
 
@@ -324,24 +326,18 @@ def fold_conv3d(x: jax.Array, kernel: jax.Array, strides: Sequence[int], padding
   return _fold(x, kernel, strides, pad)
 
 
-def _conv2d_dilated(x, kernel, strides, padding, dilation):
-  return lax.conv_general_dilated(x, kernel, tuple(strides), tuple(padding),
-                                  rhs_dilation=tuple(dilation),
-                                  dimension_numbers=("NHWC", "HWIO", "NHWC"))
-
-
 @functools.partial(jax.custom_vjp, nondiff_argnums=(2, 3, 4))
 def _conv2d_blocked(x, kernel, strides, padding, dilation):
-  return _conv2d_dilated(x, kernel, strides, padding, dilation)
+  return _conv2d(x, kernel, strides, padding, dilation)
 
 
 def _conv2d_blocked_fwd(x, kernel, strides, padding, dilation):
-  return _conv2d_dilated(x, kernel, strides, padding, dilation), (x, kernel)
+  return _conv2d(x, kernel, strides, padding, dilation), (x, kernel)
 
 
 def _conv2d_blocked_bwd(strides, padding, dilation, res, dy):
   x, kernel = res
-  dx = jax.vjp(lambda x: _conv2d_dilated(x, kernel, strides, padding, dilation), x)[1](dy)[0]
+  dx = jax.vjp(lambda x: _conv2d(x, kernel, strides, padding, dilation), x)[1](dy)[0]
   # dL/dkernel over blocks of output rows (and whole images when they are small).
   n, ho = dy.shape[:2]
   kh, sh, dh = kernel.shape[0], strides[0], dilation[0]
@@ -383,7 +379,7 @@ def conv2d(x: jax.Array, kernel: jax.Array, strides: Sequence[int] = (1, 1), pad
     padding = lax.padtype_to_pads(x.shape[1:3], eff, strides, padding)
   padding = tuple((int(lo), int(hi)) for lo, hi in padding)
   if conv_impl(impl) == "lax":
-    return _conv2d_dilated(x, kernel, strides, padding, dilation)
+    return _conv2d(x, kernel, strides, padding, dilation)
   return _conv2d_blocked(x, kernel, strides, padding, dilation)
 
 

@@ -1,23 +1,33 @@
 """Orbax checkpoints of training runs and loading trained models for inference.
 
-WORKDIR/checkpoints/<step>/ holds {'state': TrainState pytree, 'meta': loop bookkeeping JSON}.
+WORKDIR/checkpoints/<step>/ holds 'state', the TrainState packed into one vector per dtype, and
+'meta', the loop's bookkeeping JSON with the packing's layout (each leaf's path, dtype and
+shape, in flattening order). Packed because orbax / TensorStore spend about 1 ms of CPU per
+array: the twin's state is ~1240 arrays, 1.4 s of CPU per save, against 0.2 s for two vectors
+(a per-epoch cost that competed with training on small CPUs). Checkpoints written before
+packing (the state as a tree, no layout) still restore.
 Retention: the last `keep` checkpoints plus the best one by validation MAE (lowest).
 """
 
 import json
+import math
 import os
 from pathlib import Path
 from typing import Any
 
 import jax
+import jax.numpy as jnp
+import numpy as np
 import orbax.checkpoint as ocp
+from flax import traverse_util
 from orbax.checkpoint.checkpoint_managers import preservation_policy as pp
 
-from sljax.errors import require
+from sljax.errors import SljaxError, require
 
 CHECKPOINT_DIR = "checkpoints"
 CONFIG_FILE = "config.json"
 BEST_METRIC = "val_mae"
+LAYOUT_KEY = "packed_layout"  # in meta: [[path parts], dtype, shape] per leaf
 
 
 def _val_mae(metrics: dict[str, Any]) -> float:
@@ -40,13 +50,80 @@ def make_manager(directory: str | os.PathLike, keep: int = 3,
   return ocp.CheckpointManager(directory, options=options, item_names=("state", "meta"))
 
 
+def _key_name(key: Any) -> str:
+  for attr in ("key", "name", "idx"):
+    if hasattr(key, attr):
+      return str(getattr(key, attr))
+  return str(key)
+
+
+def layout(tree: Any) -> list[list[Any]]:
+  """[[path parts], dtype, shape] of each leaf of tree, in flattening order."""
+  return [[[_key_name(k) for k in path], str(jax.dtypes.canonicalize_dtype(leaf.dtype)),
+           list(np.shape(leaf))]
+          for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]]
+
+
+@jax.jit
+def pack(tree: Any) -> dict[str, jax.Array]:
+  """The leaves of tree raveled and concatenated, one vector per dtype (flattening order)."""
+  leaves = [jnp.asarray(x) for x in jax.tree.leaves(tree)]
+  return {str(dt): jnp.concatenate([x.ravel() for x in leaves if x.dtype == dt])
+          for dt in sorted({x.dtype for x in leaves}, key=str)}
+
+
+def unpack(packed: dict[str, jax.Array], lay: list[list[Any]]) -> list[jax.Array]:
+  """The leaves that pack concatenated, given their layout (inverse of pack)."""
+  offsets = dict.fromkeys(packed, 0)
+  leaves = []
+  for _, dtype, shape in lay:
+    n = math.prod(shape)
+    leaves.append(jax.lax.slice_in_dim(packed[dtype], offsets[dtype], offsets[dtype] + n)
+                  .reshape(shape))
+    offsets[dtype] += n
+  return leaves
+
+
 def save(manager: ocp.CheckpointManager, step: int, state: Any, meta: dict[str, Any],
          val_mae: float | None = None) -> None:
-  """Starts an async save of the state and loop metadata at step (wait_until_finished later)."""
+  """Starts an async save of the state (packed) and loop metadata at step
+  (wait_until_finished later)."""
   metrics = None if val_mae is None else {BEST_METRIC: float(val_mae)}
-  manager.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave(state),
+  meta = dict(meta, **{LAYOUT_KEY: layout(state)})
+  manager.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave(pack(state)),
                                               meta=ocp.args.JsonSave(meta)),
                metrics=metrics, force=True)
+
+
+def _hashable(lay: list[list[Any]]) -> tuple:
+  return tuple((tuple(parts), dtype, tuple(shape)) for parts, dtype, shape in lay)
+
+
+def _restore_packed(manager: ocp.CheckpointManager, step: int, lay: list[list[Any]],
+                    abstract_state: Any | None, device: Any) -> Any:
+  """The state of a packed checkpoint, as abstract_state's tree (else nested dicts)."""
+  sizes: dict[str, int] = {}
+  for _, dtype, shape in lay:
+    sizes[dtype] = sizes.get(dtype, 0) + math.prod(shape)
+  if abstract_state is not None:
+    want = layout(abstract_state)
+    diff = next((i for i, (a, b) in enumerate(zip(lay, want)) if a != b), None)
+    if diff is not None or len(lay) != len(want):
+      i = diff if diff is not None else min(len(lay), len(want))
+      got_leaf = "/".join(lay[i][0]) if i < len(lay) else "(none)"
+      raise SljaxError(f"{manager.directory}/{step}: the checkpoint does not match the model "
+                       f"(leaf {i}: checkpoint has {got_leaf}, model expects "
+                       f"{'/'.join(want[i][0]) if i < len(want) else '(none)'})")
+    device = jax.tree.leaves(abstract_state)[0].sharding
+  abstract = {dt: jax.ShapeDtypeStruct((n,), dt, sharding=device) for dt, n in sizes.items()}
+  packed = manager.restore(step, args=ocp.args.Composite(
+      state=ocp.args.StandardRestore(abstract)))["state"]
+  leaves = jax.jit(unpack, static_argnums=1, out_shardings=device)(
+      packed, _hashable(lay))
+  if abstract_state is not None:
+    return jax.tree.unflatten(jax.tree.structure(abstract_state), leaves)
+  return traverse_util.unflatten_dict({tuple(parts): leaf for (parts, _, _), leaf
+                                       in zip(lay, leaves)})
 
 
 def restore(manager: ocp.CheckpointManager, step: int,
@@ -54,15 +131,19 @@ def restore(manager: ocp.CheckpointManager, step: int,
   """(state, meta) saved at step; with abstract_state the arrays get its structure/shardings,
   else they land on this process's first device (also for checkpoints written by several
   processes, whose saved shardings name devices this process does not have)."""
+  meta = dict(manager.restore(step, args=ocp.args.Composite(
+      meta=ocp.args.JsonRestore()))["meta"])
+  device = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
+  if LAYOUT_KEY in meta:
+    return _restore_packed(manager, step, meta.pop(LAYOUT_KEY), abstract_state, device), meta
   if abstract_state is None:
     saved = ocp.StandardCheckpointer().metadata(
         Path(manager.directory) / str(step) / "state").item_metadata
-    device = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
     abstract_state = jax.tree.map(
         lambda leaf: jax.ShapeDtypeStruct(leaf.shape, leaf.dtype, sharding=device), saved)
   out = manager.restore(step, args=ocp.args.Composite(
-      state=ocp.args.StandardRestore(abstract_state), meta=ocp.args.JsonRestore()))
-  return out["state"], dict(out["meta"])
+      state=ocp.args.StandardRestore(abstract_state)))
+  return out["state"], meta
 
 
 def read_config(workdir: str | os.PathLike) -> dict[str, Any]:

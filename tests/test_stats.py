@@ -61,6 +61,14 @@ def test_delta_m_by_hand():
   assert stats.delta_m(base, base) == 0.0
 
 
+def test_delta_m_is_nan_where_a_baseline_metric_is_zero():
+  # A fine-tuned baseline can reach a bad-2 of exactly 0%: the relative change is undefined
+  # (the report showed a ZeroDivisionError instead of writing itself).
+  assert math.isnan(stats.delta_m({"mae": 1.0, "bad_2": 1.0}, {"mae": 2.0, "bad_2": 0.0}))
+  assert math.isnan(stats.delta_m({"mae": 1.0}, {"mae": float("nan")}))
+  assert math.isnan(stats.mean_ci([1.0, math.nan, 2.0])["mean"])  # the report then shows "-"
+
+
 def test_incomplete_beta_symmetry_and_bounds():
   for a, b, x in ((2.0, 3.0, 0.3), (0.5, 4.5, 0.9), (10.0, 0.5, 0.99)):
     assert stats.incomplete_beta(a, b, x) == pytest.approx(

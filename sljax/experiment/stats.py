@@ -116,6 +116,10 @@ def paired_test(a: Sequence[float], b: Sequence[float],
 
 def delta_m(metrics: dict[str, float], baseline: dict[str, float]) -> float:
   """MTAN's multi-task gain (Liu et al. 2019 / Maninis et al. 2019) over lower-is-better
-  metrics, in %: mean over k of (baseline_k - metric_k) / baseline_k * 100; > 0 is better."""
+  metrics, in %: mean over k of (baseline_k - metric_k) / baseline_k * 100; > 0 is better.
+  NaN where a baseline metric is 0 or not finite (e.g. a bad-2 of 0%): the relative change is
+  undefined there."""
   keys = sorted(baseline)
+  if not all(math.isfinite(baseline[k]) and baseline[k] != 0 for k in keys):
+    return math.nan
   return float(np.mean([(baseline[k] - metrics[k]) / baseline[k] * 100.0 for k in keys]))

@@ -9,6 +9,7 @@ packing (the state as a tree, no layout) still restore.
 Retention: the last `keep` checkpoints plus the best one by validation MAE (lowest).
 """
 
+import itertools
 import json
 import math
 import os
@@ -100,26 +101,26 @@ def _hashable(lay: list[list[Any]]) -> tuple:
 
 
 def _restore_packed(manager: ocp.CheckpointManager, step: int, lay: list[list[Any]],
-                    abstract_state: Any | None, device: Any) -> Any:
-  """The state of a packed checkpoint, as abstract_state's tree (else nested dicts)."""
+                    abstract_state: Any | None) -> Any:
+  """The state of a packed checkpoint, as abstract_state's tree with its shardings (else nested
+  dicts on this process's first device)."""
+  if abstract_state is None:
+    sharding = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
+  else:
+    want = layout(abstract_state)
+    if lay != want:
+      i = next(i for i, (a, b) in enumerate(itertools.zip_longest(lay, want)) if a != b)
+      leaf = lambda entries: "/".join(entries[i][0]) if i < len(entries) else "(none)"
+      raise SljaxError(f"{manager.directory}/{step}: the checkpoint does not match the model "
+                       f"(leaf {i}: checkpoint has {leaf(lay)}, model expects {leaf(want)})")
+    sharding = jax.tree.leaves(abstract_state)[0].sharding
   sizes: dict[str, int] = {}
   for _, dtype, shape in lay:
     sizes[dtype] = sizes.get(dtype, 0) + math.prod(shape)
-  if abstract_state is not None:
-    want = layout(abstract_state)
-    diff = next((i for i, (a, b) in enumerate(zip(lay, want)) if a != b), None)
-    if diff is not None or len(lay) != len(want):
-      i = diff if diff is not None else min(len(lay), len(want))
-      got_leaf = "/".join(lay[i][0]) if i < len(lay) else "(none)"
-      raise SljaxError(f"{manager.directory}/{step}: the checkpoint does not match the model "
-                       f"(leaf {i}: checkpoint has {got_leaf}, model expects "
-                       f"{'/'.join(want[i][0]) if i < len(want) else '(none)'})")
-    device = jax.tree.leaves(abstract_state)[0].sharding
-  abstract = {dt: jax.ShapeDtypeStruct((n,), dt, sharding=device) for dt, n in sizes.items()}
+  abstract = {dt: jax.ShapeDtypeStruct((n,), dt, sharding=sharding) for dt, n in sizes.items()}
   packed = manager.restore(step, args=ocp.args.Composite(
       state=ocp.args.StandardRestore(abstract)))["state"]
-  leaves = jax.jit(unpack, static_argnums=1, out_shardings=device)(
-      packed, _hashable(lay))
+  leaves = jax.jit(unpack, static_argnums=1, out_shardings=sharding)(packed, _hashable(lay))
   if abstract_state is not None:
     return jax.tree.unflatten(jax.tree.structure(abstract_state), leaves)
   return traverse_util.unflatten_dict({tuple(parts): leaf for (parts, _, _), leaf
@@ -133,12 +134,12 @@ def restore(manager: ocp.CheckpointManager, step: int,
   processes, whose saved shardings name devices this process does not have)."""
   meta = dict(manager.restore(step, args=ocp.args.Composite(
       meta=ocp.args.JsonRestore()))["meta"])
-  device = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
   if LAYOUT_KEY in meta:
-    return _restore_packed(manager, step, meta.pop(LAYOUT_KEY), abstract_state, device), meta
-  if abstract_state is None:
+    return _restore_packed(manager, step, meta.pop(LAYOUT_KEY), abstract_state), meta
+  if abstract_state is None:  # a checkpoint written as a tree, before packing
     saved = ocp.StandardCheckpointer().metadata(
         Path(manager.directory) / str(step) / "state").item_metadata
+    device = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
     abstract_state = jax.tree.map(
         lambda leaf: jax.ShapeDtypeStruct(leaf.shape, leaf.dtype, sharding=device), saved)
   out = manager.restore(step, args=ocp.args.Composite(

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from sljax.corr import correlation as corr
+from sljax.corr import rows
 from sljax.errors import SljaxError
 
 
@@ -118,7 +119,7 @@ def test_row_path_equals_formula_on_odd_sizes(case):
   rng = np.random.default_rng(sum(case))
   pl, pr = binary(rng, (h, w, t)), binary(rng, (h, w, t))
   ref = reference_volume(pl, pr, u, win)
-  disp, peak, _ = corr._rows_disparity(pl, pr, u, win, False, False, band_rows=band_rows)
+  disp, peak, _ = rows.rows_disparity(pl, pr, u, win, False, False, band_rows=band_rows)
   np.testing.assert_array_equal(disp, np.argmax(ref, axis=0))
   np.testing.assert_array_equal(peak, ref.max(axis=0))
   public = corr.sl_disparity(pl, pr, u, win)  # default bands and threads
@@ -129,7 +130,7 @@ def test_row_path_equals_formula_on_odd_sizes(case):
   qa = rng.random((h, w, t), dtype=np.float32)
   qb = rng.random((h, w, t), dtype=np.float32)
   ref = reference_volume(qa, qb, u, win)
-  disp, peak, _ = corr._rows_disparity(qa, qb, u, win, False, False, band_rows=band_rows)
+  disp, peak, _ = rows.rows_disparity(qa, qb, u, win, False, False, band_rows=band_rows)
   np.testing.assert_allclose(peak, ref.max(axis=0), rtol=2e-6)
   top2 = np.sort(ref, axis=0)[-2:]
   clear = (top2[1] - top2[0]) > 1e-4 * top2[1]

@@ -6,6 +6,7 @@ import pytest
 
 from sljax import cli
 from sljax.data import synth_geometry as geo
+from sljax.data import synth_sensor
 from sljax.data import synthetic as synth
 from sljax.data.synthetic import SynthConfig, SyntheticSource, render_scene
 from sljax.sl import codes
@@ -300,8 +301,8 @@ def test_noise_is_counter_hash_and_nearly_gaussian():
   from math import erf, sqrt
   key = jax.random.PRNGKey(5)
   shape = (2, 3, 64, 64)
-  z = np.asarray(synth._noise(key, shape))
-  np.testing.assert_array_equal(z, np.asarray(synth._noise(key, shape)))  # deterministic
+  z = np.asarray(synth_sensor.noise(key, shape))
+  np.testing.assert_array_equal(z, np.asarray(synth_sensor.noise(key, shape)))  # deterministic
   # NumPy reference of the documented construction: hash(hash(i ^ k0) ^ k1), sum of its bytes.
   k0, k1 = (int(v) for v in np.asarray(jax.random.bits(key, (2,), np.uint32)))
   x = _hash32_np(_hash32_np(np.arange(z.size, dtype=np.uint64) ^ k0) ^ k1)
@@ -315,7 +316,7 @@ def test_noise_is_counter_hash_and_nearly_gaussian():
   s = np.sort(flat)
   cdf = 0.5 * (1 + np.vectorize(erf)(s / sqrt(2)))
   assert np.max(np.abs(cdf - np.arange(1, s.size + 1) / s.size)) < 0.015
-  other = np.asarray(synth._noise(jax.random.PRNGKey(6), shape))
+  other = np.asarray(synth_sensor.noise(jax.random.PRNGKey(6), shape))
   assert abs(np.corrcoef(flat, other.ravel())[0, 1]) < 0.02
 
 

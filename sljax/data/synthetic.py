@@ -30,7 +30,7 @@ or too weakly lit to be decoded (albedo x projector irradiance < min_contrast).
 Raw captures (grey): black = albedo * raw_ambient, white = black + albedo * irradiance, pattern
 k and its inverse in between; blurred (Gaussian raw_blur px) and with sensor noise. They are
 matte: specular highlights only appear in im0/im1. Sensor noise (im0/im1 and raw) is a cheap
-counter-based approximation of Gaussian noise (see _noise: a 32-bit integer hash of the element
+counter-based approximation of Gaussian noise (see synth_sensor.noise: a 32-bit integer hash of the
 index and the scene's noise key, the sum of its four bytes standardised; bounded at +-3.45 sigma).
 
 Determinism: scene i of seed s depends on (s, i) only: the shape (shared by the 10 views of a
@@ -53,6 +53,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from sljax.data import synth_geometry as geo
+from sljax.data import synth_scenes as scenes
+from sljax.data import synth_sensor as sensor
 from sljax.data.calib import Calib
 from sljax.data.scene import Scene
 from sljax.errors import require
@@ -135,131 +137,8 @@ class SyntheticScene(Scene):
 
 
 # ----------------------------------------------------------------------------------------------
-# Random scene description (inside jit).
-
-
-def _unit_rows(v: jax.Array) -> jax.Array:
-  """Rows scaled to unit length (small parameter arrays)."""
-  return v / jnp.linalg.norm(v, axis=-1, keepdims=True)
-
-
-def _rotation(key: jax.Array, n: int) -> jax.Array:
-  """n uniformly random rotation matrices (columns = rotated axes)."""
-  q = _unit_rows(jax.random.normal(key, (n, 4)))
-  w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
-  return jnp.stack([
-      jnp.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-      jnp.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-      jnp.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1)], -2)
-
-
-def _axis_rotation(axis: int, angle: jax.Array) -> jax.Array:
-  """Rotation by angle (radians) about a coordinate axis (right-handed)."""
-  c, s = jnp.cos(angle), jnp.sin(angle)
-  i, j = [(1, 2), (2, 0), (0, 1)][axis]
-  m = jnp.eye(3)
-  return m.at[i, i].set(c).at[j, j].set(c).at[i, j].set(-s).at[j, i].set(s)
-
-
-def _support(centres, rots, axes, v):
-  """Support function of each ellipsoid in direction v: max over the ellipsoid of p . v."""
-  return centres @ v + jnp.linalg.norm(axes * jnp.einsum("kji,j->ki", rots, v), axis=-1)
-
-
-def _waves(key, n: int, wavelength_lo: float, wavelength_hi: float):
-  """Random 3D plane waves (wave vectors, phases) for smooth solid textures."""
-  k1, k2, k3 = jax.random.split(key, 3)
-  direction = _unit_rows(jax.random.normal(k1, (n, 3)))
-  lam = jax.random.uniform(k2, (n,), minval=wavelength_lo, maxval=wavelength_hi)
-  return direction * (2 * jnp.pi / lam)[:, None], jax.random.uniform(k3, (n,)) * 2 * jnp.pi
-
-
-def _solid_texture(p, waves):
-  """Smooth zero-mean texture in about [-1, 1] at points p (3, N)."""
-  k, phase = waves
-  total = 0.0
-  for j in range(k.shape[0]):  # written out: tiny reductions do not fuse on CPU
-    total = total + jnp.sin(p[0] * k[j, 0] + p[1] * k[j, 1] + p[2] * k[j, 2] + phase[j])
-  return total * (1.0 / math.sqrt(k.shape[0]))
-
-
-def _sample_objects(key_shape, key_view, cfg: SynthConfig) -> dict[str, Any]:
-  """Podium, object (union of ellipsoids) and a viewpoint looking at the object's centre."""
-  ks = jax.random.split(key_shape, 8)
-  n = cfg.num_ellipsoids
-  size = jax.random.uniform(ks[0], (), minval=cfg.object_size_m[0], maxval=cfg.object_size_m[1])
-  s = 0.5 * size
-  body = jnp.concatenate([jnp.ones(1), jax.random.uniform(ks[1], (2,), minval=0.55, maxval=0.9)])
-  sat = jax.random.uniform(ks[2], (n - 1, 3), minval=0.22, maxval=0.55)
-  axes = s * jnp.concatenate([body[None], sat], 0)
-  rots = _rotation(ks[3], n)
-  frames = rots / axes[:, None, :]  # (p - c) @ frames[k] lies in the unit ball
-  u = _unit_rows(jax.random.normal(ks[4], (n - 1, 3)))
-  r_body = 1.0 / jnp.linalg.norm(u @ frames[0], axis=-1)  # body surface along u
-  depth = jax.random.uniform(ks[5], (n - 1,), minval=0.55, maxval=0.95)
-  centres = jnp.concatenate([jnp.zeros((1, 3)), u * (r_body * depth)[:, None]], 0)
-  # Rest on the podium: the lowest point sinks 2 mm into its top.
-  low = -_support(centres, rots, axes, jnp.array([0.0, 0.0, -1.0])).max()
-  centres = centres + jnp.array([0.0, 0.0, 1.0]) * (cfg.podium_height_m - 0.002 - low)
-  hi = jnp.stack([_support(centres, rots, axes, e).max() for e in jnp.eye(3)])
-  lo = jnp.stack([-_support(centres, rots, axes, -e).max() for e in jnp.eye(3)])
-  aim = 0.5 * (lo + hi)
-  r_obj = jnp.max(jnp.linalg.norm(centres - aim, axis=-1) + axes.max(-1))
-  podium_r = jnp.clip(jax.random.uniform(ks[6], (), minval=0.5, maxval=0.9) * s, 0.012, 0.05)
-  tex_scale = size * jax.random.uniform(ks[7], (), minval=0.5, maxval=1.2)
-
-  kv = jax.random.split(key_view, 4)
-  f, b = cfg.focal, cfg.baseline_m
-  azimuth = jax.random.uniform(kv[0], (), maxval=2 * jnp.pi)
-  elevation = jnp.deg2rad(jax.random.uniform(kv[1], (), minval=10.0, maxval=45.0))
-  rho = jax.random.uniform(kv[2], (), minval=0.22, maxval=0.38) * cfg.size
-  dist = jnp.maximum(f * s / rho, r_obj + f * b / (cfg.max_disparity_fraction * cfg.size))
-  return dict(
-      frames=frames, centres=centres, podium_r=podium_r, aim=aim, dist=dist,
-      azimuth=azimuth, elevation=elevation, size=size,
-      waves_obj=_waves(jax.random.fold_in(key_shape, 100), 4, tex_scale, 2.5 * tex_scale),
-      waves_room=_waves(jax.random.fold_in(key_shape, 101), 4, 0.2, 0.6),
-      waves_vessel=_waves(jax.random.fold_in(key_shape, 102), 3, 0.01, 0.02))
-
-
-def _sample_tissue(key_shape, key_view, cfg: SynthConfig) -> dict[str, Any]:
-  """Overlapping flattened lobes on a table and a viewpoint from above."""
-  ks = jax.random.split(key_shape, 8)
-  n = cfg.num_ellipsoids
-  f, b = cfg.focal, cfg.baseline_m
-  kv = jax.random.split(key_view, 4)
-  # The cluster is sized for a nominal 9.5 cm view; per-view distances vary around it.
-  half = 0.095 * (cfg.size / 2) / f
-  spread = jax.random.uniform(ks[0], (), minval=0.7, maxval=1.0) * half
-  radius = spread * 0.6 * jnp.sqrt(jax.random.uniform(ks[1], (n,)))
-  angle = jax.random.uniform(ks[2], (n,), maxval=2 * jnp.pi)
-  axes_xy = spread * jax.random.uniform(ks[3], (n, 2), minval=0.35, maxval=0.6)
-  axes_z = axes_xy.min(-1) * jax.random.uniform(ks[4], (n,), minval=0.3, maxval=0.6)
-  axes = jnp.concatenate([axes_xy, axes_z[:, None]], -1)
-  yaw = jax.random.uniform(ks[5], (n,), maxval=2 * jnp.pi)
-  tilt = jnp.deg2rad(jax.random.uniform(ks[6], (n, 2), minval=-15.0, maxval=15.0))
-  rots = jax.vmap(lambda a, bx, by: _axis_rotation(2, a) @ _axis_rotation(0, bx)
-                  @ _axis_rotation(1, by))(yaw, tilt[:, 0], tilt[:, 1])
-  sink = jax.random.uniform(ks[7], (n,), minval=0.1, maxval=0.4) * axes_z
-  centres = jnp.stack([radius * jnp.cos(angle), radius * jnp.sin(angle), -sink], -1)
-  frames = rots / axes[:, None, :]
-  top = _support(centres, rots, axes, jnp.array([0.0, 0.0, 1.0])).max()
-  dist = jax.random.uniform(kv[0], (), minval=0.075, maxval=0.115)
-  dist = jnp.maximum(dist, top + f * b / (cfg.max_disparity_fraction * cfg.size))
-  aim = jnp.concatenate([jax.random.uniform(kv[1], (2,), minval=-0.2, maxval=0.2) * spread,
-                         jnp.zeros(1)])
-  return dict(
-      frames=frames, centres=centres, podium_r=jnp.zeros(()), aim=aim, dist=dist,
-      azimuth=jax.random.uniform(kv[2], (), maxval=2 * jnp.pi),
-      elevation=jnp.deg2rad(jax.random.uniform(kv[3], (), minval=55.0, maxval=85.0)),
-      size=2 * spread,
-      waves_obj=_waves(jax.random.fold_in(key_shape, 100), 4, 0.02, 0.05),
-      waves_room=_waves(jax.random.fold_in(key_shape, 101), 4, 0.05, 0.15),
-      waves_vessel=_waves(jax.random.fold_in(key_shape, 102), 3, 0.012, 0.03))
-
-
-# ----------------------------------------------------------------------------------------------
-# Rendering (inside jit).
+# Rendering (inside jit); scene descriptions come from synth_scenes, noise and blur from
+# synth_sensor.
 
 
 def _camera(desc, cfg: SynthConfig):
@@ -317,7 +196,7 @@ def _textures(p, facet, desc, cfg: SynthConfig):
   if cfg.domain == "objects":
     base = jnp.where(on_obj, 0.6, jnp.where(facet >= _POD_SIDE, 0.7, 0.5))
     return (base * (1.0 + amp * tex),)
-  vessel = jnp.exp(-(_solid_texture(p, desc["waves_vessel"]) / 0.08) ** 2)
+  vessel = jnp.exp(-(scenes.solid_texture(p, desc["waves_vessel"]) / 0.08) ** 2)
   return (tex, vessel)
 
 
@@ -362,30 +241,6 @@ def _column_rate(col):
   return jnp.sqrt(rate(-1) ** 2 + rate(-2) ** 2)
 
 
-def _hash32(x):
-  """A 32-bit integer mixer (bijective, good avalanche; Wellons' 2-round constants)."""
-  x = x ^ (x >> 16)
-  x = x * jnp.uint32(0x21F0AAAD)
-  x = x ^ (x >> 15)
-  x = x * jnp.uint32(0x735A2D97)
-  return x ^ (x >> 15)
-
-
-def _noise(key, shape):
-  """Deterministic, approximately standard normal noise of `shape` (cheap sensor noise).
-
-  Counter-based: element i gets hash(hash(i ^ k0) ^ k1) for the key's two words (k0, k1), and
-  the sum of its four bytes (an Irwin-Hall sum of 4 uniforms; bounded at +-3.45 sigma),
-  standardised. About 6x cheaper than jax.random.normal on CPU; sensor noise needs no more.
-  """
-  k = jax.random.bits(key, (2,), jnp.uint32)
-  idx = jax.lax.iota(jnp.uint32, math.prod(shape)).reshape(shape)
-  x = _hash32(_hash32(idx ^ k[0]) ^ k[1])
-  m = jnp.uint32(255)
-  total = (x & m) + ((x >> 8) & m) + ((x >> 16) & m) + (x >> 24)
-  return (total.astype(jnp.float32) - 510.0) * (1.0 / math.sqrt(4 * (256 ** 2 - 1) / 12))
-
-
 # The renderer runs as a few jitted stages. The CPU backend has no multi-output fusion and drops
 # optimisation barriers, so inside one jitted graph XLA fuses (recomputes) the whole intersection
 # chain into each of its many consumers (10x slower); a stage boundary materialises its outputs
@@ -399,12 +254,12 @@ def _rig(seed, index, cfg: SynthConfig) -> dict[str, Any]:
   key_shape = jax.random.fold_in(jax.random.fold_in(root, 0), group)
   key_view = jax.random.fold_in(jax.random.fold_in(root, 1), index)
   key_noise = jax.random.fold_in(jax.random.fold_in(root, 2), index)
-  sample = _sample_objects if cfg.domain == "objects" else _sample_tissue
+  sample = scenes.sample_objects if cfg.domain == "objects" else scenes.sample_tissue
   desc = sample(key_shape, key_view, cfg)
   cam_l, rot = _camera(desc, cfg)
-  rot_p = rot @ _axis_rotation(0, jnp.deg2rad(cfg.projector_rotation_deg[0])) \
-      @ _axis_rotation(1, jnp.deg2rad(cfg.projector_rotation_deg[1])) \
-      @ _axis_rotation(2, jnp.deg2rad(cfg.projector_rotation_deg[2]))
+  rot_p = rot @ scenes.axis_rotation(0, jnp.deg2rad(cfg.projector_rotation_deg[0])) \
+      @ scenes.axis_rotation(1, jnp.deg2rad(cfg.projector_rotation_deg[1])) \
+      @ scenes.axis_rotation(2, jnp.deg2rad(cfg.projector_rotation_deg[2]))
   return dict(desc=desc, cam_l=cam_l, cam_r=cam_l + cfg.baseline_m * rot[:, 0], rot=rot,
               rot_p=rot_p, proj=cam_l + rot @ jnp.array(cfg.projector_translation_m),
               key_noise=key_noise)
@@ -523,29 +378,12 @@ def _stage_outputs(rig, t, facet, tex, shade, spec, col, known, seen, cfg: Synth
                   for b, wk in zip(bits, _stripe_columns(cfg))], -1)
   image = jnp.stack([a * shade + spec for a in _albedo(facet, tex, cfg)], -1)
   noise_key = jax.random.fold_in(rig["key_noise"], 0)
-  image = jnp.clip(image + cfg.image_noise * _noise(noise_key, image.shape), 0, 1)
+  image = jnp.clip(image + cfg.image_noise * sensor.noise(noise_key, image.shape), 0, 1)
   desc = rig["desc"]
   return dict(im=image, disp=cfg.baseline_m * cfg.focal / t, depth=t, sl=sl,
               mask=facet >= (_ELL if cfg.domain == "tissue" else _POD_SIDE), occ=~seen,
               col=col, cam=rig["cam_l"], dist=desc["dist"], size=desc["size"],
               azimuth=desc["azimuth"], elevation=desc["elevation"])
-
-
-def _blur_weights(sigma: float) -> np.ndarray:
-  """Normalised Gaussian taps, radius ceil(3 sigma) >= 1."""
-  r = max(1, int(math.ceil(3 * sigma)))
-  w = np.exp(-0.5 * (np.arange(-r, r + 1) / sigma) ** 2)
-  return w / w.sum()
-
-
-def _blur_axis(img, w: np.ndarray, axis: int):
-  """Convolution of (..., H, W) images along axis -1 or -2 with edge replication."""
-  r = len(w) // 2
-  pad = [(0, 0)] * img.ndim
-  pad[axis] = (r, r)
-  x = jnp.pad(img, pad, mode="edge")
-  n = img.shape[axis]
-  return sum(float(w[i]) * jax.lax.slice_in_dim(x, i, i + n, axis=axis) for i in range(len(w)))
 
 
 def _stage_raw_rows(col, grey, irradiance, cfg: SynthConfig):
@@ -559,19 +397,19 @@ def _stage_raw_rows(col, grey, irradiance, cfg: SynthConfig):
   base = jnp.stack([black + signal, black], 1)  # white, black
   lit_bits = jnp.stack([signal * b for b in _code_bits_of(col, cfg)], 1)  # (2, t, H, W)
   if cfg.raw_blur > 0:
-    w = _blur_weights(cfg.raw_blur)
-    base, lit_bits = _blur_axis(base, w, -1), _blur_axis(lit_bits, w, -1)
+    w = sensor.blur_weights(cfg.raw_blur)
+    base, lit_bits = sensor.blur_axis(base, w, -1), sensor.blur_axis(lit_bits, w, -1)
   return base, lit_bits
 
 
 def _stage_raw(rig, base, lit_bits, cfg: SynthConfig):
   """Raw captures (2, 2 + 2 t, H, W) in raw_keys order: column blur, sensor noise, clipping."""
   if cfg.raw_blur > 0:
-    w = _blur_weights(cfg.raw_blur)
-    base, lit_bits = _blur_axis(base, w, -2), _blur_axis(lit_bits, w, -2)
+    w = sensor.blur_weights(cfg.raw_blur)
+    base, lit_bits = sensor.blur_axis(base, w, -2), sensor.blur_axis(lit_bits, w, -2)
   stack = jnp.concatenate([base, base[:, 1:2] + lit_bits, base[:, 0:1] - lit_bits], 1)
   noise_key = jax.random.fold_in(rig["key_noise"], 1)
-  return jnp.clip(stack + cfg.raw_noise * _noise(noise_key, stack.shape), 0, 1)
+  return jnp.clip(stack + cfg.raw_noise * sensor.noise(noise_key, stack.shape), 0, 1)
 
 
 @functools.lru_cache(maxsize=None)

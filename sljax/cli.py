@@ -1,37 +1,59 @@
-"""The `sljax` command line: one subcommand per module in sljax/commands."""
+"""The `sljax` command line: a table of subcommands, each a module of sljax/commands.
+
+Only the module of the command being run is imported (the listing of `sljax --help` comes
+from the table), so a command pays only for its own imports; each module imports what it
+needs at its top.
+"""
 
 import argparse
 import importlib
 import os
-import pkgutil
 import sys
 
-from sljax import commands
 from sljax.errors import SljaxError
+from sljax.quiet import quiet_libraries
+
+# subcommand -> (module in sljax.commands, one line for `sljax --help`)
+COMMANDS = {
+    "convert-psmnet": ("convert_psmnet", "convert an official PyTorch PSMNet checkpoint to sljax"),
+    "decode": ("decode", "decode raw structured-light captures into pattern maps and disparity"),
+    "evaluate": ("evaluate", "evaluate a checkpoint (or the SGBM baseline) on a dataset"),
+    "experiment": ("experiment",
+                     "run the grids behind the paper's tables, resumably, and report them"),
+    "export": ("export", "write a deployable file (serialised StableHLO) of a trained model"),
+    "import-scared": ("import_scared", "convert a SCARED keyframe into a scene folder"),
+    "info": ("info", "summarise a dataset folder"),
+    "make-data": ("make_data", "render a synthetic stereo + structured-light dataset"),
+    "plot-runs": ("plot_runs", "plot validation MAE against epoch for several training runs"),
+    "predict": ("predict",
+                  "predict disparity, depth (mm) and a coloured point cloud for stereo pairs"),
+    "show": ("show", "write a contact sheet PNG of a scene"),
+    "summary": ("summary", "parameter counts and output shapes of a network"),
+    "train": ("train", "train a network (the same as python train.py)"),
+    "uncertainty": ("uncertainty", "correlate pattern uncertainty with disparity error"),
+}
 
 
-def build_parser() -> argparse.ArgumentParser:
-  """Builds the parser; every module in sljax.commands contributes one subcommand."""
+def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
+  """The parser: the command named in argv gets its module's full subparser (imported now),
+  every other command a stub that only lists it."""
   parser = argparse.ArgumentParser(
       prog="sljax",
       description="Stereo disparity regularised by structured-light reconstruction.")
   sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-  for info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda m: m.name):
-    module = importlib.import_module(f"sljax.commands.{info.name}")
-    module.register(sub)
+  chosen = next((a for a in argv or [] if not a.startswith("-")), None)
+  for name, (module, text) in COMMANDS.items():
+    if name == chosen:
+      importlib.import_module(f"sljax.commands.{module}").register(sub)
+    else:
+      sub.add_parser(name, help=text, add_help=False)
   return parser
-
-
-def quiet_libraries() -> None:
-  """Keeps library chatter (orbax logs each read-only checkpoint opening as a warning) to
-  errors only."""
-  from absl import logging as absl_logging  # pylint: disable=import-outside-toplevel
-  absl_logging.set_verbosity(absl_logging.ERROR)
 
 
 def main(argv: list[str] | None = None) -> int:
   """Entry point: runs a subcommand; bad input ends with one line on stderr and exit 2."""
-  args = build_parser().parse_args(argv)
+  argv = sys.argv[1:] if argv is None else argv
+  args = build_parser(argv).parse_args(argv)
   quiet_libraries()
   try:
     result = args.func(args)

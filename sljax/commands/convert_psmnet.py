@@ -6,7 +6,7 @@ import argparse
 def register(subparsers) -> None:
   """Adds the convert-psmnet subcommand."""
   p = subparsers.add_parser(
-      "convert-psmnet", help="convert an official PyTorch PSMNet checkpoint to sljax",
+      "convert-psmnet",
       description="Converts a PyTorch PSMNet (stacked hourglass) checkpoint (a dict with "
       "'state_dict', keys may carry 'module.') to OUT/config.json + OUT/variables.npz, "
       "loadable for inference or as --init-from. Reading .tar/.pth files needs PyTorch "

@@ -9,7 +9,7 @@ _DEFAULT_BIT = 4.0
 def register(subparsers) -> None:
   """Adds the `decode` subcommand."""
   p = subparsers.add_parser(
-      "decode", help="decode raw structured-light captures into pattern maps and disparity",
+      "decode",
       description="For every scene below DATASET holding raw0/ and raw1/ (white, black, p000..., "
       "optional inverses i000...), classify each pattern bit, write sl0/ and sl1/ "
       "(0 dark, 255 lit, 128 unknown) and, where absent, disp0.pfm / disp1.pfm from matching "

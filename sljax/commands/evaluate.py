@@ -6,7 +6,7 @@ import argparse
 def register(subparsers) -> None:
   """Adds the `evaluate` subcommand."""
   p = subparsers.add_parser(
-      "evaluate", help="evaluate a checkpoint (or the SGBM baseline) on a dataset",
+      "evaluate",
       description="Runs a trained model (a training workdir, its checkpoints folder or a "
                   "converted PSMNet folder) or the classical baseline 'sgbm' over every scene of "
                   "a dataset and writes metrics.json, metrics.md (Markdown tables) and "

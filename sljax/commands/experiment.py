@@ -6,7 +6,7 @@ import argparse
 def register(subparsers) -> None:
   """Adds the `experiment` subcommand and its run / report / plans actions."""
   p = subparsers.add_parser(
-      "experiment", help="run the grids behind the paper's tables, resumably, and report them",
+      "experiment",
       description="Runs a plan (a grid of training runs: model and strategy, training fraction, "
                   "seed, domain, fine-tuning, evaluation sets) under OUT, then reports every "
                   "cell with means and 95% intervals over seeds and paired comparisons. "

@@ -6,7 +6,7 @@ import argparse
 def register(subparsers) -> None:
   """Adds the `export` subcommand."""
   p = subparsers.add_parser(
-      "export", help="write a deployable file (serialised StableHLO) of a trained model",
+      "export",
       description="Traces the inference of a trained model (a training workdir, its checkpoints "
                   "folder or a converted PSMNet folder) for left and right views of HEIGHTxWIDTH "
                   "pixels and any batch size, in pad or resize mode, with the weights baked in, "

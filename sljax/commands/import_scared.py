@@ -6,7 +6,7 @@ import argparse
 def register(subparsers) -> None:
   """Adds the import-scared subcommand."""
   p = subparsers.add_parser(
-      "import-scared", help="convert a SCARED keyframe into a scene folder",
+      "import-scared",
       description="Rectifies a SCARED keyframe (Left_Image.png, Right_Image.png, "
       "left_depth_map.tiff, endoscope_calibration.yaml) with OpenCV and writes a scene folder "
       "(im0.png, im1.png, disp0.pfm with the left ground-truth disparity, calib.txt, meta.json).")

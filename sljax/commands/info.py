@@ -17,7 +17,7 @@ _PNG_COLOUR = {0: "gray", 2: "RGB", 3: "palette", 4: "gray+alpha", 6: "RGBA"}
 def register(subparsers) -> None:
   """Adds the info subcommand."""
   p = subparsers.add_parser(
-      "info", help="summarise a dataset folder",
+      "info",
       description="Prints the scene count, image sizes, which files each scene holds, "
       "disparity ranges, pattern count and code, and the train/test split sizes. Exits with 1 "
       "when it finds inconsistent scenes (listed under 'problems').")

@@ -6,7 +6,7 @@ import argparse
 def register(subparsers) -> None:
   """Adds the make-data subcommand."""
   p = subparsers.add_parser(
-      "make-data", help="render a synthetic stereo + structured-light dataset",
+      "make-data",
       description="Renders N procedural scenes (rectified stereo views, ground-truth disparity, "
       "projected patterns, masks, optional raw captures) as scene folders under OUT. Scene i of "
       "seed S is always the same scene.")

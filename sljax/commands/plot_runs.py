@@ -14,7 +14,7 @@ CONFIG_FILE = "config.json"
 def register(subparsers) -> None:
   """Adds the `plot-runs` subcommand."""
   p = subparsers.add_parser(
-      "plot-runs", help="plot validation MAE against epoch for several training runs",
+      "plot-runs",
       description="Reads WORKDIR/epochs.jsonl ('epoch', 'val_mae', other 'val_*' keys) and "
                   "WORKDIR/config.json (label = model/strategy) of each run, draws validation "
                   "MAE against epoch in one figure (like the paper's Fig. 7) and prints a "

@@ -6,7 +6,7 @@ import argparse
 def register(subparsers) -> None:
   """Adds the `predict` subcommand."""
   p = subparsers.add_parser(
-      "predict", help="predict disparity, depth (mm) and a coloured point cloud for stereo pairs",
+      "predict",
       description="Runs a trained model (a training workdir, its checkpoints folder or a "
                   "converted PSMNet folder) or the classical baseline 'sgbm' on a stereo pair "
                   "(LEFT RIGHT image files) or on every pair of PAIRS_DIR (scene folders with "

@@ -6,7 +6,7 @@ import argparse
 def register(subparsers) -> None:
   """Adds the show subcommand."""
   p = subparsers.add_parser(
-      "show", help="write a contact sheet PNG of a scene",
+      "show",
       description="Draws both views, the disparity (colour map with scale bar), a few projected "
       "patterns and the mask of a scene folder, or of scene --index of a dataset.")
   p.add_argument("path", metavar="SCENE_OR_DATASET", help="a scene folder or a dataset folder")

@@ -10,7 +10,7 @@ from sljax.nets.registry import NAMES
 def register(subparsers) -> None:
   """Adds the `summary` subcommand."""
   p = subparsers.add_parser(
-      "summary", help="parameter counts and output shapes of a network",
+      "summary",
       description="Prints the parameter counts per part (features, cost aggregation, disparity "
                   "path, SL path, total) and the output shapes for an input size, without "
                   "running the network.")

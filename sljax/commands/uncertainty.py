@@ -12,7 +12,7 @@ METRICS_JSON = "metrics.json"
 def register(subparsers) -> None:
   """Adds the uncertainty subcommand."""
   p = subparsers.add_parser(
-      "uncertainty", help="correlate pattern uncertainty with disparity error",
+      "uncertainty",
       description="Reads predicted structured-light probabilities of both views (an .npz with "
       "arrays 'p_left' and 'p_right', HxWxt in [0, 1], and optionally 'disparity', HxW, "
       "left-referenced) and a ground-truth scene folder (disp0.pfm). Without 'disparity' the "

@@ -1,12 +1,13 @@
-"""Command line of train.py: presets, one flag per TrainConfig field, clear errors."""
+"""Command line of training (`python train.py` and `sljax train`, one parser and one runner):
+presets, one flag per TrainConfig field, clear errors."""
 
 import argparse
 import dataclasses
 import sys
 from pathlib import Path
 
-from sljax.cli import quiet_libraries
 from sljax.errors import SljaxError
+from sljax.quiet import quiet_libraries
 from sljax.train import checkpoint as ckpt
 from sljax.train.config import FIELDS, PRESETS, TrainConfig, config_from_json, preset_config
 
@@ -29,14 +30,21 @@ def add_config_flags(parser: argparse.ArgumentParser) -> None:
                         help=meta["help"], **kw)
 
 
-def build_parser() -> argparse.ArgumentParser:
-  """The train.py argument parser."""
-  p = argparse.ArgumentParser(
-      prog="train.py",
-      description="Train PSMNet (stl), the PSMNet+SL twin (cg_a, cg_b, epr, unc) or the UNets. "
-      "With no flags: the 'auto' preset (paper settings on an accelerator, a quick CPU run "
-      "otherwise) on synthetic 'objects' scenes rendered on the fly. Flags left out take the "
-      "preset's value.")
+DESCRIPTION = ("Train PSMNet (stl), the PSMNet+SL twin (cg_a, cg_b, epr, unc) or the UNets. "
+               "With no flags: the 'auto' preset (paper settings on an accelerator, a quick CPU "
+               "run otherwise) on synthetic 'objects' scenes rendered on the fly. Flags left out "
+               "take the preset's value.")
+
+
+def build_parser(prog: str = "train.py") -> argparse.ArgumentParser:
+  """The training argument parser (train.py's; `sljax train` adds the same arguments)."""
+  p = argparse.ArgumentParser(prog=prog, description=DESCRIPTION)
+  add_arguments(p)
+  return p
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+  """Every training flag: one per TrainConfig field, then the run's own options."""
   add_config_flags(p)
   p.add_argument("--workdir", default=None,
                  help="run folder (default runs/<model>-<strategy>-<seed>)")
@@ -56,7 +64,6 @@ def build_parser() -> argparse.ArgumentParser:
   p.add_argument("--profile", default=None, metavar="DIR",
                  help="write a jax.profiler trace of a few steps after compilation to DIR")
   p.add_argument("--no-progress", action="store_true", help="no progress bar")
-  return p
 
 
 def resolve(args: argparse.Namespace, backend: str) -> tuple[TrainConfig, str, Path]:
@@ -80,7 +87,12 @@ def resolve(args: argparse.Namespace, backend: str) -> tuple[TrainConfig, str, P
 
 def main(argv: list[str] | None = None) -> int:
   """Entry point of train.py; SljaxError -> one line on stderr and exit code 2."""
-  args = build_parser().parse_args(argv)
+  return run(build_parser().parse_args(argv))
+
+
+def run(args: argparse.Namespace, prog: str = "train.py") -> int:
+  """Trains as the parsed arguments say (train.py and `sljax train`); SljaxError -> one line
+  on stderr naming `prog`, exit code 2."""
   try:
     # pylint: disable=import-outside-toplevel
     import jax
@@ -96,10 +108,10 @@ def main(argv: list[str] | None = None) -> int:
                    log=lambda line: print(line, flush=True),
                    progress=False if args.no_progress else None)
   except SljaxError as e:
-    print(f"train.py: error: {e}", file=sys.stderr)
+    print(f"{prog}: error: {e}", file=sys.stderr)
     return 2
   except KeyboardInterrupt:
-    print("train.py: interrupted (continue with --resume)", file=sys.stderr)
+    print(f"{prog}: interrupted (continue with --resume)", file=sys.stderr)
     return 130
   best = "n/a" if result.best_val is None else f"{result.best_val:.4f}"
   last = "n/a" if result.last_val is None else f"{result.last_val:.4f}"

@@ -31,7 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from common import best_time, machine  # first: puts this checkout's sljax on the path
+from common import best_time, machine, record  # first: puts this checkout's sljax on the path
 from sljax.losses.disparity import PSMNET_OUTPUT_WEIGHTS, disparity_loss
 from sljax.nets import build_model
 from sljax.nets import conv3d as c3
@@ -352,7 +352,8 @@ def micro(repeats, with_lax):
     res["torch"] = (t_f, best_time(tfb, repeats))
     rows.append((label, res))
     print_micro_row(label, res, with_lax)
-  return rows
+  return [{"table": "micro", "layer": label, "fwd_s": r["fast"][0], "fwd_bwd_s": r["fast"][1],
+           "torch_fwd_s": r["torch"][0], "torch_fwd_bwd_s": r["torch"][1]} for label, r in rows]
 
 
 def print_micro_row(label, res, with_lax):
@@ -385,10 +386,11 @@ def main() -> None:
   import torch
   print(machine(torch))
   print(f"conv3d auto -> {c3.conv_impl()}; times: minimum of {args.repeats} after a warm-up")
+  records = []
   if args.part in ("all", "micro"):
     print(f"\n3D convolution layers, {args.size}x{args.size} maxdisp {args.maxdisp} shapes: "
           "fwd ms, fwd+bwd ms (ratio to torch)")
-    micro(args.repeats, args.with_lax)
+    records += micro(args.repeats, args.with_lax)
   if args.part in ("all", "models"):
     torch_, PSM, UNet = torch_models()
     torch_.manual_seed(0)
@@ -409,11 +411,17 @@ def main() -> None:
         tj = jax_time(name, batch, args.size, args.maxdisp, args.repeats, train)
         tt = torch_time(torch_, tm, batch, args.size, args.maxdisp, args.repeats, train)
         line = f"| {name} | {mode} | {side} | {tj:.2f} | {tt:.2f} | {tj / tt:.2f}x |"
+        row = {"table": "models", "model": name, "mode": mode, "torch_side": side,
+               "size": args.size, "maxdisp": args.maxdisp, "batch": batch,
+               "sljax_s": tj, "torch_s": tt, "ratio": tj / tt}
         if args.with_lax and name.startswith("psmnet"):
           tl = jax_time(name, batch, args.size, args.maxdisp, max(1, args.repeats - 2), train,
                         "lax")
           line += f" {tl:.2f} | {tl / tt:.2f}x |"
+          row["lax_s"] = tl
         print(line, flush=True)
+        records.append(row)
+  record("bench_nets", records, torch)
 
 
 if __name__ == "__main__":

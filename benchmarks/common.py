@@ -6,8 +6,6 @@ from __future__ import annotations
 import datetime
 import json
 import os
-import platform
-import re
 import subprocess
 import sys
 import time
@@ -19,47 +17,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 if ROOT not in sys.path:
   sys.path.insert(0, ROOT)
 
-# /proc/cpuinfo flag -> the name people know; AMX and AVX512_BF16 decide bf16 speed.
-ISA_FLAGS = (("avx2", "AVX2"), ("avx512f", "AVX-512"), ("avx512_bf16", "AVX512_BF16"),
-             ("avx512_vnni", "AVX512_VNNI"), ("amx_tile", "AMX"))
-
-
-def cpu_info() -> dict:
-  """The CPU as fields: model name, family and model numbers, ISA flags people know, cores."""
-  info: dict[str, str] = {}
-  try:
-    with open("/proc/cpuinfo", encoding="utf-8") as f:
-      for line in f:
-        key, _, value = line.partition(":")
-        info.setdefault(key.strip(), value.strip())  # the first processor's entries
-  except OSError:
-    pass
-  flags = set(info.get("flags", "").split())
-  return {"model": info.get("model name") or platform.processor() or "unknown CPU",
-          "family": info.get("cpu family"), "model_number": info.get("model"),
-          "isa": [name for flag, name in ISA_FLAGS if flag in flags], "cores": os.cpu_count()}
-
-
-def cpu_description(cpu: dict | None = None) -> str:
-  """CPU model (family/model numbers too: virtual machines often say only 'AMD EPYC'), ISA
-  flags and core count, e.g. 'AMD EPYC, family 26 model 2 (AVX2, AVX-512; 2 cores)'."""
-  cpu = cpu or cpu_info()
-  model = cpu["model"]
-  if cpu.get("family") is not None:
-    model += f", family {cpu['family']} model {cpu.get('model_number') or '?'}"
-  return f"{model} ({', '.join(cpu['isa']) or 'ISA unknown'}; {cpu['cores']} cores)"
-
-
-def cpu_key(cpu: dict | None = None) -> str:
-  """File-name key of a CPU kind: model name, family and model numbers, AVX-512 or not
-  ('amd-epyc-f25-m1-avx2'); one records file per key under benchmarks/results/."""
-  cpu = cpu or cpu_info()
-  parts = [cpu["model"]]
-  if cpu.get("family") is not None:
-    parts.append(f"f{cpu['family']}-m{cpu.get('model_number') or 'x'}")
-  parts.append("avx512" if "AVX-512" in cpu["isa"] else "avx2" if "AVX2" in cpu["isa"] else "")
-  slug = re.sub(r"[^a-z0-9]+", "-", "-".join(parts).lower()).strip("-")
-  return slug or "unknown-cpu"
+from sljax.machine import cpu_description, cpu_info, cpu_key  # noqa: E402  (after the path)
 
 
 def machine(torch_module=None) -> str:

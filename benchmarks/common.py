@@ -20,6 +20,23 @@ if ROOT not in sys.path:
 from sljax.machine import cpu_description, cpu_info, cpu_key  # noqa: E402  (after the path)
 
 
+def peak_gflops(cpu: dict | None = None) -> tuple[float, str]:
+  """The CPU's nominal fp32 peak in GFLOP/s and how it was computed: cores x FLOP per cycle x
+  clock. FLOP per cycle assumes two FMA pipes of the widest vector (AVX-512: 2 x 16 x 2 = 64,
+  AVX2: 2 x 8 x 2 = 32, as on Zen 3, Zen 5 and Xeons since Skylake-SP); the clock is the
+  nominal one /proc/cpuinfo reports (turbo can exceed it, so shares near 100% are possible)."""
+  cpu = cpu or cpu_info()
+  mhz = 0.0
+  try:
+    with open("/proc/cpuinfo", encoding="utf-8") as f:
+      mhz = next(float(l.split(":")[1]) for l in f if l.startswith("cpu MHz"))
+  except (OSError, StopIteration, ValueError):
+    pass
+  per_cycle = 64 if "AVX-512" in cpu["isa"] else 32 if "AVX2" in cpu["isa"] else 16
+  peak = cpu["cores"] * per_cycle * mhz / 1e3
+  return peak, f"{cpu['cores']} cores x {per_cycle} FLOP/cycle x {mhz / 1e3:.2f} GHz"
+
+
 def machine(torch_module=None) -> str:
   """One line naming the CPU, the accelerator and the versions; print it above every table."""
   import jax

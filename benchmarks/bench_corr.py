@@ -20,7 +20,7 @@ import time
 
 import numpy as np
 
-from common import machine, run_child
+from common import machine, record, run_child
 
 # (H, W, t, u): the paper's virtual set and a SCARED-sized frame.
 SIZES = [(256, 256, 8, 64), (1024, 1280, 9, 320)]
@@ -116,6 +116,7 @@ def main() -> None:
   print(f"{'size':>10} {'t':>2} {'u':>4} {'rows s':>7} {'(cpu s)':>7} {'shifts s':>8} "
         f"{'(cpu s)':>7} {'shifts/rows':>11} {'rows px/s':>9} {'naive px/s':>10} "
         f"{'rows/naive':>10} {'peak MiB rows/shifts':>20} {'identical':>9}")
+  records = []
   for h, w, t, u in (SIZES[:1] if args.quick else SIZES):
     size = f"{h},{w},{t},{u}"
     res, _ = run_child(__file__, ["--child", size, "--repeats", str(args.repeats)])
@@ -128,6 +129,12 @@ def main() -> None:
           f"{shifts['seconds'] / rows['seconds']:>11.1f} {px:>9.3g} {naive:>10.3g} "
           f"{px / naive:>10.0f} {mem['rows']:>9.0f}/{mem['shifts']:<10.0f} "
           f"{'yes' if res['identical_on_binary'] else 'NO':>9}")
+    records.append({"height": h, "width": w, "t": t, "u": u, "rows_s": rows["seconds"],
+                    "rows_cpu_s": rows["cpu_seconds"], "shifts_s": shifts["seconds"],
+                    "shifts_cpu_s": shifts["cpu_seconds"], "naive_px_per_s": naive,
+                    "rows_peak_mib": mem["rows"], "shifts_peak_mib": mem["shifts"],
+                    "identical_on_binary": res["identical_on_binary"]})
+  record("bench_corr", records)
 
 
 if __name__ == "__main__":

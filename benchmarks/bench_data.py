@@ -9,6 +9,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from common import record  # first: puts this checkout's sljax on the path
 
 from sljax.data.dataset import FolderSource, iterate_batches
 from sljax.data.scene import Scene, load_scene, write_scene
@@ -58,6 +59,8 @@ def main() -> None:
       print(f"{name:34s} {v:9.1f} {unit}")
     native = rows[1][1]
     print(f"ratio resize/native {rows[2][1] / native:.2f}, crop/native {rows[3][1] / native:.2f}")
+    record("bench_data", [{"what": name, "value": v, "unit": unit} for name, v, unit in rows],
+           scenes=a.scenes, size=a.size, patterns=a.patterns)
 
 
 if __name__ == "__main__":

@@ -31,7 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from common import best_time, machine  # first: puts this checkout's sljax on the path
+from common import best_time, machine, peak_gflops, record  # first: puts this checkout's sljax on the path
 from sljax.losses.disparity import PSMNET_OUTPUT_WEIGHTS, disparity_loss
 from sljax.nets import build_model
 from sljax.nets import conv3d as c3
@@ -352,7 +352,31 @@ def micro(repeats, with_lax):
     res["torch"] = (t_f, best_time(tfb, repeats))
     rows.append((label, res))
     print_micro_row(label, res, with_lax)
-  return rows
+  peak, how = peak_gflops()
+  print(f"\nachieved fp32 GFLOP/s (fwd, fwd+bwd; backward = 2 forwards' FLOPs) against the "
+        f"nominal peak {peak:.0f} GFLOP/s ({how})")
+  print("| layer | sljax fwd | sljax fwd+bwd | torch fwd | torch fwd+bwd | sljax share of peak |")
+  print("| --- | ---: | ---: | ---: | ---: | ---: |")
+  out = []
+  for (label, r), spec in zip(rows, MICRO):
+    flops = layer_flops(*spec[1:])
+    g = [flops * m / t / 1e9 for m, t in ((1, r["fast"][0]), (3, r["fast"][1]),
+                                          (1, r["torch"][0]), (3, r["torch"][1]))]
+    print(f"| {label} | {g[0]:.0f} | {g[1]:.0f} | {g[2]:.0f} | {g[3]:.0f} | "
+          f"{g[0] / peak:.0%} / {g[1] / peak:.0%} |")
+    out.append({"table": "micro", "layer": label, "fwd_s": r["fast"][0],
+                "fwd_bwd_s": r["fast"][1], "torch_fwd_s": r["torch"][0],
+                "torch_fwd_bwd_s": r["torch"][1], "gflop": flops / 1e9,
+                "sljax_fwd_gflops": g[0], "sljax_fwd_bwd_gflops": g[1],
+                "torch_fwd_gflops": g[2], "torch_fwd_bwd_gflops": g[3], "peak_gflops": peak})
+  return out
+
+
+def layer_flops(kind, d, h, w, cin, cout, s) -> float:
+  """Multiply-adds x 2 of a 3x3x3 layer at batch 1: a convolution's output voxels, or a
+  transposed convolution's input voxels (each scattered to 27 outputs), x 27 x cin x cout."""
+  voxels = d * h * w if kind == "convT" else (d // s) * (h // s) * (w // s)
+  return 2.0 * 27 * cin * cout * voxels
 
 
 def print_micro_row(label, res, with_lax):
@@ -385,10 +409,11 @@ def main() -> None:
   import torch
   print(machine(torch))
   print(f"conv3d auto -> {c3.conv_impl()}; times: minimum of {args.repeats} after a warm-up")
+  records = []
   if args.part in ("all", "micro"):
     print(f"\n3D convolution layers, {args.size}x{args.size} maxdisp {args.maxdisp} shapes: "
           "fwd ms, fwd+bwd ms (ratio to torch)")
-    micro(args.repeats, args.with_lax)
+    records += micro(args.repeats, args.with_lax)
   if args.part in ("all", "models"):
     torch_, PSM, UNet = torch_models()
     torch_.manual_seed(0)
@@ -409,11 +434,17 @@ def main() -> None:
         tj = jax_time(name, batch, args.size, args.maxdisp, args.repeats, train)
         tt = torch_time(torch_, tm, batch, args.size, args.maxdisp, args.repeats, train)
         line = f"| {name} | {mode} | {side} | {tj:.2f} | {tt:.2f} | {tj / tt:.2f}x |"
+        row = {"table": "models", "model": name, "mode": mode, "torch_side": side,
+               "size": args.size, "maxdisp": args.maxdisp, "batch": batch,
+               "sljax_s": tj, "torch_s": tt, "ratio": tj / tt}
         if args.with_lax and name.startswith("psmnet"):
           tl = jax_time(name, batch, args.size, args.maxdisp, max(1, args.repeats - 2), train,
                         "lax")
           line += f" {tl:.2f} | {tl / tt:.2f}x |"
+          row["lax_s"] = tl
         print(line, flush=True)
+        records.append(row)
+  record("bench_nets", records, torch)
 
 
 if __name__ == "__main__":

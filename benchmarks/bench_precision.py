@@ -15,7 +15,7 @@ import json
 import tempfile
 from pathlib import Path
 
-from common import machine  # first: puts this checkout's sljax on the path
+from common import machine, record  # first: puts this checkout's sljax on the path
 from sljax.train import loop
 from sljax.train.config import QUICK
 
@@ -44,6 +44,10 @@ def main() -> None:
   best = {k: min(r["val_mae"] for r in v) for k, v in runs.items()}
   print(f"\nfinal: fp32 {runs['fp32'][-1]['val_mae']:.3f} px, bf16 {runs['bf16'][-1]['val_mae']:.3f} "
         f"px; best: fp32 {best['fp32']:.3f} px, bf16 {best['bf16']:.3f} px")
+  record("bench_precision", [{"epoch": a["epoch"], "val_mae_fp32": a["val_mae"],
+                              "val_mae_bf16": b["val_mae"], "s_fp32": a["seconds"],
+                              "s_bf16": b["seconds"]} for a, b in zip(runs["fp32"], runs["bf16"])],
+         strategy=args.strategy, seed=args.seed)
 
 
 if __name__ == "__main__":

@@ -11,6 +11,8 @@ import os
 import tempfile
 import time
 
+from common import record  # first: puts this checkout's sljax on the path
+
 
 def _rate(fn, n: int) -> tuple[float, float]:
   """(wall scenes/s, CPU ms per scene) of n calls fn(i), after one warm-up call (compilation)."""
@@ -52,6 +54,9 @@ def main() -> None:
   for name, wall, cpu_ms in rows:
     per_core = 1000.0 / cpu_ms  # what one idle core sustains, whatever the load on the box
     print(f"{name:26s} {wall:16.2f} {cpu_ms:13.1f} {per_core:18.1f} {per_core / 20:8.2f}")
+  record("bench_synthetic", [{"path": name, "scenes_per_s_wall": wall, "cpu_ms_per_scene": cpu_ms}
+                             for name, wall, cpu_ms in rows],
+         domain=args.domain, size=args.size, compile_s=compile_s)
 
 
 if __name__ == "__main__":

@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from common import machine
+from common import machine, record
 
 from sljax.data.dataset import split_indices
 from sljax.data.scene import write_scene
@@ -130,6 +130,11 @@ def main() -> None:
   print("| --- | --- | --- | --- |")
   for name, sps in rows:
     print(f"| {name} | {sps:.3f} | {sps * config.batch_size:.2f} | {sps / a:.3f} |")
+  record("bench_train", [{"what": name, "steps_per_s": sps,
+                          "samples_per_s": sps * config.batch_size, "ratio_to_a": sps / a}
+                         for name, sps in rows],
+         preset=config.preset, net=config.net, batch=config.batch_size,
+         precision=config.precision)
 
 
 if __name__ == "__main__":

@@ -1,42 +1,40 @@
-"""What every benchmark shares: where it ran, best-of timing, fresh child processes."""
+"""What every benchmark shares: where it ran, best-of timing, fresh child processes, and the
+per-CPU record of every result (`benchmarks/results/<cpu>.jsonl`, one JSON line a run)."""
 
 from __future__ import annotations
 
+import datetime
 import json
 import os
-import platform
 import subprocess
 import sys
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 # Benchmarks measure the checkout they sit in, not whichever sljax is installed.
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 if ROOT not in sys.path:
   sys.path.insert(0, ROOT)
 
-# /proc/cpuinfo flag -> the name people know; AMX and AVX512_BF16 decide bf16 speed.
-ISA_FLAGS = (("avx2", "AVX2"), ("avx512f", "AVX-512"), ("avx512_bf16", "AVX512_BF16"),
-             ("avx512_vnni", "AVX512_VNNI"), ("amx_tile", "AMX"))
+from sljax.machine import cpu_description, cpu_info, cpu_key  # noqa: E402  (after the path)
 
 
-def cpu_description() -> str:
-  """CPU model (family/model numbers too: virtual machines often say only 'AMD EPYC'), ISA
-  flags and core count, e.g. 'AMD EPYC, family 26 model 2 (AVX2, AVX-512; 2 cores)'."""
-  info: dict[str, str] = {}
+def peak_gflops(cpu: dict | None = None) -> tuple[float, str]:
+  """The CPU's nominal fp32 peak in GFLOP/s and how it was computed: cores x FLOP per cycle x
+  clock. FLOP per cycle assumes two FMA pipes of the widest vector (AVX-512: 2 x 16 x 2 = 64,
+  AVX2: 2 x 8 x 2 = 32, as on Zen 3, Zen 5 and Xeons since Skylake-SP); the clock is the
+  nominal one /proc/cpuinfo reports (turbo can exceed it, so shares near 100% are possible)."""
+  cpu = cpu or cpu_info()
+  mhz = 0.0
   try:
     with open("/proc/cpuinfo", encoding="utf-8") as f:
-      for line in f:
-        key, _, value = line.partition(":")
-        info.setdefault(key.strip(), value.strip())  # the first processor's entries
-  except OSError:
+      mhz = next(float(l.split(":")[1]) for l in f if l.startswith("cpu MHz"))
+  except (OSError, StopIteration, ValueError):
     pass
-  model = info.get("model name") or platform.processor() or "unknown CPU"
-  if "cpu family" in info:
-    model += f", family {info['cpu family']} model {info.get('model', '?')}"
-  flags = set(info.get("flags", "").split())
-  isa = [name for flag, name in ISA_FLAGS if flag in flags]
-  return f"{model} ({', '.join(isa) or 'ISA unknown'}; {os.cpu_count()} cores)"
+  per_cycle = 64 if "AVX-512" in cpu["isa"] else 32 if "AVX2" in cpu["isa"] else 16
+  peak = cpu["cores"] * per_cycle * mhz / 1e3
+  return peak, f"{cpu['cores']} cores x {per_cycle} FLOP/cycle x {mhz / 1e3:.2f} GHz"
 
 
 def machine(torch_module=None) -> str:
@@ -72,3 +70,42 @@ def run_child(script: str, args: list[str]) -> tuple[dict, float]:
   if code != 0:
     raise SystemExit(f"benchmark child {' '.join(args)} failed with exit code {code}")
   return json.loads(out.strip().splitlines()[-1]), usage.ru_maxrss / 1024  # Linux: KiB
+
+
+RESULTS = Path(os.environ.get("SLJAX_BENCH_RESULTS", os.path.join(ROOT, "benchmarks", "results")))
+
+
+def git_commit() -> str:
+  """The checkout's commit, with '+dirty' when tracked files differ from it ('unknown' outside
+  git)."""
+  try:
+    head = subprocess.run(["git", "-C", ROOT, "rev-parse", "--short", "HEAD"], text=True,
+                          capture_output=True, check=True).stdout.strip()
+    dirty = subprocess.run(["git", "-C", ROOT, "status", "--porcelain", "--untracked-files=no"],
+                           text=True, capture_output=True, check=True).stdout.strip()
+  except (OSError, subprocess.CalledProcessError):
+    return "unknown"
+  return head + ("+dirty" if dirty else "")
+
+
+def record(benchmark: str, rows: list[dict], torch_module=None, **extra) -> Path:
+  """Appends one run's rows, with the machine, versions, commit, command line and the load
+  average (the machines are shared: a high load marks a contended run) to the CPU's records file;
+  returns its path. SLJAX_BENCH_RESULTS moves the folder."""
+  import jax
+  import jaxlib
+  cpu = cpu_info()
+  versions = {"jax": jax.__version__, "jaxlib": jaxlib.__version__}
+  if torch_module is not None:
+    versions.update(torch=torch_module.__version__, torch_threads=torch_module.get_num_threads())
+  entry = {"time": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+           "benchmark": benchmark, "argv": sys.argv[1:], "cpu": cpu,
+           "machine": machine(torch_module), "backend": jax.default_backend(),
+           "versions": versions, "commit": git_commit(),
+           "loadavg_1min": round(os.getloadavg()[0], 2), "rows": rows, **extra}
+  RESULTS.mkdir(parents=True, exist_ok=True)
+  path = RESULTS / f"{cpu_key(cpu)}.jsonl"
+  with open(path, "a", encoding="utf-8") as f:
+    f.write(json.dumps(entry) + "\n")
+  print(f"\nrecorded in {os.path.relpath(path)}")
+  return path

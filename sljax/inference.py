@@ -55,6 +55,7 @@ from typing import Any
 
 import numpy as np
 
+from sljax import tune
 from sljax.data.scene import to_gray
 from sljax.errors import SljaxError
 
@@ -233,10 +234,12 @@ def _forward(model, variables, left, right) -> dict:
 
 
 @functools.cache
-def _jitted_forward():
-  """`_forward` jitted with the model static, so equal models share compilations."""
+def _jitted_forward(ynn: bool = True):
+  """`_forward` jitted with the model static, so equal models share compilations; `ynn`:
+  XLA:CPU's YNNPACK fusions on or off (sljax.tune's forward choice)."""
   import jax
-  return jax.jit(_forward, static_argnums=0)
+  options = tune.KernelChoice(forward_ynn=ynn).compiler_options("forward")
+  return jax.jit(_forward, static_argnums=0, compiler_options=options)
 
 
 # The twin (psmnet-mtl) runs as two programs when its cost volume would exceed this many bytes:
@@ -263,9 +266,11 @@ def _sl_forward(model, variables, left, right):
 
 
 @functools.cache
-def _jitted_sl_forward():
+def _jitted_sl_forward(ynn: bool = True):
+  """`_sl_forward` jitted as `_jitted_forward` is."""
   import jax
-  return jax.jit(_sl_forward, static_argnums=0)
+  options = tune.KernelChoice(forward_ynn=ynn).compiler_options("forward")
+  return jax.jit(_sl_forward, static_argnums=0, compiler_options=options)
 
 
 def twin_split_needed(model, shape: tuple[int, ...]) -> bool:
@@ -277,19 +282,20 @@ def twin_split_needed(model, shape: tuple[int, ...]) -> bool:
   return 4 * b * (model.maxdisp // 4) * (h // 4) * (w // 4) * 64 > TWIN_SPLIT_BYTES
 
 
-def forward(model, variables, left, right, split: bool | None = None) -> dict:
+def forward(model, variables, left, right, split: bool | None = None, ynn: bool = True) -> dict:
   """The model's eval outputs (disparity, pattern probabilities) for prepared inputs.
 
   split: run the twin as two programs (see TWIN_SPLIT_BYTES); None decides by size.
+  ynn: XLA:CPU's YNNPACK fusions on or off (the forward choice of sljax.tune).
   """
   from sljax.nets.psmnet_mtl import detach_sl
   if split is None:
     split = twin_split_needed(model, np.shape(left))
   if not split:
-    return _jitted_forward()(model, variables, left, right)
+    return _jitted_forward(ynn)(model, variables, left, right)
   plain, sl_only = _twin_halves(model)
-  out = dict(_jitted_forward()(plain, detach_sl(variables), left, right))
-  out.update(_jitted_sl_forward()(sl_only, variables, left, right))
+  out = dict(_jitted_forward(ynn)(plain, detach_sl(variables), left, right))
+  out.update(_jitted_sl_forward(ynn)(sl_only, variables, left, right))
   return out
 
 
@@ -337,7 +343,8 @@ class Predictor:
   def __init__(self, model, variables, *, model_name: str, model_kwargs: dict | None = None,
                train_size: Any = None, mode: str = "pad", gray: bool | None = None,
                sl_max_disp: int | None = None, sl_window: int | None = None,
-               name: str | None = None, split_twin: bool | None = None):
+               name: str | None = None, split_twin: bool | None = None,
+               kernels: "tune.KernelChoice" = tune.DEFAULT):
     import jax
 
     if mode not in MODES:
@@ -351,6 +358,7 @@ class Predictor:
     self.model_kwargs = dict(model_kwargs or {})
     self.mode = mode
     self.split_twin = split_twin  # psmnet-mtl in two programs: None = when large (forward)
+    self.kernels = kernels  # compiler choices (sljax.tune); its forward one applies here
     self.train_size = _as_size(train_size)
     self.name = name or model_name
     self.sl_max_disp = sl_max_disp
@@ -399,7 +407,8 @@ class Predictor:
       th, tw = self.train_size
       lin = np.stack([resize_image(x, (th, tw)) for x in lf])
       rin = np.stack([resize_image(x, (th, tw)) for x in rf])
-    raw = forward(self.model, self.variables, lin, rin, self.split_twin)
+    raw = forward(self.model, self.variables, lin, rin, self.split_twin,
+                  self.kernels.forward_ynn)
     out = {k: np.asarray(v, dtype=np.float32) for k, v in raw.items()}
 
     if self.mode == "pad":
@@ -423,22 +432,25 @@ class Predictor:
 
 def make_predictor(model_name: str, model_kwargs: dict, variables: dict, train_size: Any = None,
                    mode: str = "pad", *, gray: bool | None = None, sl_max_disp: int | None = None,
-                   sl_window: int | None = None, name: str | None = None) -> Predictor:
+                   sl_window: int | None = None, name: str | None = None,
+                   kernels: "tune.KernelChoice" = tune.DEFAULT) -> Predictor:
   """Predictor for a model built by sljax.nets.build_model(model_name, **model_kwargs)."""
   from sljax.nets import build_model
   model = build_model(model_name, **dict(model_kwargs or {}))
   return Predictor(model, variables, model_name=model_name, model_kwargs=model_kwargs,
                    train_size=train_size, mode=mode, gray=gray, sl_max_disp=sl_max_disp,
-                   sl_window=sl_window, name=name)
+                   sl_window=sl_window, name=name, kernels=kernels)
 
 
-def load(checkpoint: str | os.PathLike, mode: str = "pad", maxdisp: int | None = None
-         ) -> Predictor:
+def load(checkpoint: str | os.PathLike, mode: str = "pad", maxdisp: int | None = None,
+         tune_kernels: bool | None = None) -> Predictor:
   """Predictor from a training workdir, its checkpoints dir, or a converted PSMNet dir.
 
   maxdisp (optional) replaces the disparity range: the cost volume's depth for psmnet and
   psmnet-mtl (a multiple of 16; the weights do not depend on it), the correlation's search
   range u for unet-sl (in the pixels the network sees); unet-disp has none.
+  tune_kernels: use this CPU's tuned compiler choice (sljax.tune; measured on first use and
+  cached); None follows $SLJAX_TUNE (on unless 0), False keeps XLA's defaults.
   """
   from sljax.nets import registry
   from sljax.train.checkpoint import load_for_inference
@@ -459,6 +471,7 @@ def load(checkpoint: str | os.PathLike, mode: str = "pad", maxdisp: int | None =
                        "directly, as a fraction of the image width)")
   predictor = make_predictor(model_name, model_kwargs, variables, train_size=config.get("size"),
                              mode=mode, gray=config.get("gray"), sl_max_disp=sl_max_disp,
-                             sl_window=config.get("corr_window"), name=path)
+                             sl_window=config.get("corr_window"), name=path,
+                             kernels=tune.choice(tune_kernels))
   predictor.train_config = config
   return predictor

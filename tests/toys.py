@@ -37,7 +37,7 @@ class TinyTwin(nn.Module):
 
 
 @functools.lru_cache(maxsize=None)
-def tiny_steps(net, kwargs, maxdisp, disp_loss, lr, lr_drop_step, precision, mesh):
+def tiny_steps(net, kwargs, maxdisp, disp_loss, lr, lr_drop_step, precision, mesh, ynn="on"):
   """Drop-in for sljax.train.loop.compiled_steps that trains TinyTwin for any PSMNet."""
   model = TinyTwin(maxdisp=maxdisp, t=dict(kwargs).get("t", 4))
   tx = train_state.make_optimizer(lr, lr_drop_step)

@@ -105,7 +105,9 @@ class Cell:
   def spec(self) -> dict[str, Any]:
     """What identifies the run (plan.json): a changed spec under one name is refused. The
     evaluation sets are not part of it: a trained cell can be scored on more sets later."""
-    config = {k: v for k, v in self.config.to_json().items() if k != "init_from"}
+    # Not the run's identity: init_from is init_cell's; ynn only changes float rounding and is
+    # resolved per machine (each cell's config.json keeps it); older plan.json lack it.
+    config = {k: v for k, v in self.config.to_json().items() if k not in ("init_from", "ynn")}
     return {"arm": self.arm, "factors": [list(f) for f in self.factors], "seed": self.seed,
             "config": config, "init_cell": self.init_cell}
 

@@ -18,6 +18,7 @@ from sljax.nets import registry
 MODELS = registry.MODELS
 PRESETS = ("auto", "paper", "quick")
 PRECISIONS = ("fp32", "bf16")
+YNN = ("auto", "on", "off", "forward-off", "train-off")
 
 
 def parse_size(text: str) -> tuple[int, int]:
@@ -79,6 +80,11 @@ class TrainConfig:
   precision: str = option("fp32", "fp32, or bf16: bfloat16 computation with float32 "
                           "parameters, optimiser state, losses and disparity softmax",
                           choices=PRECISIONS)
+  ynn: str = option("auto", "XLA:CPU YNNPACK fusions per program kind: auto (chosen for this "
+                    "CPU by measurement once, `sljax tune`, cached; SLJAX_TUNE=0 keeps XLA's "
+                    "default), on, off, forward-off (validation programs) or train-off; the "
+                    "resolved value is saved in config.json, so a resume compiles the same "
+                    "programs", choices=YNN)
   val_every: int = option(1, "epochs between validations", resumable=True)
   save_every: int = option(0, "also checkpoint every N steps (default: at each epoch end only)")
   keep: int = option(3, "checkpoints kept (the last N, plus the best by validation MAE)",
@@ -195,6 +201,7 @@ def diff_configs(saved: dict[str, Any], new: dict[str, Any],
 def config_from_json(d: dict[str, Any]) -> TrainConfig:
   """TrainConfig from the dict written by to_json (unknown keys ignored)."""
   kw = {k: v for k, v in d.items() if k in FIELDS}
+  kw.setdefault("ynn", "on")  # written before the option existed: XLA's default was used
   if "size" in kw:
     kw["size"] = tuple(kw["size"])
   try:

@@ -38,6 +38,7 @@ import numpy as np
 from flax import traverse_util
 from tqdm import tqdm
 
+from sljax import tune
 from sljax.corr.correlation import sl_disparity
 from sljax.data import synthetic
 from sljax.data.dataset import (PART_FIELD, FolderSource, epoch_order, load_batch,
@@ -169,16 +170,32 @@ def model_kwargs(config: TrainConfig, channels: int, t: int | None) -> dict[str,
 @functools.lru_cache(maxsize=8)
 def compiled_steps(net: str, kwargs: tuple[tuple[str, Any], ...], maxdisp: int, disp_loss: str,
                    lr: float, lr_drop_step: int | None, precision: str,
-                   mesh) -> tuple[Any, Any, Any, Any]:
+                   mesh, ynn: str = "on") -> tuple[Any, Any, Any, Any]:
   """(model, optimiser, train step, eval step), memoised so runs in one process share the
-  compiled steps (tests, notebooks, experiment grids, a resume in the same process)."""
+  compiled steps (tests, notebooks, experiment grids, a resume in the same process); `ynn` is
+  the resolved --ynn (sljax.tune), the steps' XLA compiler options."""
   model = build_model(net, **dict(kwargs))
   tx = st.make_optimizer(lr, lr_drop_step)
   dtype = stp.COMPUTE_DTYPES[precision]
+  choice = tune.KernelChoice.from_name(ynn)
   return (model, tx,
           stp.make_train_step(model, net=net, maxdisp=maxdisp, disp_loss=disp_loss, tx=tx,
-                              mesh=mesh, dtype=dtype),
-          stp.make_eval_step(model, net=net, mesh=mesh, dtype=dtype))
+                              mesh=mesh, dtype=dtype,
+                              compiler_options=choice.compiler_options("train")),
+          stp.make_eval_step(model, net=net, mesh=mesh, dtype=dtype,
+                             compiler_options=choice.compiler_options("forward")))
+
+
+def resolve_ynn(config: TrainConfig, workdir: Path, resume: bool,
+                log: Callable[[str], None]) -> TrainConfig:
+  """The config with --ynn auto resolved: a resumed run keeps its saved choice (the same
+  programs), a new one takes this CPU's tuned choice (sljax.tune)."""
+  if config.ynn != "auto":
+    return config
+  saved = workdir / ckpt.CONFIG_FILE
+  if resume and saved.exists():
+    return dataclasses.replace(config, ynn=ckpt.read_config(workdir).get("ynn", "on"))
+  return dataclasses.replace(config, ynn=tune.choice(log=log).name)
 
 
 def load_init(path: str, config: TrainConfig) -> tuple[str, dict[str, Any]]:
@@ -413,6 +430,7 @@ def setup(config: TrainConfig, workdir: Path, resume: bool, overwrite: bool,
   """Checks the options, data and workdir (SljaxError before anything compiles), writes the
   resolved config.json and announces the run."""
   validate(config)
+  config = resolve_ynn(config, workdir, resume, log)
   n_dev, n_proc = jax.device_count(), jax.process_count()
   require(config.batch_size % n_dev == 0,
           f"--batch-size {config.batch_size}: must be a multiple of the {n_dev} devices")
@@ -679,7 +697,7 @@ def train(config: TrainConfig, workdir: str | os.PathLike | None = None, *, resu
   drop = None if config.lr_drop_epoch is None else config.lr_drop_epoch * run.steps_per_epoch
   model, tx, train_step, eval_step = compiled_steps(
       config.net, tuple(sorted(run.kwargs.items())), config.maxdisp, config.disp_loss,
-      config.lr, drop, config.precision, mesh)
+      config.lr, drop, config.precision, mesh, run.config.ynn)
   state = create_train_state(run, model, tx)
   manager = ckpt.make_manager(workdir / ckpt.CHECKPOINT_DIR, keep=config.keep)
   loop = LoopState()

@@ -1,0 +1,88 @@
+"""The benchmark records of every CPU measured, as one Markdown table (the README's Benchmarks).
+
+Every benchmark appends its rows, with the machine, to `benchmarks/results/<cpu>.jsonl`
+(`common.record`). This prints, per CPU kind, the latest record of each headline figure:
+
+  python benchmarks/records.py            # all CPUs
+  python benchmarks/records.py --all      # every record, not only the latest per figure
+"""
+
+import argparse
+import json
+from pathlib import Path
+
+from common import RESULTS, cpu_description
+
+
+def load(folder: Path) -> dict[str, list[dict]]:
+  """Records per CPU key (file stem), oldest first."""
+  out = {}
+  for path in sorted(folder.glob("*.jsonl")):
+    with open(path, encoding="utf-8") as f:
+      out[path.stem] = [json.loads(line) for line in f if line.strip()]
+  return out
+
+
+def headlines(entry: dict) -> list[tuple[str, str]]:
+  """(figure, value) pairs of one record: the numbers a reader compares across CPUs."""
+  b, rows, out = entry["benchmark"], entry["rows"], []
+  for r in rows:
+    if b == "bench_nets" and r.get("table") == "models":
+      what = f"{r['model']} {r['mode']}, {r['size']}px b{r['batch']}, vs {r['torch_side']}"
+      out.append((what, f"{r['ratio']:.2f}x ({r['sljax_s']:.2f} s vs {r['torch_s']:.2f} s)"))
+    elif b == "bench_train":
+      out.append((f"train loop {entry.get('preset')} {entry.get('net')}: {r['what']}",
+                  f"{r['samples_per_s']:.2f} samples/s ({r['ratio_to_a']:.3f}x step)"))
+    elif b == "bench_corr":
+      out.append((f"correlation {r['width']}x{r['height']} t={r['t']} u={r['u']}",
+                  f"{r['rows_s']:.3f} s ({r['shifts_s'] / r['rows_s']:.1f}x faster than shifts)"))
+    elif b == "bench_fullres":
+      ref = ""
+      if r.get("reference_s"):
+        ref = (f"; reference {r['reference_s']:.1f} s, {r['reference_peak_rss_gib']:.1f} GiB: "
+               f"{r['later_call_s'] / r['reference_s']:.2f}x")
+      out.append((f"pad mode {r['model']} {r['width']}x{r['height']} maxdisp {r['maxdisp']}",
+                  f"{r['later_call_s']:.1f} s, {r['peak_rss_gib']:.1f} GiB{ref}"))
+    elif b == "bench_synthetic":
+      out.append((f"renderer {entry.get('size')}px {r['path']}", f"{r['cpu_ms_per_scene']:.0f} ms CPU"))
+    elif b == "main_job":
+      out.append((r["what"], r["value"]))
+  return out
+
+
+def table(records: dict[str, list[dict]], every: bool = False) -> str:
+  """The Markdown table: one section per CPU, the latest value of each figure (or all)."""
+  lines = []
+  for key, entries in records.items():
+    if not entries:
+      continue
+    lines += [f"\n**{cpu_description(entries[-1]['cpu'])}** (`{key}`)\n",
+              "| figure | value | when | commit | load | source |", "| --- | --- | --- | --- | --- | --- |"]
+    latest: dict[str, tuple[str, dict]] = {}
+    for e in entries:
+      for what, value in headlines(e):
+        if every:
+          lines.append(row(what, value, e))
+        else:
+          latest[what] = (value, e)
+    lines += [row(what, value, e) for what, (value, e) in latest.items()]
+  return "\n".join(lines)
+
+
+def row(what: str, value: str, e: dict) -> str:
+  """One table row with where the number came from."""
+  return (f"| {what} | {value} | {e['time'][:10]} | {e.get('commit', '?')} | "
+          f"{e.get('loadavg_1min') if e.get('loadavg_1min') is not None else '?'} | {e.get('source', 'measured')} |")
+
+
+def main() -> None:
+  """Prints the table."""
+  ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  ap.add_argument("--all", action="store_true", help="every record, not the latest per figure")
+  ap.add_argument("--folder", type=Path, default=RESULTS)
+  args = ap.parse_args()
+  print(table(load(args.folder), args.all))
+
+
+if __name__ == "__main__":
+  main()

@@ -1,0 +1,50 @@
+"""`sljax tune`: measure this CPU's kernel choices now and print the table."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def register(subparsers) -> None:
+  """Adds the `tune` subcommand."""
+  p = subparsers.add_parser(
+      "tune", help="choose this CPU's fastest exact kernels by measurement (cached)",
+      description="Times the exact implementations of the hot operations (folded or lax "
+                  "convolutions, block sizes, XLA:CPU YNNPACK fusions for forward-only and "
+                  "training programs) on PSMNet's shapes, prints the table and caches the "
+                  "choice for this CPU kind and jax version, where training and inference find "
+                  "it. Training and inference tune on first use by themselves; SLJAX_TUNE=0 or "
+                  "--no-tune uses the defaults.")
+  p.add_argument("--show", action="store_true",
+                 help="print the cached choice and its table without measuring")
+  p.add_argument("--repeats", type=int, default=3, help="timed calls per candidate (default 3)")
+  p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+  """Measures (or shows) and prints the table."""
+  import time
+
+  from sljax import machine, tune
+  from sljax.errors import require
+
+  require(args.repeats > 0, f"--repeats must be positive, got {args.repeats}")
+  key, path = tune.cache_key(), tune.cache_path()
+  print(f"{machine.cpu_description()}\ncache: {path} [{key}]")
+  if args.show:
+    entry = tune.read_cache().get(key)
+    require(entry is not None, f"{path}: no choice cached for {key}; run `sljax tune`")
+    best = tune.KernelChoice(**entry["choice"])
+    print(f"measured {entry['time']} in {entry['seconds']} s\n\n{tune.format_table(entry['table'], best)}"
+          f"\n\nchoice: {tune.describe(best)}")
+    return 0
+  t0 = time.perf_counter()
+  best, table = tune.measure(repeats=args.repeats)
+  seconds = time.perf_counter() - t0
+  print(f"measured in {seconds:.0f} s\n\n{tune.format_table(table, best)}\n\n"
+        f"choice: {tune.describe(best)}")
+  try:
+    tune.write_cache(key, best, table, seconds)
+  except OSError as e:
+    print(f"not cached ({path}: {e.strerror or e})")
+  return 0

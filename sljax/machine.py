@@ -1,0 +1,48 @@
+"""What CPU this is: model, family and model numbers, the ISA flags that decide kernel speed.
+
+One description serves the tuner's cache key (`sljax.tune`) and the benchmarks' records.
+"""
+
+import os
+import platform
+import re
+
+# /proc/cpuinfo flag -> the name people know; AMX and AVX512_BF16 decide bf16 speed.
+ISA_FLAGS = (("avx2", "AVX2"), ("avx512f", "AVX-512"), ("avx512_bf16", "AVX512_BF16"),
+             ("avx512_vnni", "AVX512_VNNI"), ("amx_tile", "AMX"))
+
+
+def cpu_info(cpuinfo: str = "/proc/cpuinfo") -> dict:
+  """The CPU as fields: model name, family and model numbers, ISA flags people know, cores."""
+  info: dict[str, str] = {}
+  try:
+    with open(cpuinfo, encoding="utf-8") as f:
+      for line in f:
+        key, _, value = line.partition(":")
+        info.setdefault(key.strip(), value.strip())  # the first processor's entries
+  except OSError:
+    pass
+  flags = set(info.get("flags", "").split())
+  return {"model": info.get("model name") or platform.processor() or "unknown CPU",
+          "family": info.get("cpu family"), "model_number": info.get("model"),
+          "isa": [name for flag, name in ISA_FLAGS if flag in flags], "cores": os.cpu_count()}
+
+
+def cpu_description(cpu: dict | None = None) -> str:
+  """'AMD EPYC, family 26 model 2 (AVX2, AVX-512; 2 cores)': family and model numbers too,
+  since virtual machines often say only 'AMD EPYC'."""
+  cpu = cpu or cpu_info()
+  model = cpu["model"]
+  if cpu.get("family") is not None:
+    model += f", family {cpu['family']} model {cpu.get('model_number') or '?'}"
+  return f"{model} ({', '.join(cpu['isa']) or 'ISA unknown'}; {cpu['cores']} cores)"
+
+
+def cpu_key(cpu: dict | None = None) -> str:
+  """A file-name-safe key of the CPU kind: 'amd-epyc-f25-m1-avx2'."""
+  cpu = cpu or cpu_info()
+  parts = [cpu["model"]]
+  if cpu.get("family") is not None:
+    parts.append(f"f{cpu['family']}-m{cpu.get('model_number') or 'x'}")
+  parts.append("avx512" if "AVX-512" in cpu["isa"] else "avx2" if "AVX2" in cpu["isa"] else "")
+  return re.sub(r"[^a-z0-9]+", "-", "-".join(parts).lower()).strip("-") or "unknown-cpu"

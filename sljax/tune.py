@@ -1,0 +1,231 @@
+"""Compiler choices per CPU, made by measurement and cached: sljax's cuDNN benchmark mode.
+
+What is chosen. XLA:CPU can hand convolutions and their neighbours to YNNPACK fusions or
+compile them itself; which is faster depends on the CPU (AVX-512 or not, cache sizes), on the
+XLA version and on the program: on an AVX-512 Zen 5 turning the fusions off made PSMNet's
+forward 1.2x faster and its training step 5-30% slower, on an AVX2 Zen 3 the forward was
+slower without them. So the choice is made per program kind: forward-only programs
+(inference, validation, evaluation) and training steps. Both settings compute the same
+function (only float rounding differs), and the choice is an explicit argument of the programs
+that use it (`KernelChoice.compiler_options(kind)`, passed to `jax.jit`), never process state.
+The fast CPU convolution kernels themselves (folded / lax, block sizes) are not tuned yet: they
+are chosen where the model is built.
+
+How. `measure` compiles PSMNet itself (128x128, maxdisp 48, batch 1: the real mix of 2D and 3D
+convolutions) as a forward and as a training program, with the fusions on and off, and times
+them interleaved, the minimum of a few calls each: about a minute on a 2-core CPU, most of it
+compiling. A setting replaces XLA's default only when it is faster by more than `MARGIN`. The
+winner is kept in a JSON cache in the user's cache directory (`$SLJAX_CACHE_DIR`, else
+`$XDG_CACHE_HOME/sljax`, else `~/.cache/sljax`), keyed by the CPU kind
+(`sljax.machine.cpu_key`) and the jax and jaxlib versions: measured once per machine kind and
+upgrade. `sljax tune` runs it and prints the table; `SLJAX_TUNE=0` (or `--no-tune`, `--ynn on`)
+keeps XLA's defaults. Off the CPU nothing is measured.
+"""
+
+import dataclasses
+import json
+import os
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import jaxlib
+import numpy as np
+
+from sljax import machine
+from sljax.nets import build_model
+
+ENV_TUNE = "SLJAX_TUNE"
+ENV_CACHE = "SLJAX_CACHE_DIR"
+YNN_OFF = {"xla_cpu_experimental_ynn_fusion_type": ""}
+MARGIN = 0.05  # a setting replaces XLA's default only when it is this much faster
+
+
+NAMES = {(True, True): "on", (False, False): "off", (False, True): "forward-off",
+         (True, False): "train-off"}  # (forward_ynn, train_ynn) -> the --ynn value
+
+
+@dataclasses.dataclass(frozen=True)
+class KernelChoice:
+  """The compiler choices of forward-only and training programs; defaults are XLA's."""
+  forward_ynn: bool = True           # XLA:CPU YNNPACK fusions in forward-only programs
+  train_ynn: bool = True             # ... and in training steps
+
+  @property
+  def name(self) -> str:
+    """'on', 'off', 'forward-off' or 'train-off' (the training option --ynn)."""
+    return NAMES[(self.forward_ynn, self.train_ynn)]
+
+  @classmethod
+  def from_name(cls, name: str) -> "KernelChoice":
+    """The choice a --ynn value names."""
+    fwd, train = next(k for k, v in NAMES.items() if v == name)
+    return cls(forward_ynn=fwd, train_ynn=train)
+
+  def compiler_options(self, kind: str) -> dict[str, str] | None:
+    """XLA compiler options for a 'forward' or 'train' program (None: XLA's defaults)."""
+    ynn = {"forward": self.forward_ynn, "train": self.train_ynn}[kind]
+    return None if ynn else dict(YNN_OFF)
+
+
+DEFAULT = KernelChoice()
+
+
+def enabled(flag: bool | None = None) -> bool:
+  """Whether to tune: an explicit flag wins, else $SLJAX_TUNE (on unless 0/off/false/no)."""
+  if flag is not None:
+    return flag
+  return os.environ.get(ENV_TUNE, "1").strip().lower() not in ("0", "off", "false", "no")
+
+
+def cache_path() -> Path:
+  """The tuning cache file in the user's cache directory (overridable by $SLJAX_CACHE_DIR)."""
+  root = os.environ.get(ENV_CACHE)
+  if not root:
+    root = os.path.join(os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache"),
+                        "sljax")
+  return Path(root) / "tune.json"
+
+
+def cache_key() -> str:
+  """What a measurement depends on: the CPU kind and the jax / jaxlib versions."""
+  return f"{machine.cpu_key()} jax-{jax.__version__} jaxlib-{jaxlib.__version__}"
+
+
+def read_cache(path: Path | None = None) -> dict:
+  """The cache's entries by key ({} when absent or unreadable: it is only a cache)."""
+  path = path or cache_path()
+  try:
+    data = json.loads(path.read_text(encoding="utf-8"))
+  except (OSError, ValueError):
+    return {}
+  return data if isinstance(data, dict) else {}
+
+
+def write_cache(key: str, choice: KernelChoice, table: list[dict], seconds: float,
+                path: Path | None = None) -> Path:
+  """Stores one key's choice and its measurements (atomically: write, then rename)."""
+  path = path or cache_path()
+  data = read_cache(path)
+  data[key] = {"choice": dataclasses.asdict(choice), "table": table,
+               "seconds": round(seconds, 1), "cpu": machine.cpu_description(),
+               "time": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+  path.parent.mkdir(parents=True, exist_ok=True)
+  tmp = path.with_suffix(f".tmp{os.getpid()}")
+  tmp.write_text(json.dumps(data, indent=1), encoding="utf-8")
+  os.replace(tmp, path)
+  return path
+
+
+def cached_choice(path: Path | None = None) -> KernelChoice | None:
+  """This machine's cached choice, or None."""
+  entry = read_cache(path).get(cache_key())
+  if not entry:
+    return None
+  try:
+    return KernelChoice(**entry["choice"])
+  except (KeyError, TypeError):
+    return None  # written by another version of this module: measure again
+
+
+def choice(tune: bool | None = None, log: Callable[[str], None] = print) -> KernelChoice:
+  """The kernel choice for this process: defaults off the CPU or with tuning off; else the
+  cached choice, measured first when this CPU kind and jax version have none."""
+  if jax.default_backend() != "cpu" or not enabled(tune):
+    return DEFAULT
+  found = cached_choice()
+  if found is not None:
+    return found
+  log(f"tuning the kernels for this CPU ({machine.cpu_description()}), once per CPU kind and "
+      f"jax version; SLJAX_TUNE=0 skips it")
+  t0 = time.perf_counter()
+  best, table = measure()
+  try:
+    path = write_cache(cache_key(), best, table, time.perf_counter() - t0)
+    log(f"tuned in {time.perf_counter() - t0:.0f} s: {describe(best)} (cached in {path})")
+  except OSError as e:  # a read-only home must not stop a run: the choice holds for this process
+    log(f"tuned in {time.perf_counter() - t0:.0f} s: {describe(best)} (not cached: {e})")
+  return best
+
+
+def describe(c: KernelChoice) -> str:
+  """One line: 'YNNPACK fusions off in forward programs, on in training (--ynn forward-off)'."""
+  ynn = lambda on: "on" if on else "off"
+  return (f"YNNPACK fusions {ynn(c.forward_ynn)} in forward programs, {ynn(c.train_ynn)} in "
+          f"training (--ynn {c.name})")
+
+
+# ----------------------------------------------------------------------------- measurement
+
+
+def workload(size: int = 128, maxdisp: int = 48, seed: int = 0):
+  """PSMNet at a small size, as (forward, training) functions of (variables, left, right, gt)
+  and their arguments: the real mix of 2D and 3D convolutions the choice is for."""
+  model = build_model("psmnet", maxdisp=maxdisp)
+  rng = np.random.default_rng(seed)
+  left, right = (jnp.asarray(rng.random((1, size, size, 3), np.float32)) for _ in range(2))
+  gt = jnp.asarray(rng.random((1, size, size), np.float32) * maxdisp)
+  variables = jax.jit(lambda k: model.init(k, left, right, train=False))(jax.random.PRNGKey(seed))
+
+  def forward(variables, left, right, gt):
+    return model.apply(variables, left, right, train=False)["disparity"]
+
+  def loss(params, variables, left, right, gt):
+    out, _ = model.apply({**variables, "params": params}, left, right, train=True,
+                         mutable=["batch_stats"])
+    return sum(jnp.mean((d - gt) ** 2) for d in out["disparities"])
+
+  def train(variables, left, right, gt):
+    return jax.grad(loss)(variables["params"], variables, left, right, gt)
+  return {"forward": forward, "train": train}, (variables, left, right, gt)
+
+
+def _compiled(fns, args, kind: str, ynn: bool):
+  """One program kind compiled with YNNPACK fusions on or off."""
+  return jax.jit(fns[kind], compiler_options=None if ynn else dict(YNN_OFF)).lower(*args).compile()
+
+
+def measure(repeats: int = 3, clock: Callable[[], float] = time.perf_counter,
+            timings: Callable[[str, bool], float] | None = None, size: int = 128
+            ) -> tuple[KernelChoice, list[dict]]:
+  """Times each program kind with YNNPACK fusions on and off; returns the choice and the table.
+  `timings(kind, ynn) -> seconds` replaces the measurement (tests)."""
+  keys = [(kind, ynn) for kind in ("forward", "train") for ynn in (True, False)]
+  if timings is not None:
+    times = {k: timings(*k) for k in keys}
+  else:
+    fns, args = workload(size=size)
+    programs = {k: _compiled(fns, args, *k) for k in keys}
+    for k in keys:
+      jax.block_until_ready(programs[k](*args))  # warm-up
+    samples = {k: [] for k in keys}
+    for _ in range(repeats):  # interleaved, so that a burst of load hits every setting alike
+      for k in keys:
+        t0 = clock()
+        jax.block_until_ready(programs[k](*args))
+        samples[k].append(clock() - t0)
+    times = {k: min(v) for k, v in samples.items()}
+  best = choose(times)
+  table = [{"kind": kind, "ynn": ynn, "seconds": round(times[(kind, ynn)], 5)} for kind, ynn in keys]
+  return best, table
+
+
+def choose(times: dict[tuple[str, bool], float], margin: float = MARGIN) -> KernelChoice:
+  """Per kind, fusions off only when that is faster than XLA's default by more than `margin`
+  (the noise of a shared machine does not move the choice)."""
+  off = lambda kind: times[(kind, False)] < times[(kind, True)] * (1 - margin)
+  return KernelChoice(forward_ynn=not off("forward"), train_ynn=not off("train"))
+
+
+def format_table(table: list[dict], best: KernelChoice) -> str:
+  """The measurements as a Markdown table, each program's time relative to the chosen setting."""
+  chosen = {"forward": best.forward_ynn, "train": best.train_ynn}
+  ref = {r["kind"]: r["seconds"] for r in table if r["ynn"] == chosen[r["kind"]]}
+  lines = ["| program (PSMNet) | YNNPACK fusions | ms | vs chosen |", "| --- | --- | ---: | ---: |"]
+  for r in table:
+    mark = " (chosen)" if r["ynn"] == chosen[r["kind"]] else ""
+    lines.append(f"| {r['kind']} | {'on' if r['ynn'] else 'off'} | {r['seconds'] * 1e3:.1f} | "
+                 f"{r['seconds'] / ref[r['kind']]:.2f}x{mark} |")
+  return "\n".join(lines)

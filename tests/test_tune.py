@@ -1,0 +1,183 @@
+"""The per-CPU compiler tuner (sljax.tune): the choice rule, the cache, the switch, that both
+settings compute the same function, and that training and inference use the choice."""
+
+import dataclasses
+import json
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+from sljax import cli, inference, machine, tune
+from sljax.train import checkpoint as ckpt
+from sljax.train import loop
+from sljax.train import step as stp
+from sljax.train.config import QUICK, config_from_json
+
+
+def fake(table):
+  """A fake measurement: seconds per (kind, ynn), 1.0 where the table is silent."""
+  return lambda kind, ynn: table.get((kind, ynn), 1.0)
+
+
+def test_names_round_trip():
+  for name in ("on", "off", "forward-off", "train-off"):
+    assert tune.KernelChoice.from_name(name).name == name
+  assert tune.DEFAULT.name == "on"
+  assert tune.KernelChoice(False, True).compiler_options("forward") == tune.YNN_OFF
+  assert tune.KernelChoice(False, True).compiler_options("train") is None
+
+
+def test_default_kept_unless_clearly_faster():
+  best, table = tune.measure(timings=fake({("forward", False): 0.97, ("train", False): 0.96}))
+  assert best == tune.DEFAULT  # 3-4% is within the margin
+  assert [(r["kind"], r["ynn"]) for r in table] == [("forward", True), ("forward", False),
+                                                     ("train", True), ("train", False)]
+  best, _ = tune.measure(timings=fake({("forward", False): 0.5}))
+  assert best == tune.KernelChoice(forward_ynn=False, train_ynn=True) and best.name == "forward-off"
+  best, _ = tune.measure(timings=fake({("train", False): 0.9, ("forward", True): 0.5}))
+  assert best.name == "train-off"
+
+
+def test_format_table_marks_the_choice():
+  best, table = tune.measure(timings=fake({("forward", False): 0.5}))
+  text = tune.format_table(table, best)
+  assert text.count("(chosen)") == 2
+  assert "| forward | off | 500.0 | 1.00x (chosen) |" in text
+  assert "| forward | on | 1000.0 | 2.00x |" in text
+
+
+@pytest.fixture
+def cache_dir(tmp_path, monkeypatch):
+  monkeypatch.setenv(tune.ENV_CACHE, str(tmp_path / "cache"))
+  monkeypatch.setenv(tune.ENV_TUNE, "1")
+  return tmp_path / "cache"
+
+
+def test_cache_round_trip_keyed_by_cpu_and_versions(cache_dir):
+  choice = tune.KernelChoice(False, True)
+  path = tune.write_cache(tune.cache_key(), choice, [{"x": 1}], 12.3)
+  assert path == cache_dir / "tune.json"
+  assert tune.cached_choice() == choice
+  key = tune.cache_key()
+  assert machine.cpu_key() in key and jax.__version__ in key
+  data = json.loads(path.read_text())
+  assert data[key]["seconds"] == 12.3 and data[key]["table"] == [{"x": 1}]
+  tune.write_cache("other-cpu jax-0 jaxlib-0", tune.DEFAULT, [], 1.0)  # kept beside it
+  assert set(json.loads(path.read_text())) == {key, "other-cpu jax-0 jaxlib-0"}
+  assert tune.cached_choice() == choice
+
+
+def test_corrupt_cache_is_ignored(cache_dir):
+  cache_dir.mkdir()
+  (cache_dir / "tune.json").write_text("{not json")
+  assert tune.read_cache() == {} and tune.cached_choice() is None
+  (cache_dir / "tune.json").write_text(json.dumps({tune.cache_key(): {"choice": {"bogus": 1}}}))
+  assert tune.cached_choice() is None
+
+
+def test_choice_measures_once_then_uses_the_cache(cache_dir, monkeypatch):
+  calls = []
+  picked = tune.KernelChoice(False, True)
+  monkeypatch.setattr(tune, "measure", lambda: calls.append(1) or (picked, []))
+  lines = []
+  assert tune.choice(log=lines.append) == picked
+  assert tune.choice(log=lines.append) == picked
+  assert calls == [1] and (cache_dir / "tune.json").exists()
+  assert "SLJAX_TUNE=0" in lines[0]
+
+
+def test_choice_off_by_flag_or_environment(cache_dir, monkeypatch):
+  monkeypatch.setattr(tune, "measure", lambda: pytest.fail("must not measure"))
+  assert tune.choice(tune=False) == tune.DEFAULT
+  monkeypatch.setenv(tune.ENV_TUNE, "0")
+  assert tune.choice() == tune.DEFAULT
+  assert not (cache_dir / "tune.json").exists()
+
+
+def test_unwritable_cache_does_not_stop_a_run(cache_dir, monkeypatch):
+  picked = tune.KernelChoice(False, False)
+  monkeypatch.setattr(tune, "measure", lambda: (picked, []))
+
+  def refuse(*args, **kwargs):
+    raise OSError(30, "Read-only file system")
+  monkeypatch.setattr(tune, "write_cache", refuse)
+  lines = []
+  assert tune.choice(log=lines.append) == picked
+  assert "not cached" in lines[-1] and "Read-only" in lines[-1]
+
+
+def test_both_settings_compute_the_same_function():
+  """Values and gradients of a UNet (2D convolutions, the fusions' domain) with the fusions on
+  and off agree to float32 rounding. (A randomly initialised PSMNet is a poor probe: its
+  near-flat disparity softmax turns rounding into tenths of a pixel at ties.)"""
+  from sljax.nets import build_model
+  model = build_model("unet-disp", in_channels=3, depth=3, base_width=8)
+  rng = np.random.default_rng(0)
+  x, y = (rng.random((2, 32, 32, 3), np.float32) for _ in range(2))
+  variables = model.init(jax.random.PRNGKey(0), x, y, train=False)
+
+  def f(params):
+    out = model.apply({**variables, "params": params}, x, y, train=False)["disparity"]
+    return (out ** 2).mean(), out
+  results = []
+  for choice in (tune.DEFAULT, tune.KernelChoice(forward_ynn=False, train_ynn=False)):
+    fwd = jax.jit(f, compiler_options=choice.compiler_options("forward"))
+    grad = jax.jit(jax.grad(lambda p: f(p)[0]), compiler_options=choice.compiler_options("train"))
+    results.append((np.asarray(fwd(variables["params"])[1]), grad(variables["params"])))
+  (a, ga), (b, gb) = results
+  np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-5)
+  for u, v in zip(jax.tree.leaves(ga), jax.tree.leaves(gb)):
+    u, v = np.asarray(u), np.asarray(v)  # sums of many terms: rounding relative to the leaf
+    np.testing.assert_allclose(u, v, rtol=1e-4, atol=1e-4 * np.abs(v).max())
+
+
+def test_training_steps_get_the_choice_as_compiler_options(monkeypatch):
+  seen = {}
+  monkeypatch.setattr(stp, "make_train_step", lambda *a, **k: seen.setdefault("train", k["compiler_options"]))
+  monkeypatch.setattr(stp, "make_eval_step", lambda *a, **k: seen.setdefault("eval", k["compiler_options"]))
+  loop.compiled_steps.__wrapped__("unet-disp", (("in_channels", 1),), 16, "l2", 1e-3, None,
+                                  "fp32", None, "forward-off")
+  assert seen == {"train": None, "eval": tune.YNN_OFF}
+
+
+def test_auto_resolves_once_and_a_resume_keeps_the_saved_choice(tmp_path, monkeypatch):
+  monkeypatch.setattr(tune, "choice", lambda log=print: tune.KernelChoice(False, True))
+  config = dataclasses.replace(QUICK, ynn="auto")
+  assert loop.resolve_ynn(config, tmp_path, False, print).ynn == "forward-off"
+  assert loop.resolve_ynn(dataclasses.replace(config, ynn="off"), tmp_path, False, print).ynn == "off"
+  (tmp_path / ckpt.CONFIG_FILE).write_text(json.dumps({"ynn": "train-off"}))
+  assert loop.resolve_ynn(config, tmp_path, True, print).ynn == "train-off"  # not re-tuned
+  # a config.json written before the option existed ran with XLA's default
+  assert config_from_json({"model": "psmnet"}).ynn == "on"
+
+
+def test_inference_runs_its_forward_with_the_choice(monkeypatch):
+  got = []
+  real = inference.forward
+  monkeypatch.setattr(inference, "forward", lambda *a: got.append(a[-1]) or real(*a))
+  kw = {"in_channels": 1, "depth": 2, "base_width": 4}
+  from sljax.nets import build_model
+  model = build_model("unet-disp", **kw)
+  x = np.zeros((1, 16, 16, 1), np.float32)
+  variables = model.init(jax.random.PRNGKey(0), x, x, train=False)
+  pred = inference.make_predictor("unet-disp", kw, variables, mode="pad",
+                                  kernels=tune.KernelChoice(forward_ynn=False))
+  out = pred(np.zeros((16, 16), np.float32), np.zeros((16, 16), np.float32))
+  assert out["disparity"].shape == (16, 16) and got and all(v is False for v in got)
+
+
+def test_cli_show_without_cache_is_one_line(cache_dir, capsys):
+  assert cli.main(["tune", "--show"]) == 2
+  err = capsys.readouterr().err.strip().splitlines()
+  assert len(err) == 1 and "no choice cached" in err[0] and "sljax tune" in err[0]
+
+
+def test_cli_show_prints_the_cached_table(cache_dir, capsys):
+  best, table = tune.measure(timings=fake({("forward", False): 0.5}))
+  tune.write_cache(tune.cache_key(), best, table, 42.0)
+  assert cli.main(["tune", "--show"]) == 0
+  out = capsys.readouterr().out
+  assert "in 42.0 s" in out and "(chosen)" in out and "--ynn forward-off" in out
+  assert Path(str(tune.cache_path())).name in out

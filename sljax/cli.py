@@ -30,6 +30,7 @@ COMMANDS = {
     "show": ("show", "write a contact sheet PNG of a scene"),
     "summary": ("summary", "parameter counts and output shapes of a network"),
     "train": ("train", "train a network (the same as python train.py)"),
+    "tune": ("tune", "choose this CPU's faster XLA compiler settings by measurement (cached)"),
     "uncertainty": ("uncertainty", "correlate pattern uncertainty with disparity error"),
 }
 

@@ -3,18 +3,21 @@
 from __future__ import annotations
 
 import argparse
+import time
+
+from sljax import machine, tune
+from sljax.errors import require
 
 
 def register(subparsers) -> None:
   """Adds the `tune` subcommand."""
   p = subparsers.add_parser(
-      "tune", help="choose this CPU's fastest exact kernels by measurement (cached)",
-      description="Times the exact implementations of the hot operations (folded or lax "
-                  "convolutions, block sizes, XLA:CPU YNNPACK fusions for forward-only and "
-                  "training programs) on PSMNet's shapes, prints the table and caches the "
-                  "choice for this CPU kind and jax version, where training and inference find "
-                  "it. Training and inference tune on first use by themselves; SLJAX_TUNE=0 or "
-                  "--no-tune uses the defaults.")
+      "tune",
+      description="Compiles PSMNet as a forward-only and as a training program with XLA:CPU's "
+                  "YNNPACK fusions on and off, times them, prints the table and caches the "
+                  "choice for this CPU kind and jax version, where training (--ynn auto) and "
+                  "inference find it. Both tune on first use by themselves; SLJAX_TUNE=0 or "
+                  "--ynn on keeps XLA's defaults.")
   p.add_argument("--show", action="store_true",
                  help="print the cached choice and its table without measuring")
   p.add_argument("--repeats", type=int, default=3, help="timed calls per candidate (default 3)")
@@ -23,11 +26,6 @@ def register(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
   """Measures (or shows) and prints the table."""
-  import time
-
-  from sljax import machine, tune
-  from sljax.errors import require
-
   require(args.repeats > 0, f"--repeats must be positive, got {args.repeats}")
   key, path = tune.cache_key(), tune.cache_path()
   print(f"{machine.cpu_description()}\ncache: {path} [{key}]")

@@ -14,8 +14,11 @@ docs/testing.md for how to read it, the last report and the survivors judged equ
 
 Sessions live in --work (default $TMPDIR/sljax-mutation): a run interrupted or cut by
 --timeout-min resumes where it stopped (cosmic-ray keeps the pending mutants in its sqlite
-session); --fresh starts a module over (do that after changing its tests). The scratch copy
-is refreshed from the working tree at each run, so new tests count.
+session); --fresh starts a module over (after changing the module itself). The scratch copy
+is refreshed from the working tree (or --rev) at each run, so new tests count. Before and
+after a change to the tests: run with --rev BASE into one --work, copy that folder, and run
+--retest-survivors on the copy: a mutant the old tests killed stays killed when tests are only
+added, so only the survivors need the new tests.
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ import json
 import os
 import shutil
 import signal
+import sqlite3
 import subprocess
 import sys
 import tempfile
@@ -36,9 +40,8 @@ ROOT = Path(__file__).resolve().parents[1]
 # module name -> (files to mutate, fast test files that cover them). JAX tests compile: keep
 # each list to the tests that exercise the module directly.
 MODULES: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
-    "stats": (("sljax/experiment/stats.py",), ("tests/test_stats.py",)),
-    "report": (("sljax/experiment/report.py",), ("tests/test_stats.py",
-                                                 "tests/test_gaps_report.py")),
+    "stats": (("sljax/experiment/stats.py",), ("tests/test_stats.py", "tests/test_gaps_stats.py")),
+    "report": (("sljax/experiment/report.py",), ("tests/test_stats.py",)),
     "geometry": (("sljax/geometry.py",), ("tests/test_gaps_geometry.py", "tests/test_predict.py")),
     "metrics": (("sljax/metrics.py",), ("tests/test_metrics.py",)),
     "checkpoint": (("sljax/train/checkpoint.py",), ("tests/test_gaps_checkpoint.py",
@@ -62,9 +65,18 @@ EXCLUDE = "^(?!core/(" + "|".join(KEEP) + ")$)"
 PYTEST = "python -m pytest -x -q -p no:cacheprovider -p no:randomly"
 
 
-def scratch_copy(work: Path) -> Path:
-  """A fresh copy of the working tree's tracked and untracked (not ignored) files."""
+def scratch_copy(work: Path, rev: str | None = None) -> Path:
+  """A fresh copy of the working tree's tracked and untracked (not ignored) files, or of the
+  commit rev (git archive: e.g. the tests before a change, for a "before" score)."""
   dest = work / "tree"
+  if rev is not None:
+    if dest.exists():
+      shutil.rmtree(dest)
+    dest.mkdir(parents=True)
+    archive = subprocess.run(["git", "archive", rev], cwd=ROOT, check=True,
+                             capture_output=True).stdout
+    subprocess.run(["tar", "-x", "-C", str(dest)], input=archive, check=True)
+    return dest
   files = subprocess.run(["git", "ls-files", "-co", "--exclude-standard", "-z"], cwd=ROOT,
                          check=True, capture_output=True).stdout.decode().split("\0")
   if dest.exists():
@@ -77,9 +89,9 @@ def scratch_copy(work: Path) -> Path:
   return dest
 
 
-def config(name: str, path: str, tests: tuple[str, ...], timeout: float) -> str:
-  """cosmic-ray's TOML configuration for one file of a module."""
-  existing = [t for t in tests if (ROOT / t).is_file()]
+def config(tree: Path, path: str, tests: tuple[str, ...], timeout: float) -> str:
+  """cosmic-ray's TOML configuration for one file of a module (the tests tree holds)."""
+  existing = [t for t in tests if (tree / t).is_file()]
   return (f'[cosmic-ray]\nmodule-path = "{path}"\ntimeout = {timeout}\nexcluded-modules = []\n'
           f'test-command = "{PYTEST} {" ".join(existing)}"\n\n'
           '[cosmic-ray.distributor]\nname = "local"\n\n'
@@ -95,17 +107,26 @@ def sessions(work: Path, name: str) -> list[tuple[str, Path, Path]]:
   return out
 
 
+def forget_survivors(db: Path) -> int:
+  """Marks a session's surviving mutants as not run (so exec tests them again)."""
+  with sqlite3.connect(db) as con:
+    return con.execute("DELETE FROM work_results WHERE test_outcome = 'SURVIVED'").rowcount
+
+
 def run_module(name: str, work: Path, tree: Path, fresh: bool, timeout: float,
-               deadline: float | None) -> None:
+               deadline: float | None, retest: bool = False) -> None:
   """Initialises (once) and executes the module's sessions in the scratch tree."""
   env = dict(os.environ, PYTHONPATH=str(tree), JAX_PLATFORMS="cpu")
   for path, cfg, db in sessions(work, name):
-    cfg.write_text(config(name, path, MODULES[name][1], timeout))
+    cfg.write_text(config(tree, path, MODULES[name][1], timeout))
     if fresh and db.exists():
       db.unlink()
+    if retest and db.exists():
+      print(f"{path}: testing {forget_survivors(db)} survivor(s) again", flush=True)
     if not db.exists():
       subprocess.run(["cosmic-ray", "init", str(cfg), str(db)], cwd=tree, env=env, check=True)
       subprocess.run(["cr-filter-operators", str(db), str(cfg)], cwd=tree, env=env, check=True)
+    pristine = (tree / path).read_bytes()
     left = None if deadline is None else max(1.0, deadline - time.time())
     t0 = time.time()
     proc = subprocess.Popen(["cosmic-ray", "exec", str(cfg), str(db)], cwd=tree, env=env,
@@ -118,7 +139,7 @@ def run_module(name: str, work: Path, tree: Path, fresh: bool, timeout: float,
       print(f"{path}: stopped at the time limit; run again to resume", flush=True)
     finally:
       # A mutant left applied by an interrupted run must not leak into the next module.
-      shutil.copy2(ROOT / path, tree / path)
+      (tree / path).write_bytes(pristine)
     (work / f"{Path(db).stem}.seconds").write_text(
         str(time.time() - t0 + _seconds(work, Path(db).stem)))
 
@@ -181,6 +202,9 @@ def main(argv=None):
   p.add_argument("--list", action="store_true", help="modules, tests and mutant counts")
   p.add_argument("--report", action="store_true", help="summary of the sessions so far")
   p.add_argument("--fresh", action="store_true", help="discard the modules' earlier results")
+  p.add_argument("--rev", help="mutate and test this commit instead of the working tree")
+  p.add_argument("--retest-survivors", action="store_true",
+                 help="test the sessions' survivors again (after adding tests; killed stay killed)")
   p.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "sljax-mutation")
   p.add_argument("--timeout", type=float, default=120.0, help="seconds per mutant")
   p.add_argument("--budget-min", type=float, help="stop (resumably) after this many minutes")
@@ -198,13 +222,14 @@ def main(argv=None):
       print(f"{name}: {', '.join(paths)} <- {', '.join(tests)}")
     return
   if not args.report:
-    tree = scratch_copy(args.work)
+    tree = scratch_copy(args.work, args.rev)
     deadline = None if args.budget_min is None else time.time() + 60 * args.budget_min
     for name in names:
       if deadline is not None and time.time() >= deadline:
         print(f"budget spent before {name}", flush=True)
         break
-      run_module(name, args.work, tree, args.fresh, args.timeout, deadline)
+      run_module(name, args.work, tree, args.fresh, args.timeout, deadline,
+                 args.retest_survivors)
   print(summary(args.work, names or list(MODULES), diffs=not args.no_diffs))
 
 

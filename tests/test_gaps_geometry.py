@@ -14,6 +14,7 @@ from sljax.data import scared
 from sljax.data.calib import Calib, write_calib
 from sljax.data.pfm import read_pfm
 from sljax.data.scene import write_image
+from sljax.errors import SljaxError
 
 H, W = 24, 40
 FX, FY, CX, CY, BASELINE, DOFFS = 80.0, 97.0, 18.5, 13.0, 120.0, 3.5
@@ -140,3 +141,26 @@ def test_point_cloud_y_scales_as_one_over_fy(fy):
   b, _ = geometry.point_cloud(disp, _calib(fy=2 * fy))
   np.testing.assert_allclose(b[:, [0, 2]], a[:, [0, 2]], rtol=1e-7)
   np.testing.assert_allclose(2 * b[:, 1], a[:, 1], rtol=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize("baseline", [0.0, -120.0, float("nan")])
+def test_calibration_without_a_positive_baseline_is_refused(baseline):
+  calib = _calib()
+  bad = Calib(cam0=calib.cam0, cam1=calib.cam1, doffs=DOFFS, baseline=baseline, width=W,
+              height=H, ndisp=32)
+  with pytest.raises(SljaxError, match="positive focal length and baseline"):
+    geometry.check_calib_size(bad, (H, W), "calib.txt")
+  geometry.check_calib_size(calib, (H, W), "calib.txt")  # the good one passes
+
+
+def test_point_cloud_colours_from_gray_and_out_of_range_images():
+  """An HxW gray image is repeated into r = g = b; values outside [0, 1] are clipped."""
+  disp = np.full((2, 3), 10.0, np.float32)
+  calib = _calib(3, 2)
+  gray = np.array([[0.0, 0.5, 1.0], [1.3, -0.2, 0.25]], np.float32)
+  _, rgb = geometry.point_cloud(disp, calib, gray)
+  want = np.array([0, 128, 255, 255, 0, 64], np.uint8)
+  np.testing.assert_array_equal(rgb, np.stack([want] * 3, 1))
+  _, rgb3 = geometry.point_cloud(disp, calib, np.stack([gray, gray * 0, gray], -1))
+  np.testing.assert_array_equal(rgb3[:, 1], 0)
+  np.testing.assert_array_equal(rgb3[:, 0], want)

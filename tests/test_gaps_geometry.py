@@ -164,3 +164,24 @@ def test_point_cloud_colours_from_gray_and_out_of_range_images():
   _, rgb3 = geometry.point_cloud(disp, calib, np.stack([gray, gray * 0, gray], -1))
   np.testing.assert_array_equal(rgb3[:, 1], 0)
   np.testing.assert_array_equal(rgb3[:, 0], want)
+
+
+@pytest.mark.parametrize("focal", [0.0, -80.0, float("nan")])
+def test_calibration_without_a_positive_focal_length_is_refused(focal):
+  cam0 = np.array([[focal, 0, CX], [0, FY, CY], [0, 0, 1]])
+  bad = Calib(cam0=cam0, cam1=cam0, doffs=DOFFS, baseline=BASELINE, width=W, height=H,
+              ndisp=32)
+  with pytest.raises(SljaxError, match="positive focal length and baseline"):
+    geometry.check_calib_size(bad, (H, W), "calib.txt")
+
+
+def test_point_cloud_colours_without_an_image_and_from_one_channel():
+  disp = np.full((2, 3), 10.0, np.float32)
+  calib = _calib(3, 2)
+  _, rgb = geometry.point_cloud(disp, calib)
+  np.testing.assert_array_equal(rgb, np.full((6, 3), 128, np.uint8))  # mid grey
+  one = np.array([[[0.0], [1.0], [0.2]], [[0.4], [0.6], [0.8]]], np.float32)
+  _, rgb = geometry.point_cloud(disp, calib, one)
+  np.testing.assert_array_equal(rgb, np.repeat(np.rint(one.reshape(6, 1) * 255), 3, 1))
+  with pytest.raises(SljaxError, match=r"image \(4, 3\) and disparity \(2, 3\) differ"):
+    geometry.point_cloud(disp, calib, np.zeros((4, 3, 3), np.float32))

@@ -96,3 +96,39 @@ def test_best_that_is_not_the_first(tmp_path):
   workdir = _workdir(tmp_path, {1: 0.5, 2: 0.2, 3: 0.9, 4: 0.1, 5: 0.7, 6: 0.8}, keep=1)
   assert _steps(workdir) == [4, 6]
   assert ckpt.load_params(workdir)[2] == 4
+
+
+def test_default_keeps_the_last_three_plus_the_best(tmp_path):
+  manager = ckpt.make_manager(tmp_path / "c")
+  for step, mae in {1: 0.1, 2: 0.5, 3: 0.6, 4: 0.7, 5: 0.8}.items():
+    ckpt.save(manager, step, {"w": jnp.full(2, float(step))}, {"step": step}, mae)
+    manager.wait_until_finished()
+  manager.close()
+  assert sorted(int(p.name) for p in (tmp_path / "c").iterdir() if p.name.isdigit()) == [
+      1, 3, 4, 5]
+
+
+def test_checkpoint_with_fewer_leaves_than_the_model_is_named(tmp_path):
+  """The model has a leaf after the checkpoint's last one: a one-line error, not IndexError."""
+  manager = ckpt.make_manager(tmp_path / "c")
+  ckpt.save(manager, 1, {"a": jnp.zeros(2)}, {"step": 1}, 0.5)
+  manager.wait_until_finished()
+  bigger = {"a": jax.ShapeDtypeStruct((2,), jnp.float32,
+                                      sharding=jax.sharding.SingleDeviceSharding(
+                                          jax.devices()[0])),
+            "b": jax.ShapeDtypeStruct((3,), jnp.float32,
+                                      sharding=jax.sharding.SingleDeviceSharding(
+                                          jax.devices()[0]))}
+  with pytest.raises(ckpt.SljaxError, match=r"leaf 1: checkpoint has \(none\), model expects b"):
+    ckpt.restore(manager, 1, bigger)
+  manager.close()
+
+
+def test_loading_a_workdir_without_checkpoints_writes_nothing(tmp_path):
+  workdir = tmp_path / "run"
+  workdir.mkdir()
+  (workdir / ckpt.CONFIG_FILE).write_text(json.dumps({"strategy": "stl", "net": MODEL,
+                                                      "model_kwargs": KWARGS}))
+  with pytest.raises(ckpt.SljaxError, match="no checkpoint saved yet"):
+    ckpt.load_params(workdir)
+  assert [p.name for p in workdir.iterdir()] == [ckpt.CONFIG_FILE]

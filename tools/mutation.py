@@ -107,10 +107,24 @@ def sessions(work: Path, name: str) -> list[tuple[str, Path, Path]]:
   return out
 
 
+HELD = "held back (not run)"  # pending mutants set aside by --retest-survivors
+
+
 def forget_survivors(db: Path) -> int:
-  """Marks a session's surviving mutants as not run (so exec tests them again)."""
+  """Marks a session's surviving mutants as not run (so exec tests them again) and holds its
+  pending ones back, so that exec runs the survivors only; returns how many."""
   with sqlite3.connect(db) as con:
+    con.execute("DELETE FROM work_results WHERE output = ?", (HELD,))
+    con.execute("INSERT INTO work_results (worker_outcome, output, job_id) SELECT 'SKIPPED', ?, "
+                "w.job_id FROM work_items w LEFT JOIN work_results r USING (job_id) "
+                "WHERE r.job_id IS NULL", (HELD,))
     return con.execute("DELETE FROM work_results WHERE test_outcome = 'SURVIVED'").rowcount
+
+
+def release_held(db: Path) -> None:
+  """Returns the mutants forget_survivors held back to the pending set."""
+  with sqlite3.connect(db) as con:
+    con.execute("DELETE FROM work_results WHERE output = ?", (HELD,))
 
 
 def run_module(name: str, work: Path, tree: Path, fresh: bool, timeout: float,
@@ -140,6 +154,8 @@ def run_module(name: str, work: Path, tree: Path, fresh: bool, timeout: float,
     finally:
       # A mutant left applied by an interrupted run must not leak into the next module.
       (tree / path).write_bytes(pristine)
+      if retest:
+        release_held(db)
     (work / f"{Path(db).stem}.seconds").write_text(
         str(time.time() - t0 + _seconds(work, Path(db).stem)))
 
@@ -166,7 +182,9 @@ def summary(work: Path, names: list[str], diffs: bool = True) -> str:
                             text=True).stdout
       for line in filter(None, dump.splitlines()):
         job, result = json.loads(line)
-        if result is not None and result.get("worker_outcome") == "skipped":
+        if result is not None and result.get("output") == HELD:
+          result = None  # pending
+        elif result is not None and result.get("worker_outcome") == "skipped":
           continue  # an operator outside KEEP
         counts["total"] += 1
         if result is None:
@@ -204,7 +222,8 @@ def main(argv=None):
   p.add_argument("--fresh", action="store_true", help="discard the modules' earlier results")
   p.add_argument("--rev", help="mutate and test this commit instead of the working tree")
   p.add_argument("--retest-survivors", action="store_true",
-                 help="test the sessions' survivors again (after adding tests; killed stay killed)")
+                 help="test only the sessions' survivors again (after adding tests; killed "
+                      "stay killed, pending stay pending)")
   p.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "sljax-mutation")
   p.add_argument("--timeout", type=float, default=120.0, help="seconds per mutant")
   p.add_argument("--budget-min", type=float, help="stop (resumably) after this many minutes")

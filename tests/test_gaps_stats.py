@@ -70,3 +70,11 @@ def test_t_cdf_with_many_degrees_of_freedom(df):
   is off by 5e-9 at df = 3000 after the 400 terms)."""
   for t in (0.3, -0.3, 1.0):
     assert stats.t_cdf(t, df) == pytest.approx(_t_cdf_by_simpson(t, df), abs=1e-11)
+
+
+def test_mean_ci_of_two_values():
+  """Two seeds: sd = |a - b| / sqrt(2), half width t(0.975, 1) sd / sqrt(2) = 12.706205."""
+  ci = stats.mean_ci([1.0, 3.0])
+  assert ci["n"] == 2 and ci["mean"] == 2.0 and ci["sd"] == pytest.approx(math.sqrt(2.0))
+  assert (ci["lo"], ci["hi"]) == (pytest.approx(2.0 - 12.706205, abs=1e-5),
+                                  pytest.approx(2.0 + 12.706205, abs=1e-5))

@@ -35,6 +35,7 @@ import cv2
 import numpy as np
 
 from sljax.data.calib import read_calib
+from sljax.data.dataset import PART_FIELD, FolderSource
 from sljax.data.pfm import _HEADER as PFM_HEADER
 from sljax.data.scene import _PATTERN_FILE, _RAW_FILE, _numbered_files, read_json_object
 from sljax.errors import SljaxError
@@ -328,3 +329,12 @@ def check(source, jobs: Sequence[tuple[Iterable[int], Iterable[str]]], *,
     more = f" (and {len(problems) - 1} more bad scene(s))" if len(problems) > 1 else ""
     raise SljaxError(problems[0] + more + "; checked before training, nothing was run")
   return counts
+
+
+def check_run(source, batches: Sequence[tuple[Iterable[int], Sequence[str]]], *,
+              progress: bool = True) -> None:
+  """The check before a run's first step: batches = [(scene indices, batch parts loaded for
+  them)] (training, validation); nothing for sources that are not folders (in memory)."""
+  if isinstance(source, FolderSource):
+    check(source, [(idx, {PART_FIELD[p][1] for p in parts}) for idx, parts in batches],
+          progress=progress)

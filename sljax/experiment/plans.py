@@ -105,7 +105,8 @@ class Cell:
   def spec(self) -> dict[str, Any]:
     """What identifies the run (plan.json): a changed spec under one name is refused. The
     evaluation sets are not part of it: a trained cell can be scored on more sets later."""
-    config = {k: v for k, v in self.config.to_json().items() if k != "init_from"}
+    config = {k: v for k, v in self.config.to_json().items()
+              if k not in ("init_from", "tensorboard")}  # outputs only; older plan.json lack it
     return {"arm": self.arm, "factors": [list(f) for f in self.factors], "seed": self.seed,
             "config": config, "init_cell": self.init_cell}
 

@@ -65,12 +65,12 @@ def png_check(data: bytes) -> tuple[int, int, int]:
     length, kind = struct.unpack(">I4s", data[pos:pos + 8])
     end = pos + 12 + length
     if end > n:
-      raise ValueError(f"truncated: chunk {kind!r} at byte {pos} needs {end} bytes, the file "
-                       f"has {n}")
+      raise ValueError(f"truncated: chunk {kind.decode('latin-1')} at byte {pos} needs {end} "
+                       f"bytes, the file has {n}")
     body = data[pos + 4:pos + 8 + length]  # type + data, what the CRC covers
     if zlib.crc32(body) != struct.unpack(">I", data[pos + 8 + length:end])[0]:
-      raise ValueError(f"corrupt: chunk {kind.decode('latin-1')!r} at byte {pos} fails its "
-                       "CRC check")
+      raise ValueError(f"corrupt: chunk {kind.decode('latin-1')} at byte {pos} fails its CRC "
+                       "check")
     if ihdr is None:
       if kind != b"IHDR" or length < 13:
         raise ValueError("corrupt: the first chunk is not IHDR")

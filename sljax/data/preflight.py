@@ -289,7 +289,8 @@ def scan(source, jobs: Sequence[tuple[Iterable[int], Iterable[str]]], *,
   key = lambda i: f"{source.name(i)}|{','.join(sorted(wanted[i] | {'im'}))}"
   todo = [i for i in sorted(wanted)
           if not (key(i) in cache and _still_valid(source.paths[i], cache[key(i)]))]
-  results: dict[int, dict[str, Any]] = {i: cache[key(i)] for i in wanted if i not in set(todo)}
+  fresh = set(todo)
+  results: dict[int, dict[str, Any]] = {i: cache[key(i)] for i in wanted if i not in fresh}
   problems: dict[int, str] = {}
 
   def one(i: int) -> tuple[int, dict[str, Any] | str]:

@@ -179,8 +179,8 @@ def validate(config: TrainConfig) -> None:
   require(0 < config.test_fraction < 1,
           f"--test-fraction {config.test_fraction}: must be in (0, 1)")
   if config.tensorboard:
-    from sljax.train.tensorboard import summary_writer_class  # pylint: disable=import-outside-toplevel
-    summary_writer_class()  # installed? (else one line now, before anything runs)
+    from sljax.train import tensorboard  # pylint: disable=import-outside-toplevel
+    tensorboard.summary_writer_class()  # installed? (else one line now, before anything runs)
 
 
 def normalized(d: dict[str, Any]) -> dict[str, Any]:

@@ -50,8 +50,8 @@ from sljax.nets import build_model, detach_sl, registry
 from sljax.train import checkpoint as ckpt
 from sljax.train import state as st
 from sljax.train import step as stp
-from sljax.train.tensorboard import TensorBoardWriter
 from sljax.train.config import TrainConfig, diff_configs, dumps, validate
+from sljax.train.tensorboard import TensorBoardWriter
 
 METRICS_FILE = "metrics.jsonl"
 EPOCHS_FILE = "epochs.jsonl"
@@ -361,8 +361,10 @@ class MetricWriter:
   def close(self) -> None:
     """Closes the files."""
     with ckpt.storage_guard("closing the run's logs", self.checkpoints):
-      for f in [*self.files.values(), *[self.tensorboard] * (self.tensorboard is not None)]:
+      for f in self.files.values():
         f.close()
+      if self.tensorboard is not None:
+        self.tensorboard.close()
 
 
 class StepProfiler:
@@ -456,7 +458,7 @@ def setup(config: TrainConfig, workdir: Path, resume: bool, overwrite: bool,
     init = load_init(config.init_from, config)
     merge_init(dict(abstract), init[1], init[0], config, config.init_from)
   if jax.process_index() == 0:
-    with ckpt.storage_guard(f"writing {workdir / ckpt.CONFIG_FILE}", workdir / ckpt.CHECKPOINT_DIR):
+    with ckpt.storage_guard(f"writing {ckpt.CONFIG_FILE}", workdir / ckpt.CHECKPOINT_DIR):
       workdir.mkdir(parents=True, exist_ok=True)
       (workdir / ckpt.CONFIG_FILE).write_text(dumps(config_json) + "\n")
   _sync("sljax-workdir-ready")

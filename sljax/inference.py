@@ -311,27 +311,36 @@ class ModelSpec:
     return "sl_logits" in self.outputs
 
 
-def _probe(model, variables, channels_first_guess: int, size: tuple[int, int],
-           name: str, model_desc: str) -> ModelSpec:
-  """Finds the input channel count the variables fit and the model's outputs (no compute)."""
+@functools.lru_cache(maxsize=16)
+def _abstract_run(model, c: int, h: int, w: int) -> tuple[Any, tuple[str, ...]]:
+  """(variable shapes, output names) of the model on 1 x h x w x c inputs: traced once per
+  equal model and shape in a process (tracing a PSMNet takes seconds; an experiment grid loads
+  many checkpoints of one model)."""
   import jax
   import jax.numpy as jnp
 
+  x = jax.ShapeDtypeStruct((1, h, w, c), jnp.float32)
+  shapes = jax.eval_shape(lambda a, b: model.init(jax.random.PRNGKey(0), a, b, train=False),
+                          x, x)
+  out = jax.eval_shape(lambda v, a, b: model.apply(v, a, b, train=False), shapes, x, x)
+  return shapes, tuple(sorted(out.keys()))
+
+
+def _probe(model, variables, channels_first_guess: int, size: tuple[int, int],
+           name: str, model_desc: str) -> ModelSpec:
+  """Finds the input channel count the variables fit and the model's outputs (no compute)."""
   h, w = size
   diffs = []
   for c in (channels_first_guess, 4 - channels_first_guess):
-    x = jax.ShapeDtypeStruct((1, h, w, c), jnp.float32)
     try:
-      shapes = jax.eval_shape(
-          lambda a, b: model.init(jax.random.PRNGKey(0), a, b, train=False), x, x)
+      shapes, outputs = _abstract_run(model, c, h, w)
     except Exception as e:  # a model that cannot take this channel count at all
       diffs.append(f"{c} channels: {type(e).__name__}: {str(e).splitlines()[0][:200]}")
       continue
     # Every collection the model creates (params, batch_stats) must be in the variables.
     d = _tree_diff(dict(shapes), {k: variables[k] for k in shapes.keys() if k in variables})
     if d is None:
-      out = jax.eval_shape(lambda v, a, b: model.apply(v, a, b, train=False), variables, x, x)
-      return ModelSpec(channels=c, outputs=tuple(sorted(out.keys())))
+      return ModelSpec(channels=c, outputs=outputs)
     diffs.append(f"{c} channels: {d}")
   raise SljaxError(f"{name}: the checkpoint's variables do not match the model {model_desc} "
                    f"({'; '.join(diffs)})")

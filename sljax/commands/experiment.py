@@ -18,7 +18,9 @@ def register(subparsers) -> None:
   r.add_argument("out", metavar="OUT", help="experiment folder (shared by plans that share cells)")
   r.add_argument("--scale", default="cpu",
                  help="smoke (minutes, for tests), cpu (a 2-core CPU) or paper (an accelerator)")
-  r.add_argument("--seeds", type=int, default=3, help="seeds 0..N-1 (more can be added later)")
+  r.add_argument("--seeds", type=int, default=None,
+                 help="seeds 0..N-1 (more can be added later); default 1 at the smoke scale, "
+                      "3 otherwise")
   r.add_argument("--data", default=None,
                  help="your scene-format folder: replaces synthetic objects (table2, table3) or "
                       "synthetic tissue as the fine-tuning target (table1, fig7)")
@@ -39,7 +41,8 @@ def register(subparsers) -> None:
 def run_plan(args: argparse.Namespace) -> int:
   """Runs the plan and says how to report it."""
   from sljax.experiment import plans, runner  # pylint: disable=import-outside-toplevel
-  plan = plans.build_plan(args.plan, args.scale, args.seeds, args.data, tuple(args.eval_data))
+  seeds = args.seeds if args.seeds is not None else 1 if args.scale == "smoke" else 3
+  plan = plans.build_plan(args.plan, args.scale, seeds, args.data, tuple(args.eval_data))
   res = runner.run(plan, args.out, progress=not args.no_progress)
   print(f"{args.plan}: trained {res['trained']} cell(s), scored {res['evaluated']} set(s) in "
         f"{res['seconds'] / 60:.1f} min; report with: sljax experiment report {args.out}")

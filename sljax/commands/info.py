@@ -27,6 +27,14 @@ def register(subparsers) -> None:
   p.add_argument("--seed", type=int, default=0, help="split seed (default 0)")
   p.add_argument("--rows", type=int, default=20,
                  help="list every scene when there are at most this many (default 20)")
+  p.add_argument("--check", action="store_true",
+                 help="only check that every file of every scene is readable (the check "
+                      "training runs before its first step: PNG structure and CRCs, PFM "
+                      "headers and sizes, calib.txt, meta.json, shapes); lists each bad scene "
+                      "and exits with 2 when there is one")
+  p.add_argument("--no-cache", action="store_true",
+                 help="with --check: check every file again, ignoring the results cached for "
+                      "files unchanged since the last check")
   p.set_defaults(func=run)
 
 
@@ -100,6 +108,24 @@ def _scene_row(path: Path, problems: list[str], name: str, group: str) -> dict:
   return row
 
 
+def check(src, use_cache: bool = True) -> int:
+  """`sljax info --check`: the pre-flight check of every part of every scene; prints each bad
+  scene's line and raises SljaxError when there is one."""
+  from sljax.data import preflight
+  from sljax.data.scene import present_parts
+  from sljax.errors import SljaxError
+
+  jobs = [([i], list(present_parts(p))) for i, p in enumerate(src.paths)]
+  problems, counts = preflight.scan(src, jobs, use_cache=use_cache)
+  for line in problems:
+    print(line)
+  if problems:
+    raise SljaxError(f"{src.root}: {_plural(len(problems), 'bad scene')} of {counts['scenes']}")
+  print(f"{src.root}: all {_plural(counts['scenes'], 'scene')} readable "
+        f"({counts['cached']} unchanged since the last check)")
+  return 0
+
+
 def _plural(n: int, noun: str) -> str:
   """'1 scene', '2 scenes'."""
   return f"{n} {noun}{'' if n == 1 else 's'}"
@@ -123,6 +149,8 @@ def run(args: argparse.Namespace) -> int:
   from sljax.data.dataset import FolderSource, split_indices
 
   src = FolderSource(args.dataset)
+  if args.check:
+    return check(src, use_cache=not args.no_cache)
   problems: list[str] = []
   rows = [_scene_row(p, problems, src.name(i), src.group(i))
           for i, p in enumerate(tqdm(src.paths, desc="reading scenes", unit="scene",

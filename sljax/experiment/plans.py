@@ -105,9 +105,11 @@ class Cell:
   def spec(self) -> dict[str, Any]:
     """What identifies the run (plan.json): a changed spec under one name is refused. The
     evaluation sets are not part of it: a trained cell can be scored on more sets later."""
-    # Not the run's identity: init_from is init_cell's; ynn only changes float rounding and is
-    # resolved per machine (each cell's config.json keeps it); older plan.json lack it.
-    config = {k: v for k, v in self.config.to_json().items() if k not in ("init_from", "ynn")}
+    # Not the run's identity (older plan.json lack the last two): init_from is init_cell's,
+    # tensorboard is an output only, ynn changes float rounding only and is resolved per
+    # machine (each cell's config.json keeps it).
+    config = {k: v for k, v in self.config.to_json().items()
+              if k not in ("init_from", "tensorboard", "ynn")}
     return {"arm": self.arm, "factors": [list(f) for f in self.factors], "seed": self.seed,
             "config": config, "init_cell": self.init_cell}
 

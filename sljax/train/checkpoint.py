@@ -7,12 +7,24 @@ array: the twin's state is ~1240 arrays, 1.4 s of CPU per save, against 0.2 s fo
 (a per-epoch cost that competed with training on small CPUs). Checkpoints written before
 packing (the state as a tree, no layout) still restore.
 Retention: the last `keep` checkpoints plus the best one by validation MAE (lowest).
+
+Failed saves: orbax writes a checkpoint under <step>.orbax-checkpoint-tmp and renames it to
+<step> once every file is written, so a save cut short (a full disk, a read-only or
+unwritable workdir, a killed process) leaves a tmp folder that a resume ignores, and the
+previous checkpoints stay (old ones are deleted only after a save is finalised). A failure
+raised from anywhere in orbax or TensorStore (an OSError, or TensorStore's ValueError carrying
+the OS error code, possibly from a background thread at a later save or wait) becomes one
+SljaxError line naming what failed, where, and the last good checkpoint (`storage_failure`).
 """
 
+import contextlib
+import errno
 import itertools
 import json
+import logging
 import math
 import os
+import re
 from pathlib import Path
 from typing import Any
 
@@ -31,6 +43,101 @@ BEST_METRIC = "val_mae"
 LAYOUT_KEY = "packed_layout"  # in meta: [[path parts], dtype, shape] per leaf
 
 
+# OS errors that mean "this storage does not take the write" (not a bug in the caller).
+STORAGE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.EFBIG)
+_TS_CODE = re.compile(r"os_error_code='?(\d+)")  # TensorStore's errors carry the OS error code
+_QUOTED_PATH = re.compile(r'"(/[^"]+)"')
+_HINT = {errno.ENOSPC: "free some space", errno.EDQUOT: "free some space (disk quota)",
+         errno.EFBIG: "free some space", errno.EROFS: "make it writable",
+         errno.EACCES: "make it writable (permissions)",
+         errno.EPERM: "make it writable (permissions)"}
+
+
+def _causes(exc: BaseException):
+  """exc, its causes and contexts, and the members of exception groups (each once)."""
+  todo, seen = [exc], set()
+  while todo:
+    e = todo.pop(0)
+    if e is None or id(e) in seen:
+      continue
+    seen.add(id(e))
+    yield e
+    todo += [e.__cause__, e.__context__, *getattr(e, "exceptions", ())]
+
+
+def storage_errno(exc: BaseException) -> tuple[int, str | None] | None:
+  """(errno, path or None) of a full-disk / read-only / permission failure inside exc (its
+  chain, exception groups, or TensorStore's message), else None."""
+  for e in _causes(exc):
+    if isinstance(e, OSError) and e.errno in STORAGE_ERRNOS:
+      return e.errno, e.filename and os.fspath(e.filename)
+    text = str(e)
+    m = _TS_CODE.search(text)
+    codes = [int(m.group(1))] if m else [c for c in STORAGE_ERRNOS if os.strerror(c) in text]
+    if codes and codes[0] in STORAGE_ERRNOS:
+      paths = _QUOTED_PATH.findall(text)
+      return codes[0], paths[-1] if paths else None
+  return None
+
+
+def last_good_step(directory: str | os.PathLike) -> int | None:
+  """The step a --resume would restore: the latest finalised checkpoint (None: none)."""
+  directory = Path(directory)
+  steps = [int(p.name) for p in directory.iterdir() if p.name.isdigit() and p.is_dir()] \
+      if directory.is_dir() else []
+  return max(steps, default=None)
+
+
+def storage_failure(exc: BaseException, what: str, checkpoints: str | os.PathLike
+                    ) -> SljaxError | None:
+  """The one-line SljaxError for a failed write (what: e.g. 'saving checkpoint 120'), or None
+  when exc is not a storage failure."""
+  found = storage_errno(exc)
+  if found is None:
+    return None
+  code, path = found
+  checkpoints = Path(checkpoints)
+  where = path or str(checkpoints)
+  good = last_good_step(checkpoints)
+  kept = (f"the last good checkpoint is step {good} ({checkpoints / str(good)}), intact"
+          if good is not None else "no checkpoint was saved yet")
+  return SljaxError(f"{what} failed: {os.strerror(code)} ({where}); stopped, {kept}; "
+                    f"{_HINT[code]} and continue with --resume")
+
+
+@contextlib.contextmanager
+def storage_guard(what: str, checkpoints: str | os.PathLike):
+  """Turns a storage failure inside the block into storage_failure's SljaxError."""
+  try:
+    yield
+  except SljaxError:
+    raise
+  except Exception as e:  # pylint: disable=broad-except
+    failure = storage_failure(e, what, checkpoints)
+    if failure is None:
+      raise
+    raise failure from None
+
+
+class _QuietStorageFailures(logging.Filter):
+  """Drops orbax's ERROR logs (with tracebacks, one per thread) of a storage failure: the same
+  failure is raised to the caller, who reports it in one line."""
+
+  def filter(self, record: logging.LogRecord) -> bool:
+    exc = record.exc_info[1] if record.exc_info else None
+    if exc is not None and storage_errno(exc) is not None:
+      return False
+    try:
+      message = record.getMessage()
+    except Exception:  # pylint: disable=broad-except
+      return True
+    return not (record.levelno >= logging.ERROR and "orbax" in record.pathname
+                and storage_errno(Exception(message)) is not None)
+
+
+_QUIET = _QuietStorageFailures()
+
+
 def _val_mae(metrics: dict[str, Any]) -> float:
   return float(metrics[BEST_METRIC])
 
@@ -44,11 +151,13 @@ def make_manager(directory: str | os.PathLike, keep: int = 3,
       pp.BestN(get_metric_fn=_val_mae, reverse=True, n=1,
                keep_checkpoints_without_metrics=False),
   ])
+  logging.getLogger("absl").addFilter(_QUIET)  # idempotent: a filter is added once
   options = ocp.CheckpointManagerOptions(
       preservation_policy=None if read_only else policy, best_fn=_val_mae, best_mode="min",
       keep_checkpoints_without_metrics=True, create=not read_only, read_only=read_only,
       enable_async_checkpointing=not read_only)
-  return ocp.CheckpointManager(directory, options=options, item_names=("state", "meta"))
+  with storage_guard("creating the checkpoint folder", directory):
+    return ocp.CheckpointManager(directory, options=options, item_names=("state", "meta"))
 
 
 def _key_name(key: Any) -> str:
@@ -87,13 +196,33 @@ def unpack(packed: dict[str, jax.Array], lay: list[list[Any]]) -> list[jax.Array
 
 def save(manager: ocp.CheckpointManager, step: int, state: Any, meta: dict[str, Any],
          val_mae: float | None = None) -> None:
-  """Starts an async save of the state (packed) and loop metadata at step
-  (wait_until_finished later)."""
+  """Starts an async save of the state (packed) and loop metadata at step (`finish` or
+  `check` later); a failure of this save or of the previous one (orbax reports it here) is
+  storage_failure's SljaxError."""
   metrics = None if val_mae is None else {BEST_METRIC: float(val_mae)}
   meta = dict(meta, **{LAYOUT_KEY: layout(state)})
-  manager.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave(pack(state)),
-                                              meta=ocp.args.JsonSave(meta)),
-               metrics=metrics, force=True)
+  with storage_guard(f"saving checkpoint {step}", manager.directory):
+    manager.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave(pack(state)),
+                                                meta=ocp.args.JsonSave(meta)),
+                 metrics=metrics, force=True)
+
+
+def check(manager: ocp.CheckpointManager) -> None:
+  """Raises storage_failure's SljaxError now if a finished background save failed (instead
+  of at the next save, an epoch later); free when nothing failed."""
+  if not manager.is_saving_in_progress():
+    with storage_guard("saving a checkpoint", manager.directory):
+      manager.wait_until_finished()
+
+
+def finish(manager: ocp.CheckpointManager) -> None:
+  """Waits for the pending save and closes the manager (also when the save failed: then
+  storage_failure's SljaxError)."""
+  try:
+    with storage_guard("saving a checkpoint", manager.directory):
+      manager.wait_until_finished()
+  finally:
+    manager.close()
 
 
 def _hashable(lay: list[list[Any]]) -> tuple:

@@ -98,6 +98,11 @@ class TrainConfig:
                             "patterns into disparity (paper: 17 at 256x256)")
   unet_depth: int = option(4, "UNet levels")
   unet_width: int = option(32, "UNet channels at the first level")
+  tensorboard: bool = option(False, "live curves", switch=(
+      ("--tensorboard", "also write TensorBoard event files to WORKDIR/tensorboard (losses, "
+       "task weights, sigmas, validation MAE, samples/s); watch with tensorboard --logdir runs/ "
+       "(needs tensorboardX: pip install 'sljax[tensorboard]')"),
+      ("--no-tensorboard", "no TensorBoard event files (default)")), resumable=True)
   preset: str = option("paper", "the preset the run started from", flag=False, resumable=True)
 
   @property
@@ -179,6 +184,9 @@ def validate(config: TrainConfig) -> None:
   require(config.save_every >= 0, f"--save-every {config.save_every}: must be >= 0")
   require(0 < config.test_fraction < 1,
           f"--test-fraction {config.test_fraction}: must be in (0, 1)")
+  if config.tensorboard:
+    from sljax.train import tensorboard  # pylint: disable=import-outside-toplevel
+    tensorboard.summary_writer_class()  # installed? (else one line now, before anything runs)
 
 
 def normalized(d: dict[str, Any]) -> dict[str, Any]:

@@ -40,7 +40,7 @@ from tqdm import tqdm
 
 from sljax import tune
 from sljax.corr.correlation import sl_disparity
-from sljax.data import synthetic
+from sljax.data import preflight, synthetic
 from sljax.data.dataset import (PART_FIELD, FolderSource, epoch_order, load_batch,
                                 split_indices, take_fraction)
 from sljax.errors import SljaxError, require
@@ -52,6 +52,7 @@ from sljax.train import checkpoint as ckpt
 from sljax.train import state as st
 from sljax.train import step as stp
 from sljax.train.config import TrainConfig, diff_configs, dumps, validate
+from sljax.train.tensorboard import TensorBoardWriter
 
 METRICS_FILE = "metrics.jsonl"
 EPOCHS_FILE = "epochs.jsonl"
@@ -352,23 +353,35 @@ class LoopState:
 
 
 class MetricWriter:
-  """The run's JSON lines: metrics.jsonl (a row per step), epochs.jsonl (a row per epoch).
-  Writes on the main process only."""
+  """The run's JSON lines: metrics.jsonl (a row per step), epochs.jsonl (a row per epoch),
+  mirrored to TensorBoard event files with --tensorboard. Writes on the main process only; a
+  full or read-only disk ends the run with one line (ckpt.storage_guard)."""
 
-  def __init__(self, workdir: Path, enabled: bool):
-    self.files = ({name: open(workdir / name, "a", encoding="utf-8")
-                   for name in (METRICS_FILE, EPOCHS_FILE)} if enabled else {})
+  def __init__(self, workdir: Path, enabled: bool, tensorboard: bool = False,
+               first_step: int = 0):
+    self.checkpoints = workdir / ckpt.CHECKPOINT_DIR
+    with ckpt.storage_guard("opening the run's logs", self.checkpoints):
+      self.files = ({name: open(workdir / name, "a", encoding="utf-8")
+                     for name in (METRICS_FILE, EPOCHS_FILE)} if enabled else {})
+      self.tensorboard = TensorBoardWriter(workdir, first_step) if enabled and tensorboard \
+          else None
 
   def write(self, name: str, rows: Sequence[dict[str, Any]]) -> None:
     """Appends rows to one of the files and flushes it."""
-    if name in self.files:
-      self.files[name].write("".join(json.dumps(r) + "\n" for r in rows))
-      self.files[name].flush()
+    with ckpt.storage_guard(f"writing {name}", self.checkpoints):
+      if name in self.files:
+        self.files[name].write("".join(json.dumps(r) + "\n" for r in rows))
+        self.files[name].flush()
+      if self.tensorboard is not None:
+        self.tensorboard.write(name, rows)
 
   def close(self) -> None:
     """Closes the files."""
-    for f in self.files.values():
-      f.close()
+    with ckpt.storage_guard("closing the run's logs", self.checkpoints):
+      for f in self.files.values():
+        f.close()
+      if self.tensorboard is not None:
+        self.tensorboard.close()
 
 
 class StepProfiler:
@@ -463,8 +476,9 @@ def setup(config: TrainConfig, workdir: Path, resume: bool, overwrite: bool,
     init = load_init(config.init_from, config)
     merge_init(dict(abstract), init[1], init[0], config, config.init_from)
   if jax.process_index() == 0:
-    workdir.mkdir(parents=True, exist_ok=True)
-    (workdir / ckpt.CONFIG_FILE).write_text(dumps(config_json) + "\n")
+    with ckpt.storage_guard(f"writing {ckpt.CONFIG_FILE}", workdir / ckpt.CHECKPOINT_DIR):
+      workdir.mkdir(parents=True, exist_ok=True)
+      (workdir / ckpt.CONFIG_FILE).write_text(dumps(config_json) + "\n")
   _sync("sljax-workdir-ready")
   return Setup(config, workdir, source, tuple(train_idx), tuple(val_idx), info, kwargs,
                do_resume, init)
@@ -588,6 +602,7 @@ def fetch_metrics(ctx: Context, pending: list[tuple[int, Any]],
     rows.append({"step": step, "epoch": (step - 1) // spe + 1, **m})
     loop = loop.add_step(m["loss_sl"], m["loss_disp"])
   ctx.writer.write(METRICS_FILE, rows)
+  ckpt.check(ctx.manager)  # a failed background save ends the run now, not an epoch later
   ctx.bar.set_postfix(epoch=rows[-1]["epoch"], loss=f"{rows[-1]['loss']:.4g}", refresh=False)
   ctx.bar.update(len(rows))
   return loop, rows[-1]
@@ -690,6 +705,9 @@ def train(config: TrainConfig, workdir: str | os.PathLike | None = None, *, resu
   workdir = Path(workdir if workdir is not None else default_workdir(config)).absolute()
   run = setup(config, workdir, resume, overwrite, log, preset_note)
   main_process = jax.process_index() == 0
+  preflight.check_run(run.source, [(run.train_idx, batch_parts(config)), (
+      run.val_idx, batch_parts(config, validation=run.info.has_disp))],
+                      progress=progress is True or (progress is None and main_process))
 
   # ---- compiled steps and state
   mesh = stp.make_mesh()
@@ -718,7 +736,8 @@ def train(config: TrainConfig, workdir: str | os.PathLike | None = None, *, resu
                                     cache_ok and config.data is None),
                 val_rows=RowCache(run.source, config,
                                   batch_parts(config, validation=run.info.has_disp), cache_ok),
-                manager=manager, writer=MetricWriter(workdir, main_process), bar=bar,
+                manager=manager, bar=bar,
+                writer=MetricWriter(workdir, main_process, config.tensorboard, loop.step),
                 profiler=StepProfiler(profile_dir, loop.step, log))
   stop_at = run.total_steps if stop_after is None else min(stop_after, run.total_steps)
   batches = train_batches(ctx, loop.step)
@@ -739,9 +758,10 @@ def train(config: TrainConfig, workdir: str | os.PathLike | None = None, *, resu
     ctx.profiler.close()
     if own_bar:
       bar.close()
-    manager.wait_until_finished()
-    manager.close()
-    ctx.writer.close()
+    try:
+      ctx.writer.close()
+    finally:
+      ckpt.finish(manager)
 
 
 # ----------------------------------------------------------------------------- validation

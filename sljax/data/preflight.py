@@ -1,0 +1,341 @@
+"""Pre-flight check of a scene folder: every file a run will read, checked before the first step.
+
+A corrupt file found by the loader stops a run when the file is first read, which can be
+hours in (validation scenes are first read at the end of epoch 1). The check reads each file
+the run's scene parts need, cheaply:
+
+- PNG: the chunk structure is walked and every chunk's CRC-32 verified (signature, IHDR first,
+  IDAT present, IEND reached). This reads the whole file but does not inflate it: truncation
+  (an interrupted copy, the common corruption) and flipped bytes anywhere (CRC) are caught at
+  a fraction of a decode's cost. A zlib stream written wrong with correct CRCs (a broken
+  encoder, not a broken copy) would pass and fail later, as before. Files without the PNG
+  signature are decoded in full with OpenCV, as the loader would read them.
+- PFM: the header parsed and the file's size compared with what the header needs (no float
+  parsing).
+- calib.txt, meta.json: parsed with the loader's own readers (they are small).
+- Shapes: every view, disparity, pattern and mask of a scene has im0's size; sl1 holds as many
+  patterns as sl0, and every scene as many as the first (the network's input is built for it).
+
+Results are cached per dataset, keyed by each file's size and mtime (and the listing times of
+the folders read), in the user's cache folder (SLJAX_CACHE_DIR, else XDG_CACHE_HOME/sljax,
+else ~/.cache/sljax), never inside the dataset; a second run stats the files and reads none.
+"""
+
+import concurrent.futures
+import hashlib
+import json
+import os
+import struct
+import zlib
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from sljax.data.calib import read_calib
+from sljax.data.dataset import PART_FIELD, FolderSource
+from sljax.data.pfm import _HEADER as PFM_HEADER
+from sljax.data.scene import _PATTERN_FILE, _RAW_FILE, _numbered_files, read_json_object
+from sljax.errors import SljaxError
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+CACHE_VERSION = 1
+THREADS = 4  # file reads and CRC-32 release the GIL
+ALL_PARTS = ("im", "disp", "mask", "sl", "raw", "calib", "meta")
+
+
+class BadFile(Exception):
+  """A file that fails the check (path relative to the scene, problem)."""
+
+  def __init__(self, file: str, problem: str):
+    super().__init__(f"{file}: {problem}")
+    self.file, self.problem = file, problem
+
+
+def png_check(data: bytes) -> tuple[int, int, int]:
+  """(width, height, bit depth) of a structurally intact PNG; ValueError naming the problem."""
+  if data[:8] != PNG_SIGNATURE:
+    raise ValueError("not a PNG file")
+  pos, n, seen_idat, ihdr = 8, len(data), False, None
+  while True:
+    if pos + 8 > n:
+      raise ValueError(f"truncated after {pos} bytes (no IEND chunk)")
+    length, kind = struct.unpack(">I4s", data[pos:pos + 8])
+    end = pos + 12 + length
+    if end > n:
+      raise ValueError(f"truncated: chunk {kind.decode('latin-1')} at byte {pos} needs {end} "
+                       f"bytes, the file has {n}")
+    body = data[pos + 4:pos + 8 + length]  # type + data, what the CRC covers
+    if zlib.crc32(body) != struct.unpack(">I", data[pos + 8 + length:end])[0]:
+      raise ValueError(f"corrupt: chunk {kind.decode('latin-1')} at byte {pos} fails its CRC "
+                       "check")
+    if ihdr is None:
+      if kind != b"IHDR" or length < 13:
+        raise ValueError("corrupt: the first chunk is not IHDR")
+      ihdr = struct.unpack(">IIB", data[pos + 8:pos + 17])
+    seen_idat |= kind == b"IDAT"
+    pos = end
+    if kind == b"IEND":
+      break
+  if not seen_idat:
+    raise ValueError("corrupt: no image data (IDAT)")
+  width, height, depth = ihdr
+  if width == 0 or height == 0:
+    raise ValueError(f"corrupt: size {width}x{height}")
+  return width, height, depth
+
+
+def image_check(path: Path) -> tuple[int, int, int]:
+  """(width, height, bit depth) of an image file the loader can read; ValueError otherwise."""
+  data = path.read_bytes()
+  if data[:8] == PNG_SIGNATURE:
+    return png_check(data)
+  img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+  if img is None:
+    raise ValueError("not a readable image")
+  return img.shape[1], img.shape[0], 8 * img.dtype.itemsize
+
+
+def pfm_check(path: Path) -> tuple[int, int, int]:
+  """(width, height, channels) of a PFM whose header parses and whose size fits it."""
+  with open(path, "rb") as f:
+    head = f.read(256)
+  m = PFM_HEADER.match(head)
+  if m is None:
+    raise ValueError("not a PFM file (expected header 'Pf' or 'PF', then 'width height', "
+                     "then scale)")
+  magic, width, height, scale = m.groups()
+  channels = 3 if magic == b"PF" else 1
+  width, height = int(width), int(height)
+  try:
+    if width <= 0 or height <= 0 or float(scale) == 0.0:
+      raise ValueError
+  except ValueError:
+    raise ValueError(f"PFM header has width={width} height={height} scale={scale!r}") from None
+  start = m.end() + (head[m.end() - 1:m.end() + 1] == b"\r\n")
+  need = start + width * height * channels * 4
+  size = path.stat().st_size
+  if size < need:
+    raise ValueError(f"truncated: {size} bytes, the header ({width}x{height}x{channels}) needs "
+                     f"{need}")
+  return width, height, channels
+
+
+# ----------------------------------------------------------------------------- one scene
+
+
+def _stamp(path: Path) -> list[Any]:
+  st = path.stat()
+  return [st.st_size, st.st_mtime_ns]
+
+
+class _Scene:
+  """The check of one scene folder: the files read and their stamps (the cache key)."""
+
+  def __init__(self, scene_dir: Path):
+    self.dir = scene_dir
+    self.stamps: dict[str, list[Any]] = {".": _stamp(scene_dir)}
+
+  def exists(self, name: str) -> bool:
+    return (self.dir / name).exists()
+
+  def require(self, name: str) -> Path:
+    path = self.dir / name
+    if not path.exists():
+      raise BadFile(name, "missing")
+    self.stamps[name] = _stamp(path)
+    return path
+
+  def image(self, name: str, hw: tuple[int, int] | None = None, max_depth: int = 16,
+            against: str = "im0.png") -> tuple[int, int]:
+    """(height, width) of an image, checked against hw when given."""
+    path = self.require(name)
+    try:
+      w, h, depth = image_check(path)
+    except (OSError, ValueError) as e:
+      raise BadFile(name, str(e)) from None
+    if depth > max_depth:
+      raise BadFile(name, f"{depth}-bit; must be at most {max_depth}-bit")
+    self.same_size(name, (h, w), hw, against)
+    return h, w
+
+  def same_size(self, name: str, got: tuple[int, int], want: tuple[int, int] | None,
+                against: str = "im0.png") -> None:
+    if want is not None and tuple(got) != tuple(want):
+      raise BadFile(name, f"size {got[1]}x{got[0]} differs from {against} ({want[1]}x{want[0]})")
+
+  def numbered(self, folder: str, pattern, hw: tuple[int, int], max_depth: int) -> int:
+    """How many numbered images a pattern/raw folder holds, each checked; their count."""
+    path = self.require(folder)
+    if not path.is_dir():
+      raise BadFile(folder, "not a folder")
+    files = _numbered_files(path, pattern)
+    if not files:
+      raise BadFile(folder, "no images")
+    if pattern is _PATTERN_FILE:
+      numbers = [int(pattern.match(p.name).group(1)) for p in files]
+      if numbers != list(range(len(files))):
+        raise BadFile(folder, f"pattern images are not numbered 000..{len(files) - 1:03d}")
+    for p in files:
+      self.image(f"{folder}/{p.name}", hw, max_depth)
+    return len(files)
+
+
+def check_scene(scene_dir: Path, parts: Iterable[str]) -> dict[str, Any]:
+  """Checks the files of one scene that loading `parts` reads; returns {'hw', 't', 'stamps'}
+  (BadFile naming the first bad file)."""
+  parts = set(parts) | {"im"}
+  s = _Scene(scene_dir)
+  hw = s.image("im0.png")
+  s.image("im1.png", hw)
+  t = None
+  if "disp" in parts:
+    for i, name in enumerate(("disp0.pfm", "disp1.pfm")):
+      if i == 0 or s.exists(name):
+        try:
+          w, h, c = pfm_check(s.require(name))
+        except (OSError, ValueError) as e:
+          raise BadFile(name, str(e)) from None
+        if c != 1:
+          raise BadFile(name, "disparity must have one channel, the file holds 3")
+        s.same_size(name, (h, w), hw)
+  if "mask" in parts:
+    s.image("mask0.png", hw)
+  if "sl" in parts:
+    counts = [s.numbered(name, _PATTERN_FILE, hw, 8) for i, name in enumerate(("sl0", "sl1"))
+              if i == 0 or s.exists(name)]
+    if len(counts) == 2 and counts[0] != counts[1]:
+      raise BadFile("sl1", f"holds {counts[1]} patterns, sl0 holds {counts[0]}")
+    t = counts[0]
+  if "raw" in parts:
+    for i, name in enumerate(("raw0", "raw1")):
+      if i == 0 or s.exists(name):
+        s.numbered(name, _RAW_FILE, hw, 16)
+  if "calib" in parts:
+    try:
+      read_calib(s.require("calib.txt"))
+    except SljaxError as e:
+      raise BadFile("calib.txt", str(e).split(": ", 1)[-1]) from None
+  if "meta" in parts:
+    try:
+      read_json_object(s.require("meta.json"), "meta.json")
+    except SljaxError as e:
+      raise BadFile("meta.json", str(e).split(": ", 1)[-1]) from None
+  return {"hw": list(hw), "t": t, "stamps": s.stamps}
+
+
+def _still_valid(scene_dir: Path, entry: dict[str, Any]) -> bool:
+  """Whether every file (and folder listing) a cached check read is unchanged."""
+  try:
+    return all(_stamp(scene_dir / name) == stamp for name, stamp in entry["stamps"].items())
+  except OSError:
+    return False
+
+
+# ----------------------------------------------------------------------------- the dataset
+
+
+def cache_dir() -> Path:
+  """Where check results are kept: SLJAX_CACHE_DIR, else XDG_CACHE_HOME/sljax, else
+  ~/.cache/sljax (never the dataset)."""
+  if os.environ.get("SLJAX_CACHE_DIR"):
+    return Path(os.environ["SLJAX_CACHE_DIR"])
+  base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+  return Path(base) / "sljax"
+
+
+def cache_file(root: Path) -> Path:
+  """The cache file of a dataset folder (one per resolved path)."""
+  digest = hashlib.sha256(str(root.resolve()).encode("utf-8")).hexdigest()[:16]
+  return cache_dir() / "preflight" / f"{digest}.json"
+
+
+def _load_cache(path: Path, root: Path) -> dict[str, Any]:
+  try:
+    data = json.loads(path.read_text(encoding="utf-8"))
+  except (OSError, ValueError):
+    return {}
+  if data.get("version") != CACHE_VERSION or data.get("root") != str(root.resolve()):
+    return {}
+  return data.get("scenes", {})
+
+
+def _save_cache(path: Path, root: Path, scenes: dict[str, Any]) -> None:
+  """Writes the cache atomically; a cache folder that cannot be written only costs speed."""
+  try:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(f".{os.getpid()}.tmp")
+    tmp.write_text(json.dumps({"version": CACHE_VERSION, "root": str(root.resolve()),
+                               "scenes": scenes}), encoding="utf-8")
+    os.replace(tmp, path)
+  except OSError:
+    pass
+
+
+def scan(source, jobs: Sequence[tuple[Iterable[int], Iterable[str]]], *,
+         progress: bool = True, use_cache: bool = True) -> tuple[list[str], dict[str, int]]:
+  """(one line per bad scene, {'scenes', 'cached'}) for the scenes of a FolderSource:
+  jobs = [(scene indices, scene-folder parts to read)]."""
+  from tqdm import tqdm  # pylint: disable=import-outside-toplevel
+  wanted: dict[int, set[str]] = {}
+  for indices, parts in jobs:
+    for i in indices:
+      wanted.setdefault(int(i), set()).update(parts)
+  root = Path(source.root)
+  path = cache_file(root)
+  cache = _load_cache(path, root) if use_cache else {}
+  key = lambda i: f"{source.name(i)}|{','.join(sorted(wanted[i] | {'im'}))}"
+  todo = [i for i in sorted(wanted)
+          if not (key(i) in cache and _still_valid(source.paths[i], cache[key(i)]))]
+  fresh = set(todo)
+  results: dict[int, dict[str, Any]] = {i: cache[key(i)] for i in wanted if i not in fresh}
+  problems: dict[int, str] = {}
+
+  def one(i: int) -> tuple[int, dict[str, Any] | str]:
+    try:
+      return i, check_scene(source.paths[i], wanted[i])
+    except BadFile as e:
+      return i, f"{source.paths[i] / e.file}: {e.problem}"
+    except OSError as e:  # e.g. a file unreadable for its permissions
+      return i, f"{source.paths[i]}: {e.strerror or e}"
+
+  with concurrent.futures.ThreadPoolExecutor(THREADS, thread_name_prefix="sljax-check") as pool:
+    for i, res in tqdm(pool.map(one, todo), total=len(todo), desc="checking data",
+                       unit="scene", disable=not progress or not todo, leave=False,
+                       dynamic_ncols=True):
+      if isinstance(res, str):
+        problems[i] = res
+      else:
+        results[i] = res
+  if use_cache and todo:
+    cache.update({key(i): r for i, r in results.items()})
+    _save_cache(path, root, cache)
+  # Every scene must hold as many patterns as the first (the network is built for them).
+  counted = [(i, r["t"]) for i, r in sorted(results.items()) if r.get("t") is not None]
+  for i, t in counted:
+    if t != counted[0][1]:
+      problems.setdefault(i, f"{source.paths[i] / 'sl0'}: holds {t} patterns, scene "
+                             f"{source.name(counted[0][0])} holds {counted[0][1]}")
+  return ([problems[i] for i in sorted(problems)],
+          {"scenes": len(wanted), "cached": len(wanted) - len(todo)})
+
+
+def check(source, jobs: Sequence[tuple[Iterable[int], Iterable[str]]], *,
+          progress: bool = True, use_cache: bool = True) -> dict[str, int]:
+  """scan, then SljaxError naming the first bad file (and how many more scenes are bad)."""
+  problems, counts = scan(source, jobs, progress=progress, use_cache=use_cache)
+  if problems:
+    more = f" (and {len(problems) - 1} more bad scene(s))" if len(problems) > 1 else ""
+    raise SljaxError(problems[0] + more + "; checked before training, nothing was run")
+  return counts
+
+
+def check_run(source, batches: Sequence[tuple[Iterable[int], Sequence[str]]], *,
+              progress: bool = True) -> None:
+  """The check before a run's first step: batches = [(scene indices, batch parts loaded for
+  them)] (training, validation); nothing for sources that are not folders (in memory)."""
+  if isinstance(source, FolderSource):
+    check(source, [(idx, {PART_FIELD[p][1] for p in parts}) for idx, parts in batches],
+          progress=progress)

@@ -163,7 +163,7 @@ def aggregate(out: Path, plan: Plan) -> dict[str, Any]:
               if any(k in m for seeds in per_arm.values() for m in seeds.values())]
       summary = {a: {k: dict(stats.mean_ci([m[k] for m in seeds.values() if k in m]),
                              values={s: m.get(k) for s, m in sorted(seeds.items())})
-                     for k in keys}
+                     for k in keys if any(k in m for m in seeds.values())}
                  for a, seeds in per_arm.items() if seeds}
       paired = {}
       base = per_arm.get(plan.baseline, {})

@@ -188,3 +188,16 @@ def test_fig7_says_where_the_paper_predicts_no_gain():
   assert {c["arm"]: c["paper"] for c in cl} == {"cg_a": "no gain", "cg_b": "no gain",
                                                 "epr": "no gain", "unc": "gain"}
   assert all(c["verdict"] == "no results yet" for c in cl)
+
+
+def test_paper_sized_gain_is_exploratory_and_computed_by_hand(fake):
+  """table2 at 1/16: the paper's cg_a gain is (0.496 - 0.549) / 0.549 of stl's MAE; here stl's
+  mean is 2.0 px, so a paper-sized difference is -0.193 px; cg_a's interval [-0.37, -0.27]
+  does not exclude it, cg_b's (above 0) does."""
+  out, plan = fake
+  by = {(c["arm"], c["metric"]): c for c in report.claims(plan, report.aggregate(out, plan))}
+  assert by["cg_a", "mae"]["paper_sized"] == pytest.approx((0.496 - 0.549) / 0.549 * 2.0)
+  assert not by["cg_a", "mae"]["paper_sized_excluded"]
+  assert by["cg_b", "mae"]["paper_sized_excluded"]
+  assert "paper_sized" not in by["cg_b", "seg_mae"]  # the paper found no gain there
+  assert "Exploratory (not a pre-registered test)" in report.write_report(out).read_text()

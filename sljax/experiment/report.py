@@ -20,7 +20,6 @@ gain for an arm, the claim says so beside the verdict. Statements that a gain of
 excluded are exploratory (no test was pre-registered for them).
 """
 
-import json
 import math
 from pathlib import Path
 from typing import Any

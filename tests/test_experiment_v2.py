@@ -145,3 +145,17 @@ def test_calibration_plan():
   assert all(c.seed == 0 and c.config.max_val is None and not c.evals for c in cal.cells)
   with pytest.raises(SljaxError, match="not a v2 plan"):
     plans.calibration_plan("table1", "cpu128")
+
+
+def test_a_chosen_window_is_kept_and_a_changed_window_set_refused(tmp_path):
+  cell = plans.build_plan("table1-v2", "smoke", 1).cells[0]
+  assert cell.arm == "unet-sl" and cell.windows == (3, 5)
+  path = runner.cell_dir(tmp_path, cell.name) / runner.EVAL_DIR / runner.WINDOWS_FILE
+  path.parent.mkdir(parents=True)
+  path.write_text('{"candidates": [3, 5], "chosen": 5}')
+  assert runner.choose_window(tmp_path, cell) == 5  # kept: nothing re-scored
+  path.write_text('{"candidates": [3], "chosen": 3}')
+  with pytest.raises(SljaxError, match="chose its window from \\[3\\]"):
+    runner.choose_window(tmp_path, cell)
+  other = plans.build_plan("table1-v2", "smoke", 1).cells[2]
+  assert other.arm == "unet-disp" and runner.choose_window(tmp_path, other) is None

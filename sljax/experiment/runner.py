@@ -185,7 +185,7 @@ def validation_indices(cell: Cell) -> tuple[Any, list[int]]:
   return source, split_indices(source, cell.config.test_fraction, seed=cell.config.seed)[1]
 
 
-def test_source(evalset: EvalSet, size: int, t: int | None) -> SyntheticSource:
+def fixed_test_source(evalset: EvalSet, size: int, t: int | None) -> SyntheticSource:
   """A fixed v2 test set: every scene of a synthetic domain rendered from TEST_SEED."""
   synth = SynthConfig(size=size, domain=evalset.domain, t=t)
   return SyntheticSource(evalset.n, seed=TEST_SEED, config=synth)
@@ -201,7 +201,7 @@ def _eval_source(cell: Cell, evalset: EvalSet):
     source = SyntheticSource(evalset.n, seed=config.seed, config=synth)
     return source, split_indices(source, config.test_fraction, seed=config.seed)[1]
   if evalset.kind == FIXED:
-    source = test_source(evalset, config.synth_size, config.synth_t)
+    source = fixed_test_source(evalset, config.synth_size, config.synth_t)
     return source, list(range(len(source)))
   source = FolderSource(evalset.path)
   return source, list(range(len(source)))
@@ -215,7 +215,10 @@ def choose_window(out: Path, cell: Cell) -> int | None:
     return None
   path = cell_dir(out, cell.name) / EVAL_DIR / WINDOWS_FILE
   saved = read_json(path)
-  if saved is not None and saved["candidates"] == list(cell.windows):
+  if saved is not None:
+    require(saved["candidates"] == list(cell.windows),
+            f"{path}: cell {cell.name} chose its window from {saved['candidates']}, the plan "
+            f"now lists {list(cell.windows)}; use another OUT for the changed plan")
     return int(saved["chosen"])
   source, indices = validation_indices(cell)
   maes = {}

@@ -10,8 +10,13 @@ Rules (SPEC section 5):
 - mae is the end-point error (EPE) of disparity; iqr = P75 - P25 and a90 = P90 of the
   absolute errors (np.percentile, linear interpolation); bad_X = % of pixels with error > X;
   d1 = % of pixels with error > 3 px and > 5% of the ground truth; rms = sqrt(mean(err^2)).
-- Depth (mm, with a calibration): Z = f * B / (d + doffs) for truth and prediction; the depth
-  statistics run over evaluated pixels where both depths are finite (`depth_n_pixels`).
+- Depth (mm, with a calibration): Z = f * B / (d + doffs) for truth and prediction. A predicted
+  disparity near 0 (or below -doffs) is a depth near (or at) infinity, so one such pixel would
+  decide the mean: predicted depth is capped at DEPTH_CAP_FACTOR x the scene's largest finite
+  ground-truth depth over its evaluated pixels (a far plane past anything in the scene), and
+  the share of depth-evaluated pixels whose prediction was capped is `depth_capped` (%). The
+  depth statistics run over scored pixels (finite ground truth and finite predicted
+  disparity) with a finite ground-truth depth (`depth_n_pixels`).
 - Pooled results (a dataset) accumulate the per-pixel errors of all scenes and compute the
   statistics once, so large scenes weigh by their pixel count (no mean of means).
 A statistic over zero pixels is NaN.
@@ -31,7 +36,9 @@ D1_RELATIVE = 0.05
 # Keys in the order tables show them.
 DISPARITY_KEYS = ("mae", "iqr", "rms", "a90", *(f"bad_{t:g}" for t in BAD_THRESHOLDS), "d1",
                   "invalid_pred", "n_pixels")
-DEPTH_KEYS = ("depth_mae_mm", "depth_iqr_mm", "depth_n_pixels")
+DEPTH_KEYS = ("depth_mae_mm", "depth_iqr_mm", "depth_capped", "depth_n_pixels")
+# Predicted depth is capped at this multiple of the scene's largest ground-truth depth.
+DEPTH_CAP_FACTOR = 2.0
 
 
 def _as_2d_mask(mask: np.ndarray | None, shape: tuple[int, ...], what: str) -> np.ndarray:
@@ -55,6 +62,7 @@ class DisparityAccumulator:
   def __init__(self):
     self._errors: list[np.ndarray] = []
     self._depth_errors: list[np.ndarray] = []
+    self._depth_capped = 0
     self.n_pixels = 0
     self.n_invalid = 0
     self._bad = {t: 0 for t in BAD_THRESHOLDS}
@@ -86,8 +94,13 @@ class DisparityAccumulator:
       self._has_depth = True
       z_gt = depth_from_disparity(gt, calib).astype(np.float64)
       z_pred = depth_from_disparity(np.where(finite_pred, pred, np.inf), calib).astype(np.float64)
-      both = scored & np.isfinite(z_gt) & np.isfinite(z_pred)
-      self._depth_errors.append(np.abs(z_pred[both] - z_gt[both]).astype(np.float32))
+      both = scored & np.isfinite(z_gt)
+      if both.any():
+        cap = DEPTH_CAP_FACTOR * float(z_gt[valid & np.isfinite(z_gt)].max())
+        capped = z_pred[both] > cap  # (inf: a predicted disparity <= -doffs)
+        self._depth_capped += int(capped.sum())
+        z = np.where(capped, cap, z_pred[both])
+        self._depth_errors.append(np.abs(z - z_gt[both]).astype(np.float32))
 
   def result(self) -> dict[str, float]:
     """The metrics over everything added so far (NaN for statistics over zero pixels)."""
@@ -108,10 +121,12 @@ class DisparityAccumulator:
     out["invalid_pred"] = 100.0 * self.n_invalid / n if n else nan
     out["n_pixels"] = n
     if self._has_depth:
-      derr = np.concatenate(self._depth_errors).astype(np.float64)
+      derr = (np.concatenate(self._depth_errors).astype(np.float64) if self._depth_errors
+              else np.zeros(0, dtype=np.float64))
       q25, q75 = _percentiles(derr, (25, 75))
       out["depth_mae_mm"] = float(derr.mean()) if derr.size else nan
       out["depth_iqr_mm"] = q75 - q25
+      out["depth_capped"] = 100.0 * self._depth_capped / derr.size if derr.size else nan
       out["depth_n_pixels"] = int(derr.size)
     return out
 

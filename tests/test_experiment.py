@@ -3,6 +3,7 @@ the pairing of stl and the multi-task strategies, refusal of a changed plan."""
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -15,6 +16,7 @@ import pytest
 
 from sljax import cli
 from sljax.data.dataset import epoch_order
+from sljax.errors import SljaxError
 from sljax.experiment import plans, report, runner
 from sljax.nets import build_model, detach_sl
 from sljax.train import loop
@@ -157,6 +159,10 @@ def test_stl_and_unc_are_paired_within_a_seed(tmp_path):
 def test_every_plan_builds_at_every_scale():
   for name in plans.PLANS:
     for scale in plans.SCALES:
+      if name in plans.V2_PLANS and not plans.SCALES[scale].budgets:  # not calibrated yet
+        with pytest.raises(SljaxError, match="no calibrated budget"):
+          plans.build_plan(name, scale, 2)
+        continue
       plan = plans.build_plan(name, scale, 2)
       plans.check_unique(plan)
       assert len({c.seed for c in plan.cells}) == 2
@@ -180,3 +186,29 @@ def test_report_of_partial_results_lists_the_missing(tmp_path):
   md = path.read_text()
   assert "0 of 10 cells trained" in md and "Not scored yet" in md
   assert "no results yet" in md
+
+
+def test_v2_plan_reuses_the_v1_cells_and_scores_them_on_the_fixed_test_sets(smoke_out, tmp_path,
+                                                                           capsys):
+  """table1-v2 at the smoke scale trains exactly as table1: run into a copy of table1's OUT it
+  trains nothing, chooses unet-sl's window on validation and scores the fixed test sets."""
+  out = tmp_path / "out"
+  shutil.copytree(smoke_out, out)
+  capsys.readouterr()
+  assert cli.main(["experiment", "run", "table1-v2", str(out), "--scale", "smoke", "--seeds",
+                   "1", "--no-progress"]) == 0
+  assert "trained 0 cell(s), scored 4 set(s)" in capsys.readouterr().out
+  for cell in plans.build_plan("table1-v2", "smoke", 1).cells:
+    wd = runner.cell_dir(out, cell.name)
+    (evalset,) = cell.evals
+    rep = json.loads((wd / "eval" / f"{evalset.name}.json").read_text())
+    assert rep["n_scenes"] == 20 and rep["dataset_seed"] == plans.TEST_SEED
+    if cell.arm == "unet-sl":
+      windows = json.loads((wd / "eval" / runner.WINDOWS_FILE).read_text())
+      maes = windows["validation_mae"]
+      assert windows["chosen"] == min((3, 5), key=lambda w: (maes[str(w)], w))
+      assert rep["corr_window"] == windows["chosen"]
+      assert rep["pooled"]["patterns_left"]["pattern_acc"] > 0
+  assert cli.main(["experiment", "report", str(out)]) == 0
+  md = (out / "report.md").read_text()
+  assert "(v2: fixed test sets)" in md and "Holm p" in md and "corr window" in md

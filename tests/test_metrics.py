@@ -83,6 +83,31 @@ def test_depth_conversion():
   assert m["depth_iqr_mm"] == pytest.approx(250.0, rel=1e-5)
 
 
+def test_depth_is_capped_at_twice_the_scenes_farthest_truth():
+  """A predicted disparity near 0 (or negative) is a depth near infinity: capped at
+  DEPTH_CAP_FACTOR x the largest ground-truth depth, the capped share reported."""
+  assert metrics.DEPTH_CAP_FACTOR == 2.0
+  calib = _calib(f=100.0, baseline=50.0, doffs=0.0)
+  # gt depths 5000/10 = 500, 5000/5 = 1000 (the farthest: cap 2000), 5000/20 = 250, 250.
+  gt = np.array([[10.0, 5.0, 20.0, 20.0]])
+  # pred depths 500 (exact), 5000/1e-9 (capped to 2000), inf for -1 px (capped), 5000/25 = 200.
+  pred = np.array([[10.0, 1e-9, -1.0, 25.0]])
+  m = metrics.disparity_metrics(pred, gt, calib=calib)
+  errors = [0.0, 2000.0 - 1000.0, 2000.0 - 250.0, 50.0]
+  assert m["depth_n_pixels"] == 4 and m["depth_capped"] == pytest.approx(50.0)
+  assert m["depth_mae_mm"] == pytest.approx(np.mean(errors), rel=1e-6)
+  assert math.isfinite(m["depth_iqr_mm"])
+  # Pooled: the cap is per scene (its own farthest truth), the share over all pixels.
+  acc = metrics.DisparityAccumulator()
+  acc.add(pred, gt, calib=calib)
+  acc.add(np.array([[10.0]]), np.array([[10.0]]), calib=calib)
+  pooled = acc.result()
+  assert pooled["depth_capped"] == pytest.approx(40.0)
+  assert pooled["depth_mae_mm"] == pytest.approx(np.sum(errors) / 5, rel=1e-6)
+  # Without a capped pixel nothing changes.
+  assert metrics.disparity_metrics(gt, gt, calib=calib)["depth_capped"] == 0.0
+
+
 def test_pooled_accumulates_pixels_not_means():
   rng = np.random.default_rng(0)
   gts = [rng.uniform(1, 50, (4, 5)), rng.uniform(1, 50, (9, 3))]

@@ -93,3 +93,53 @@ def test_claim_of_the_baseline_counts_its_own_wins():
   assert d["mean"] == pytest.approx(-1.0) and d["hi"] < 0
   assert (d["wins"], d["losses"]) == (3, 0)
   assert first["verdict"] == "holds"
+
+
+def test_holm_by_hand():
+  # Sorted: 0.005 x 4 = 0.02; 0.01 x 3 = 0.03; 0.03 x 2 = 0.06; 0.04 x 1 = 0.04 -> max 0.06.
+  adjusted = stats.holm([0.01, 0.04, 0.03, 0.005])
+  assert adjusted == pytest.approx([0.03, 0.06, 0.06, 0.02])
+  # NaN is not a test: it keeps its place and does not count in m.
+  mixed = stats.holm([0.02, math.nan, 0.5])
+  assert mixed[0] == pytest.approx(0.04) and math.isnan(mixed[1]) and mixed[2] == 0.5
+  assert stats.holm([0.9, 0.8]) == [1.0, 1.0]  # 0.8 x 2 capped at 1; then max(1, 0.9)
+  assert stats.holm([]) == []
+
+
+def test_power_of_the_paired_t_test_matches_published_values():
+  # pwr.t.test(d = 1, n = 10, type = "one.sample") = 0.8031; the n for d = 0.5 at 80% power
+  # is 33.367 (pwr); at delta = 0 the power is alpha.
+  assert stats.paired_power(1.0, 1.0, 10) == pytest.approx(0.80310, abs=1e-4)
+  assert stats.paired_power(0.5, 1.0, 33.367) == pytest.approx(0.8, abs=1e-4)
+  assert stats.paired_power(0.0, 2.0, 5) == pytest.approx(0.05, abs=1e-9)
+  # Large df: the normal approximation Phi(ncp - z) + Phi(-ncp - z) with the t quantile.
+  n, delta = 2000, 0.07
+  c = stats.t_quantile(0.975, n - 1)
+  ncp = delta * math.sqrt(n)
+  phi = lambda x: 0.5 * math.erfc(-x / math.sqrt(2))  # noqa: E731
+  assert stats.paired_power(delta, 1.0, n) == pytest.approx(phi(ncp - c) + phi(-ncp - c),
+                                                            abs=2e-4)
+
+
+@pytest.mark.parametrize("n", [2, 3, 5, 10])
+def test_detectable_difference_has_80_percent_power_by_simulation(n):
+  """Simulated paired t-tests (float64, 400k draws) at the detectable difference reject about
+  80% of the time; the difference scales with the SD."""
+  sd = 0.3
+  delta = stats.detectable_difference(sd, n)
+  assert stats.detectable_difference(2 * sd, n) == pytest.approx(2 * delta, rel=1e-6)
+  rng = np.random.default_rng(n)
+  d = rng.normal(delta, sd, (400_000, n))
+  t = d.mean(1) / (d.std(1, ddof=1) / math.sqrt(n))
+  power = np.mean(np.abs(t) > stats.t_quantile(0.975, n - 1))
+  assert power == pytest.approx(0.8, abs=0.004)  # 6 standard errors of the simulation
+  assert math.isnan(stats.detectable_difference(sd, 1))
+  assert math.isnan(stats.detectable_difference(0.0, n))
+
+
+def test_delta_m_with_a_higher_is_better_metric_by_hand():
+  # MAE 2.0 -> 1.5 is +25%; pattern accuracy 80 -> 90 is +12.5%: mean +18.75%.
+  got = stats.delta_m({"mae": 1.5, "pattern_acc": 90.0}, {"mae": 2.0, "pattern_acc": 80.0},
+                      higher_better=("pattern_acc",))
+  assert got == pytest.approx(18.75)
+  assert stats.delta_m({"mae": 3.0}, {"mae": 2.0}) == pytest.approx(-50.0)

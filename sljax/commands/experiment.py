@@ -14,10 +14,14 @@ def register(subparsers) -> None:
   sub = p.add_subparsers(dest="action", metavar="ACTION", required=True)
   r = sub.add_parser("run", help="train and score every unfinished cell of a plan",
                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-  r.add_argument("plan", metavar="PLAN", help="table1, table2, table3 or fig7")
+  r.add_argument("plan", metavar="PLAN",
+                 help="table1, table2, table3, fig7 (v1: scored on the held-out split) or "
+                      "table1-v2, table2-v2, table3-v2, fig7-v2 (fixed test sets; "
+                      "docs/plan-v2.md)")
   r.add_argument("out", metavar="OUT", help="experiment folder (shared by plans that share cells)")
   r.add_argument("--scale", default="cpu",
-                 help="smoke (minutes, for tests), cpu (a 2-core CPU) or paper (an accelerator)")
+                 help="smoke (minutes, for tests), cpu (a 2-core CPU, 64x64), cpu128 (128x128) or "
+                      "paper (an accelerator)")
   r.add_argument("--seeds", type=int, default=None,
                  help="seeds 0..N-1 (more can be added later); default 1 at the smoke scale, "
                       "3 otherwise")
@@ -34,6 +38,19 @@ def register(subparsers) -> None:
                                    "are listed as missing).")
   rep.add_argument("out", metavar="OUT", help="experiment folder")
   rep.set_defaults(func=report)
+  c = sub.add_parser(
+      "calibrate", help="set a v2 plan's budgets: long runs on validation, the plateau rule",
+      description="Trains each arm and phase of a v2 plan once (seed 0, fixed learning rate, "
+                  "the scale's long calibration budget, validated on every validation scene) "
+                  "under OUT, resumably, applies the pre-registered plateau rule "
+                  "(sljax.experiment.calibrate) and prints the budgets to commit into the "
+                  "scale; OUT/calibration-PLAN.json keeps the curves.",
+      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+  c.add_argument("plan", metavar="PLAN", help="table1-v2, table2-v2, table3-v2 or fig7-v2")
+  c.add_argument("out", metavar="OUT", help="calibration folder (not a grid's OUT)")
+  c.add_argument("--scale", default="cpu128", help="smoke, cpu or cpu128")
+  c.add_argument("--no-progress", action="store_true", help="no progress bar")
+  c.set_defaults(func=calibrate)
   ls = sub.add_parser("plans", help="list the plans and scales")
   ls.set_defaults(func=list_plans)
 
@@ -46,6 +63,19 @@ def run_plan(args: argparse.Namespace) -> int:
   res = runner.run(plan, args.out, progress=not args.no_progress)
   print(f"{args.plan}: trained {res['trained']} cell(s), scored {res['evaluated']} set(s) in "
         f"{res['seconds'] / 60:.1f} min; report with: sljax experiment report {args.out}")
+  return 0
+
+
+def calibrate(args: argparse.Namespace) -> int:
+  """Runs the calibration and prints the budgets by the plateau rule."""
+  from sljax.experiment import calibrate as cal  # pylint: disable=import-outside-toplevel
+  result = cal.calibrate(args.plan, args.scale, args.out, progress=not args.no_progress)
+  print(f"budgets for scale {args.scale} by the plateau rule (commit them into "
+        "sljax/experiment/plans.py, SCALES[...].budgets):")
+  for line in cal.budget_lines(result):
+    print("  " + line)
+  if result["missing"]:
+    print(f"not finished: {', '.join(result['missing'])}")
   return 0
 
 
@@ -66,5 +96,9 @@ def list_plans(args: argparse.Namespace) -> int:
     print(f"scale {scale.name}: {scale.size}x{scale.size}, t = {scale.t}, maxdisp "
           f"{scale.maxdisp}, {scale.objects_n} objects scenes, batch {scale.batch_size}, Adam "
           f"{scale.lr:g}, epochs {scale.epochs} (1/16: {scale.small_epochs}), fine-tuning "
-          f"{scale.finetune_epochs} epochs on {scale.tissue_n} tissue scenes; {scale.note}")
+          f"{scale.finetune_epochs} epochs on {scale.tissue_n} tissue scenes; {scale.note}"
+          + (f"; v2: test sets of {scale.test_n} scenes per domain, windows "
+             f"{', '.join(map(str, scale.windows))}, budgets "
+             + (", ".join(f"{a} {p}: {e}" for (a, p), e in scale.budgets) or "not calibrated")
+             if scale.test_n else ""))
   return 0

@@ -169,13 +169,27 @@ def _explicit_split(source, splits: dict[str, list[str]]) -> tuple[list[int], li
   return sorted(train), sorted(test)
 
 
+def _pick_groups(groups: Sequence[str], fraction: float, seed: int) -> set[str]:
+  """round(fraction * groups) of the distinct groups, the first in SHA-256 (seed, group) order;
+  at least one when there are two or more and the fraction is positive, never all of them
+  when the fraction is below 1."""
+  unique = sorted(set(groups), key=lambda g: (_group_rank(g, seed), g))
+  n = int(round(fraction * len(unique)))
+  if fraction > 0 and len(unique) >= 2:
+    n = max(n, 1)
+  if fraction < 1 and len(unique) >= 2:
+    n = min(n, len(unique) - 1)
+  return set(unique[:n])
+
+
 def split_indices(source, test_fraction: float = 0.2,
                   seed: int = 0) -> tuple[list[int], list[int]]:
   """Deterministic group-level (train, test) split; dataset.json "splits" wins when present.
 
   Groups are ordered by a SHA-256 hash of (seed, group) and the first round(test_fraction *
   groups) of them form the test set (at least one group when there are two or more and the
-  fraction is positive), so no group is split across train and test.
+  fraction is positive), so no group is split across train and test. Training uses this
+  split's test part for validation; split_three adds a separate test part.
   """
   if not 0.0 <= test_fraction <= 1.0:
     raise SljaxError(f"test fraction must be in [0, 1], got {test_fraction}")
@@ -186,16 +200,30 @@ def split_indices(source, test_fraction: float = 0.2,
   if splits:
     return _explicit_split(source, splits)
   groups = [source.group(i) for i in range(n)]
-  unique = sorted(set(groups), key=lambda g: (_group_rank(g, seed), g))
-  n_test = int(round(test_fraction * len(unique)))
-  if test_fraction > 0 and len(unique) >= 2:
-    n_test = max(n_test, 1)
-  if test_fraction < 1 and len(unique) >= 2:
-    n_test = min(n_test, len(unique) - 1)
-  test_groups = set(unique[:n_test])
+  test_groups = _pick_groups(groups, test_fraction, seed)
   train = [i for i in range(n) if groups[i] not in test_groups]
   test = [i for i in range(n) if groups[i] in test_groups]
   return train, test
+
+
+def split_three(source, val_fraction: float, test_fraction: float, seed: int,
+                test_seed: int = 0) -> tuple[list[int], list[int], list[int]]:
+  """Deterministic group-level (train, validation, test) split.
+
+  The test groups depend on test_seed only (the same for every training seed; dataset.json
+  "splits" "test" wins when present): split_indices(source, test_fraction, test_seed)'s test
+  part. Validation is round(val_fraction * remaining groups) of the remaining groups, drawn
+  with seed as split_indices draws its test part; the rest is training. No group is in two
+  parts.
+  """
+  if not 0.0 <= val_fraction < 1.0:
+    raise SljaxError(f"validation fraction must be in [0, 1), got {val_fraction}")
+  rest, test = split_indices(source, test_fraction, seed=test_seed)
+  groups = {i: source.group(i) for i in rest}
+  val_groups = _pick_groups(list(groups.values()), val_fraction, seed)
+  train = [i for i in rest if groups[i] not in val_groups]
+  val = [i for i in rest if groups[i] in val_groups]
+  return train, val, test
 
 
 def parse_fraction(text: str | float) -> float:

@@ -11,25 +11,46 @@ the seed), and starts from the same initial weights for every parameter it share
 other arms (flax derives each module's initial values from the seed and the module's name,
 and the twin's disparity path has PSMNet's names). Seeds differ in all of these.
 
+Two designs. v1 (table1, table2, table3, fig7) scores every cell on its own held-out split,
+which training also validates on. v2 (table1-v2, ...; docs/plan-v2.md pre-registers it)
+separates the three: training on the training split, every choice (epochs, correlation window)
+on the validation split (the training source's held-out groups), and the score on a large
+fixed test set per domain, rendered from its own dataset seed (TEST_SEED), the same for every
+seed and arm and disjoint from every training source at the group level. A v2 cell trains
+exactly as the v1 cell of the same name (same spec): the designs differ in what is scored.
+
 Plans:
 - table1: unet-sl (disparity by correlating its predicted patterns) vs unet-disp, trained on
   objects, then fine-tuned on scarce tissue (or on --data) from the objects model.
 - table2: the five strategies x {all, 1/16 of the training split} on objects (or --data).
 - table3: table2's full-data models scored on the tissue domain and on --eval-data folders.
 - fig7: table2's full-data models fine-tuned on scarce tissue (or --data), with curves.
+- table1-v2: table1 scored on the fixed objects and tissue test sets; unet-sl's correlation
+  window chosen per cell on validation from the scale's pre-registered windows.
+- table2-v2: table2 at 1/16 only, scored on the fixed objects test set.
+- table3-v2: table2's full-data models scored on the fixed tissue test set (the claims; another
+  domain) and the fixed objects test set (in-domain, descriptive), and on --eval-data folders.
+- fig7-v2: fig7 scored on the fixed tissue test set.
 """
 
 import dataclasses
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from sljax.data.dataset import FolderSource
 from sljax.errors import SljaxError, require
 from sljax.losses.weighting import STRATEGIES
 from sljax.train.config import QUICK, TrainConfig
 from sljax.train.state import LR_DROP
 
-PLANS = ("table1", "table2", "table3", "fig7")
+V1_PLANS = ("table1", "table2", "table3", "fig7")
+V2_PLANS = ("table1-v2", "table2-v2", "table3-v2", "fig7-v2")
+PLANS = V1_PLANS + V2_PLANS
 HELDOUT = "heldout"
+FIXED = "fixed"           # EvalSet kind of a v2 test set
+TEST_SEED = 1_000_003     # dataset seed of the v2 test sets (no training seed is near it)
+PHASES = ("objects", "1/16", "finetune")  # the budgets of a scale: all data, 1/16, fine-tuning
 
 
 @dataclasses.dataclass(frozen=True)
@@ -55,13 +76,34 @@ class Scale:
   small_val_every: int
   max_val: int | None      # validation scenes for the curves (the report scores all)
   note: str
+  # v2 (docs/plan-v2.md): correlation windows unet-sl chooses from on validation; scenes per
+  # domain in the fixed test sets; budgets: ((arm or "*", phase), epochs) set by the
+  # calibration rule (empty: not calibrated yet); calib_epochs: ((phase, epochs)) of the long
+  # calibration runs.
+  windows: tuple[int, ...] = ()
+  test_n: int = 0
+  budgets: tuple[tuple[tuple[str, str], int], ...] = ()
+  calib_epochs: tuple[tuple[str, int], ...] = ()
+
+  def budget(self, arm: str, phase: str) -> int:
+    """The v2 epochs of an arm in a phase (its own calibrated budget, else the scale's "*");
+    SljaxError when the scale has none yet."""
+    table = dict(self.budgets)
+    epochs = table.get((arm, phase), table.get(("*", phase)))
+    require(epochs is not None,
+            f"scale {self.name} has no calibrated budget for {arm} ({phase}) yet: run `sljax "
+            f"experiment calibrate PLAN OUT --scale {self.name}` and commit the budgets it "
+            "prints (docs/plan-v2.md)")
+    return epochs
 
 
 SCALES = {s.name: s for s in (
     Scale("smoke", size=32, t=5, maxdisp=16, objects_n=40, tissue_n=20, epochs=2,
           small_epochs=2, finetune_epochs=2, batch_size=2, lr=1e-3, lr_drop=False,
           corr_window=3, unet_width=4, unet_depth=2, val_every=1, small_val_every=1,
-          max_val=4, note="a few minutes on a CPU; the tests run it"),
+          max_val=4, note="a few minutes on a CPU; the tests run it", windows=(3, 5), test_n=20,
+          budgets=((("*", "objects"), 2), (("*", "1/16"), 2), (("*", "finetune"), 2)),
+          calib_epochs=(("objects", 3), ("1/16", 3), ("finetune", 3))),
     Scale("cpu", size=64, t=6, maxdisp=16, objects_n=400, tissue_n=80, epochs=12,
           small_epochs=96, finetune_epochs=40, batch_size=4, lr=1e-3, lr_drop=True,
           corr_window=5, unet_width=16, unet_depth=4, val_every=1, small_val_every=8,
@@ -70,7 +112,21 @@ SCALES = {s.name: s for s in (
                "1.5 px wide, as 8 patterns at 256x256; Adam 1e-3 dropping to 1e-4 for the "
                "last quarter of the epochs brings validation to a plateau within the budget; "
                "the 1/16 runs take 8x the epochs (half the full runs' steps), which their "
-               "plateau needs"),
+               "plateau needs",
+          windows=(5, 9, 17), test_n=500,
+          # v1's budgets, calibrated on stl on seed 0's held-out split: v2's validation split.
+          budgets=((("*", "objects"), 12), (("*", "1/16"), 96), (("*", "finetune"), 40)),
+          calib_epochs=(("objects", 36), ("1/16", 288), ("finetune", 120))),
+    Scale("cpu128", size=128, t=7, maxdisp=32, objects_n=400, tissue_n=80, epochs=12,
+          small_epochs=96, finetune_epochs=40, batch_size=4, lr=1e-3, lr_drop=True,
+          corr_window=9, unet_width=16, unet_depth=4, val_every=1, small_val_every=8,
+          max_val=40,
+          note="the second CPU scale: 128x128 with 7 patterns keeps the finest stripe 1.68 px "
+               "wide (docs/plan-v2.md), maxdisp 32 covers the disparities (<= 0.22 x 128 = "
+               "28 px); unet-sl's window is chosen on validation from 5, 9, 13, 17, 25; every "
+               "budget is set on validation by the calibration rule",
+          windows=(5, 9, 13, 17, 25), test_n=500, budgets=(),
+          calib_epochs=(("objects", 60), ("1/16", 288), ("finetune", 120))),
     Scale("paper", size=256, t=8, maxdisp=96, objects_n=8000, tissue_n=500, epochs=120,
           small_epochs=120, finetune_epochs=40, batch_size=12, lr=1e-4, lr_drop=False,
           corr_window=17, unet_width=32, unet_depth=4, val_every=1, small_val_every=1,
@@ -83,7 +139,9 @@ SCALES = {s.name: s for s in (
 @dataclasses.dataclass(frozen=True)
 class EvalSet:
   """Scenes a cell is scored on: its own held-out split, the held-out split of a synthetic
-  domain (rendered from the cell's seed), or every scene of a folder."""
+  domain (rendered from the cell's seed), a fixed test set (every scene of a synthetic domain
+  rendered from TEST_SEED at the cell's size and pattern count), or every scene of a
+  folder."""
   name: str
   kind: str                # "heldout" | "synthetic" | "folder"
   domain: str | None = None
@@ -101,6 +159,7 @@ class Cell:
   config: TrainConfig      # init_from is filled in by the runner from init_cell
   init_cell: str | None = None
   evals: tuple[EvalSet, ...] = ()
+  windows: tuple[int, ...] = ()  # unet-sl, v2: correlation windows chosen from on validation
 
   def spec(self) -> dict[str, Any]:
     """What identifies the run (plan.json): a changed spec under one name is refused. The
@@ -149,12 +208,13 @@ def _base(scale: Scale, seed: int, epochs: int | None = None) -> TrainConfig:
       val_every=scale.val_every, max_val=scale.max_val, keep=2)
 
 
-def _on_target(config: TrainConfig, scale: Scale, data: str | None) -> TrainConfig:
+def _on_target(config: TrainConfig, scale: Scale, data: str | None,
+               epochs: int | None = None) -> TrainConfig:
   """The config moved to the fine-tuning target (scarce synthetic tissue, or the user's data):
   every epoch validated, the learning rate where pretraining ended."""
   lr = config.lr * (LR_DROP if config.lr_drop_epoch is not None else 1.0)
-  moved = dataclasses.replace(config, epochs=scale.finetune_epochs, val_every=1, lr=lr,
-                              lr_drop_epoch=None)
+  moved = dataclasses.replace(config, epochs=scale.finetune_epochs if epochs is None else epochs,
+                              val_every=1, lr=lr, lr_drop_epoch=None)
   if data is not None:
     return dataclasses.replace(moved, data=data)
   return dataclasses.replace(moved, domain="tissue", synth_n=scale.tissue_n)
@@ -165,15 +225,24 @@ def _psmnet_name(strategy: str, where: str, fraction: str, seed: int) -> str:
   return f"psmnet-{strategy}-{where}{frac}-s{seed}"
 
 
+Epochs = Callable[[str, str], int]  # (arm, phase) -> training epochs
+
+
+def _v1_epochs(scale: Scale) -> Epochs:
+  by_phase = {"objects": scale.epochs, "1/16": scale.small_epochs,
+              "finetune": scale.finetune_epochs}
+  return lambda arm, phase: by_phase[phase]
+
+
 def _table2_cells(scale: Scale, seed: int, data: str | None, fractions: tuple[str, ...],
-                  evals: tuple[EvalSet, ...]) -> list[Cell]:
+                  evals: tuple[EvalSet, ...], epochs: Epochs) -> list[Cell]:
   where = "data" if data else "objects"
   cells = []
   for fraction in fractions:
     small = fraction != "1"
     for strategy in STRATEGIES:
       config = dataclasses.replace(
-          _base(scale, seed, scale.small_epochs if small else scale.epochs), model="psmnet",
+          _base(scale, seed, epochs(strategy, "1/16" if small else "objects")), model="psmnet",
           strategy=strategy, fraction=fraction, data=data,
           val_every=scale.small_val_every if small else scale.val_every)
       cells.append(Cell(_psmnet_name(strategy, where, fraction, seed), strategy,
@@ -185,50 +254,133 @@ def _pattern_count(data: str | None, scale: Scale) -> int:
   """Patterns per view: the user's folder's (so pretraining matches it), else the scale's."""
   if data is None:
     return scale.t
-  from sljax.data.dataset import FolderSource  # pylint: disable=import-outside-toplevel
   t = FolderSource(data).num_patterns
   return scale.t if t is None else t
 
 
-def build_plan(name: str, scale: str = "cpu", seeds: int = 3, data: str | None = None,
-               eval_data: tuple[str, ...] = ()) -> Plan:
-  """The cells of a shipped plan; SljaxError for an unknown plan or scale."""
+def test_set(domain: str, scale: Scale) -> EvalSet:
+  """The fixed v2 test set of a synthetic domain at a scale."""
+  return EvalSet(f"test-{domain}", FIXED, domain=domain, n=scale.test_n)
+
+
+def _v1_cells(name: str, sc: Scale, seed: int, data: str | None,
+              eval_data: tuple[str, ...]) -> list[Cell]:
+  heldout = EvalSet(HELDOUT, "heldout")
+  epochs = _v1_epochs(sc)
+  cells: list[Cell] = []
+  target = "data" if data else "tissue"
+  if name == "table1":
+    for model in ("unet-sl", "unet-disp"):
+      pre = dataclasses.replace(_base(sc, seed), model=model, strategy="stl")
+      pre_name = f"{model}-objects-s{seed}"
+      cells.append(Cell(pre_name, model, (("data", "objects"),), seed, pre, evals=(heldout,)))
+      cells.append(Cell(f"{model}-{target}-ft-s{seed}", model, (("data", target),), seed,
+                        _on_target(pre, sc, data), init_cell=pre_name, evals=(heldout,)))
+  elif name == "table2":
+    cells += _table2_cells(sc, seed, data, ("1", "1/16"), (heldout,), epochs)
+  elif name == "table3":
+    evals = (heldout, EvalSet("tissue", "synthetic", domain="tissue", n=sc.tissue_n))
+    evals += tuple(EvalSet(Path(p).name, "folder", path=str(Path(p).resolve()))
+                   for p in eval_data)
+    cells += _table2_cells(sc, seed, data, ("1",), evals, epochs)
+  else:  # fig7
+    pretrained = _table2_cells(sc, seed, None, ("1",), (heldout,), epochs)
+    cells += pretrained
+    for pre in pretrained:
+      cells.append(Cell(_psmnet_name(pre.arm, f"{target}-ft", "1", seed), pre.arm,
+                        (("data", target),), seed, _on_target(pre.config, sc, data),
+                        init_cell=pre.name, evals=(heldout,)))
+  return cells
+
+
+def _v2_cells(name: str, sc: Scale, seed: int, eval_data: tuple[str, ...],
+              epochs: Epochs) -> list[Cell]:
+  """v2 cells: the v1 cells' training (budgets from the scale's calibration), scored on the
+  fixed test sets; unet-sl chooses its correlation window on validation."""
+  objects, tissue = test_set("objects", sc), test_set("tissue", sc)
+  cells: list[Cell] = []
+  if name == "table1-v2":
+    for model in ("unet-sl", "unet-disp"):
+      windows = sc.windows if model == "unet-sl" else ()
+      pre = dataclasses.replace(_base(sc, seed, epochs(model, "objects")), model=model,
+                                strategy="stl")
+      pre_name = f"{model}-objects-s{seed}"
+      cells.append(Cell(pre_name, model, (("data", "objects"),), seed, pre, evals=(objects,),
+                        windows=windows))
+      cells.append(Cell(f"{model}-tissue-ft-s{seed}", model, (("data", "tissue"),), seed,
+                        _on_target(pre, sc, None, epochs(model, "finetune")),
+                        init_cell=pre_name, evals=(tissue,), windows=windows))
+  elif name == "table2-v2":
+    cells += _table2_cells(sc, seed, None, ("1/16",), (objects,), epochs)
+  elif name == "table3-v2":
+    evals = (tissue, objects) + tuple(EvalSet(Path(p).name, "folder",
+                                              path=str(Path(p).resolve())) for p in eval_data)
+    cells += _table2_cells(sc, seed, None, ("1",), evals, epochs)
+  else:  # fig7-v2
+    pretrained = _table2_cells(sc, seed, None, ("1",), (objects,), epochs)
+    cells += pretrained
+    for pre in pretrained:
+      cells.append(Cell(_psmnet_name(pre.arm, "tissue-ft", "1", seed), pre.arm,
+                        (("data", "tissue"),), seed,
+                        _on_target(pre.config, sc, None, epochs(pre.arm, "finetune")),
+                        init_cell=pre.name, evals=(tissue,)))
+  return cells
+
+
+def _check_args(name: str, scale: str, seeds: int, data: str | None,
+                eval_data: tuple[str, ...]) -> None:
   require(name in PLANS, f"unknown plan {name!r}; choose from {', '.join(PLANS)}")
   require(scale in SCALES, f"--scale {scale}: choose from {', '.join(SCALES)}")
   require(seeds >= 1, f"--seeds {seeds}: must be at least 1")
-  require(name == "table3" or not eval_data,
-          "--eval-data applies to the table3 plan (scoring trained models on other data)")
+  require(name in ("table3", "table3-v2") or not eval_data,
+          "--eval-data applies to the table3 plans (scoring trained models on other data)")
+  require(name in V1_PLANS or data is None,
+          f"--data: plan {name} scores on fixed synthetic test sets; training on your folder "
+          "needs its own test groups kept out of training, which the v1 plans' held-out split "
+          "does not do (use a v1 plan, or score your data with table3-v2's --eval-data)")
   for folder in (data, *eval_data):
     require(folder is None or Path(folder).is_dir(), f"{folder}: dataset folder does not exist")
+
+
+def build_plan(name: str, scale: str = "cpu", seeds: int = 3, data: str | None = None,
+               eval_data: tuple[str, ...] = ()) -> Plan:
+  """The cells of a shipped plan; SljaxError for an unknown plan or scale, or a v2 plan at a
+  scale without calibrated budgets."""
+  _check_args(name, scale, seeds, data, eval_data)
   sc = dataclasses.replace(SCALES[scale], t=_pattern_count(data, SCALES[scale]))
-  heldout = EvalSet(HELDOUT, "heldout")
   cells: list[Cell] = []
   for seed in range(seeds):
-    if name == "table1":
-      for model in ("unet-sl", "unet-disp"):
-        pre = dataclasses.replace(_base(sc, seed), model=model, strategy="stl")
-        pre_name = f"{model}-objects-s{seed}"
-        cells.append(Cell(pre_name, model, (("data", "objects"),), seed, pre, evals=(heldout,)))
-        target = "data" if data else "tissue"
-        cells.append(Cell(f"{model}-{target}-ft-s{seed}", model, (("data", target),), seed,
-                          _on_target(pre, sc, data), init_cell=pre_name, evals=(heldout,)))
-    elif name == "table2":
-      cells += _table2_cells(sc, seed, data, ("1", "1/16"), (heldout,))
-    elif name == "table3":
-      evals = (heldout, EvalSet("tissue", "synthetic", domain="tissue", n=sc.tissue_n))
-      evals += tuple(EvalSet(Path(p).name, "folder", path=str(Path(p).resolve()))
-                     for p in eval_data)
-      cells += _table2_cells(sc, seed, data, ("1",), evals)
-    else:  # fig7
-      pretrained = _table2_cells(sc, seed, None, ("1",), (heldout,))
-      cells += pretrained
-      target = "data" if data else "tissue"
-      for pre in pretrained:
-        cells.append(Cell(_psmnet_name(pre.arm, f"{target}-ft", "1", seed), pre.arm,
-                          (("data", target),), seed, _on_target(pre.config, sc, data),
-                          init_cell=pre.name, evals=(heldout,)))
-  baseline = "unet-disp" if name == "table1" else "stl"
+    if name in V1_PLANS:
+      cells += _v1_cells(name, sc, seed, data, eval_data)
+    else:
+      cells += _v2_cells(name, sc, seed, eval_data, sc.budget)
+  baseline = "unet-disp" if name.startswith("table1") else "stl"
   return Plan(name, sc, tuple(range(seeds)), tuple(cells), baseline, data, tuple(eval_data))
+
+
+def calibration_plan(name: str, scale: str) -> Plan:
+  """The long runs that set a v2 plan's budgets (docs/plan-v2.md): one cell per arm and phase of
+  the plan, seed 0, at the scale's calibration epochs, fixed learning rate, every validation
+  scene; a fine-tuning run starts from the same arm's long objects run."""
+  require(name in V2_PLANS, f"calibrate: {name!r} is not a v2 plan; choose from "
+          f"{', '.join(V2_PLANS)}")
+  _check_args(name, scale, 1, None, ())
+  sc = SCALES[scale]
+  long_epochs = dict(sc.calib_epochs)
+  cells = [dataclasses.replace(
+      c, name="calib-" + c.name.removesuffix("-s0"), evals=(), windows=(),
+      init_cell=None if c.init_cell is None else "calib-" + c.init_cell.removesuffix("-s0"),
+      config=dataclasses.replace(c.config, lr_drop_epoch=None, max_val=None))
+      for c in _v2_cells(name, sc, 0, (), lambda arm, phase: long_epochs[phase])]
+  return Plan(f"calibrate-{name}", sc, (0,), tuple(cells), "unet-disp" if name.startswith(
+      "table1") else "stl")
+
+
+def phase_of(cell: Cell) -> str:
+  """The budget phase of a cell: objects (all data), 1/16 or finetune."""
+  if cell.init_cell is not None:
+    return "finetune"
+  return "1/16" if cell.config.fraction != "1" else "objects"
 
 
 def check_unique(plan: Plan) -> None:

@@ -5,14 +5,17 @@ OUT/cells/NAME/          the cell's training workdir (config.json, checkpoints/,
 OUT/cells/NAME/train.log its training output
 OUT/cells/NAME/done.json written once training finished: final step, seconds
 OUT/cells/NAME/eval/SET.json  the final checkpoint's evaluation report on that set
+OUT/cells/NAME/eval/windows.json  v2 unet-sl: validation MAE per candidate correlation window
+                         and the window chosen (the lowest; ties: the smaller)
 
 Idempotent and resumable: a cell with done.json is not trained again, one with checkpoints
 continues exactly (train's --resume), an evaluation already written is not redone. A cell
 whose spec changed under an existing OUT is refused, never mixed in. Cells are scored with
-their final checkpoint (the last step), not the best by validation: validation uses the
-held-out split, and choosing on it would leak the test set into the result. A finished cell
-keeps that checkpoint only (the earlier ones are deleted), about 55-85 MB for a PSMNet at the
-cpu scale.
+their final checkpoint (the last step), not the best by validation: in v1 validation uses the
+held-out split that is also scored, and choosing on it would leak the test set into the
+result. In v2 the held-out split is validation only (the window is chosen there) and the
+score comes from a fixed test set, touched once per cell. A finished cell keeps its final
+checkpoint only (the earlier ones are deleted), about 55-85 MB for a PSMNet at the cpu scale.
 """
 
 import dataclasses
@@ -26,12 +29,14 @@ from typing import Any
 
 from tqdm import tqdm
 
-from sljax.data.dataset import FolderSource, split_indices
-from sljax.data.synthetic import SynthConfig, SyntheticSource
 from sljax import inference
+from sljax.data.dataset import FolderSource, parse_fraction, split_indices
+from sljax.data.scene import read_json_object
+from sljax.data.synthetic import SynthConfig, SyntheticSource
 from sljax.errors import SljaxError, require
 from sljax.evaluate import evaluate, json_safe
-from sljax.experiment.plans import HELDOUT, Cell, EvalSet, Plan, check_unique, describe
+from sljax.experiment.plans import (FIXED, HELDOUT, TEST_SEED, Cell, EvalSet, Plan, check_unique,
+                                    describe)
 from sljax.train import checkpoint as ckpt
 from sljax.train.config import dumps
 from sljax.train.loop import open_source, train
@@ -40,6 +45,7 @@ PLAN_FILE = "plan.json"
 CELLS_DIR = "cells"
 DONE_FILE = "done.json"
 EVAL_DIR = "eval"
+WINDOWS_FILE = "windows.json"
 LOG_FILE = "train.log"
 FORMAT_VERSION = 1
 
@@ -53,11 +59,10 @@ def read_json(path: Path) -> dict[str, Any] | None:
   """A JSON object file, or None when absent."""
   if not path.exists():
     return None
-  from sljax.data.scene import read_json_object  # pylint: disable=import-outside-toplevel
   return read_json_object(path, str(path))
 
 
-def _write_json(path: Path, obj: Any) -> None:
+def write_json(path: Path, obj: Any) -> None:
   """Writes atomically (a killed runner never leaves half a file)."""
   tmp = path.with_suffix(path.suffix + ".tmp")
   tmp.write_text(dumps(obj) + "\n", encoding="utf-8")
@@ -92,7 +97,7 @@ def register(out: Path, plan: Plan) -> dict[str, Any]:
     args["eval_data"] = sorted(set(args["eval_data"]) | set(previous.get("eval_data", [])))
   record["plans"][plan.name] = args
   record["cells"].update({c.name: c.spec() for c in plan.cells})
-  _write_json(out / PLAN_FILE, record)
+  write_json(out / PLAN_FILE, record)
   return record
 
 
@@ -102,6 +107,15 @@ def _first_difference(old: Any, new: Any, path: str = "") -> str:
       if old.get(k) != new.get(k):
         return _first_difference(old.get(k), new.get(k), f"{path}{k}.")
   return f"{path.rstrip('.')}: {old!r} -> {new!r}"
+
+
+def curve(out: Path, name: str) -> list[tuple[int, float]]:
+  """(epoch, validation MAE) of a cell's training log."""
+  path = cell_dir(out, name) / "epochs.jsonl"
+  if not path.exists():
+    return []
+  recs = [json.loads(l) for l in path.read_text().splitlines() if l.strip()]
+  return [(r["epoch"], r["val_mae"]) for r in recs if r.get("val_mae") is not None]
 
 
 def final_checkpoint(out: Path, name: str) -> Path:
@@ -131,7 +145,6 @@ def _n_train(cell: Cell) -> int:
 
 def cell_steps(cell: Cell) -> int:
   """Training steps of the cell."""
-  from sljax.data.dataset import parse_fraction  # pylint: disable=import-outside-toplevel
   used = max(1, int(round(parse_fraction(cell.config.fraction) * _n_train(cell))))
   return used // cell.config.batch_size * cell.config.epochs
 
@@ -165,30 +178,78 @@ class _CellBar:
 # ----------------------------------------------------------------------------- running
 
 
+def validation_indices(cell: Cell) -> tuple[Any, list[int]]:
+  """(source, indices) of the cell's validation split: the held-out groups of its training
+  source (all of them, not the training curves' max_val)."""
+  source = open_source(cell.config)
+  return source, split_indices(source, cell.config.test_fraction, seed=cell.config.seed)[1]
+
+
+def fixed_test_source(evalset: EvalSet, size: int, t: int | None) -> SyntheticSource:
+  """A fixed v2 test set: every scene of a synthetic domain rendered from TEST_SEED."""
+  synth = SynthConfig(size=size, domain=evalset.domain, t=t)
+  return SyntheticSource(evalset.n, seed=TEST_SEED, config=synth)
+
+
 def _eval_source(cell: Cell, evalset: EvalSet):
-  """(source, scene indices, label) of an evaluation set for a cell."""
+  """(source, scene indices) of an evaluation set for a cell."""
   config = cell.config
   if evalset.kind == HELDOUT:
-    source = open_source(config)
-    return source, split_indices(source, config.test_fraction, seed=config.seed)[1]
+    return validation_indices(cell)
   if evalset.kind == "synthetic":
     synth = SynthConfig(size=config.synth_size, domain=evalset.domain, t=config.synth_t)
     source = SyntheticSource(evalset.n, seed=config.seed, config=synth)
     return source, split_indices(source, config.test_fraction, seed=config.seed)[1]
+  if evalset.kind == FIXED:
+    source = fixed_test_source(evalset, config.synth_size, config.synth_t)
+    return source, list(range(len(source)))
   source = FolderSource(evalset.path)
   return source, list(range(len(source)))
 
 
+def choose_window(out: Path, cell: Cell) -> int | None:
+  """The correlation window of a v2 unet-sl cell, chosen on its validation split from the
+  plan's candidates (the lowest Full MAE; ties: the smaller window), kept in
+  eval/windows.json; None for cells without candidates (the training config's window)."""
+  if not cell.windows:
+    return None
+  path = cell_dir(out, cell.name) / EVAL_DIR / WINDOWS_FILE
+  saved = read_json(path)
+  if saved is not None:
+    require(saved["candidates"] == list(cell.windows),
+            f"{path}: cell {cell.name} chose its window from {saved['candidates']}, the plan "
+            f"now lists {list(cell.windows)}; use another OUT for the changed plan")
+    return int(saved["chosen"])
+  source, indices = validation_indices(cell)
+  maes = {}
+  predictor = inference.load(final_checkpoint(out, cell.name), mode="resize")
+  for window in cell.windows:
+    predictor.sl_window = window
+    rep = evaluate(predictor, source, indices, progress=False)
+    maes[window] = rep["pooled"]["full"]["mae"]
+  chosen = min(cell.windows, key=lambda w: (maes[w], w))
+  path.parent.mkdir(parents=True, exist_ok=True)
+  write_json(path, json_safe({"candidates": list(cell.windows), "validation_mae": {
+      str(w): maes[w] for w in cell.windows}, "chosen": chosen, "n_scenes": len(indices)}))
+  return chosen
+
+
 def evaluate_cell(out: Path, cell: Cell, evalset: EvalSet) -> dict[str, Any]:
-  """Scores the cell's final checkpoint on a set (resize protocol, the one metrics function)
-  and writes eval/SET.json."""
+  """Scores the cell's final checkpoint on a set (resize protocol, the one metrics function;
+  a v2 unet-sl cell with the window chosen on validation) and writes eval/SET.json."""
+  window = choose_window(out, cell)
   source, indices = _eval_source(cell, evalset)
   predictor = inference.load(final_checkpoint(out, cell.name), mode="resize")
-  report = evaluate(predictor, source, indices, progress=False,
-                    info={"cell": cell.name, "set": evalset.name, "kind": evalset.kind})
+  info = {"cell": cell.name, "set": evalset.name, "kind": evalset.kind}
+  if window is not None:
+    predictor.sl_window = window
+    info["corr_window"] = window
+  if evalset.kind == FIXED:
+    info["dataset_seed"] = TEST_SEED
+  report = evaluate(predictor, source, indices, progress=False, info=info)
   path = cell_dir(out, cell.name) / EVAL_DIR / f"{evalset.name}.json"
   path.parent.mkdir(parents=True, exist_ok=True)
-  _write_json(path, json_safe(report))
+  write_json(path, json_safe(report))
   return report
 
 
@@ -214,7 +275,7 @@ def train_cell(out: Path, cell: Cell, bar, weight: float) -> dict[str, Any]:
   done = {"step": result.step, "epochs": result.epochs_done, "last_val_mae": result.last_val,
           "train_seconds": sum(r["seconds"] for r in epochs),
           "wall_seconds_last_call": time.perf_counter() - t0}
-  _write_json(wd / DONE_FILE, done)
+  write_json(wd / DONE_FILE, done)
   return done
 
 

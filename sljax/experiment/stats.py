@@ -1,8 +1,10 @@
-"""Small-sample statistics for the experiment reports: Student-t intervals and paired tests.
+"""Small-sample statistics for the experiment reports: Student-t intervals, paired tests,
+Holm's step-down adjustment, the power of the paired t-test and MTL's Delta_m.
 
 Pure Python/NumPy (no SciPy): the t distribution's CDF is the regularised incomplete beta
 function, evaluated by its continued fraction (Numerical Recipes, 'betacf'), and quantiles
-are found by bisection on the CDF.
+are found by bisection on the CDF. The noncentral t's tail (power) is an integral over the
+chi distribution of the sample SD, evaluated by quadrature on a fixed grid (float64).
 """
 
 import math
@@ -114,12 +116,82 @@ def paired_test(a: Sequence[float], b: Sequence[float],
   return out
 
 
-def delta_m(metrics: dict[str, float], baseline: dict[str, float]) -> float:
-  """MTAN's multi-task gain (Liu et al. 2019 / Maninis et al. 2019) over lower-is-better
-  metrics, in %: mean over k of (baseline_k - metric_k) / baseline_k * 100; > 0 is better.
-  NaN where a baseline metric is 0 or not finite (e.g. a bad-2 of 0%): the relative change is
-  undefined there."""
-  keys = sorted(baseline)
-  if not all(math.isfinite(baseline[k]) and baseline[k] != 0 for k in keys):
+def holm(pvalues: Sequence[float]) -> list[float]:
+  """Holm's step-down adjusted p-values (same order as given; NaN stays NaN and is not counted).
+
+  Sorted ascending p_(1) <= ... <= p_(m): adjusted p_(i) = max over j <= i of min(1, (m - j + 1)
+  p_(j)). Rejecting where the adjusted p < alpha controls the family-wise error at alpha.
+  """
+  p = [float(v) for v in pvalues]
+  live = sorted((v, i) for i, v in enumerate(p) if not math.isnan(v))
+  m = len(live)
+  out = [math.nan] * len(p)
+  running = 0.0
+  for rank, (v, i) in enumerate(live):
+    running = max(running, min(1.0, (m - rank) * v))
+    out[i] = running
+  return out
+
+
+_ERFC = np.vectorize(math.erfc, otypes=[np.float64])
+
+
+def _two_sided_tail(ncp: float, c: float, df: float) -> float:
+  """P(|T| > c) for T noncentral t (df, ncp): E_X[Phi(ncp - c X / sqrt(df)) + Phi(-ncp - c X /
+  sqrt(df))] over X = sqrt(V), V chi-square(df), whose density 2 x g(x^2) has no singularity;
+  trapezoid quadrature on 4001 points out to 12 SDs past the mean of V (float64)."""
+  x = np.linspace(0.0, math.sqrt(df + 12.0 * math.sqrt(2.0 * df) + 40.0), 4001)
+  with np.errstate(divide="ignore"):
+    power_term = (df - 1.0) * np.log(x) if df != 1.0 else np.zeros_like(x)  # 0 * log 0 = 0
+  w = np.exp(power_term - x * x / 2.0 + math.log(2.0) - (df / 2.0) * math.log(2.0)
+             - math.lgamma(df / 2.0))
+  s = x / math.sqrt(df)
+  root2 = math.sqrt(2.0)
+  f = 0.5 * _ERFC(-(ncp - c * s) / root2) + 0.5 * _ERFC(-(-ncp - c * s) / root2)
+  return float(np.trapezoid(w * f, x))
+
+
+def paired_power(delta: float, sd: float, n: float, alpha: float = 0.05) -> float:
+  """Power of the two-sided paired t-test at level alpha to detect a true mean difference delta
+  with per-pair SD sd over n pairs: P(|T| > t_crit), T noncentral t with df n - 1 and
+  noncentrality delta sqrt(n) / sd; n may be fractional (as pwr's sample-size solver)."""
+  df = n - 1.0
+  if not (df > 0 and sd > 0 and math.isfinite(sd)):
     return math.nan
-  return float(np.mean([(baseline[k] - metrics[k]) / baseline[k] * 100.0 for k in keys]))
+  c = t_quantile(1.0 - alpha / 2.0, df)
+  return _two_sided_tail(abs(delta) * math.sqrt(n) / sd, c, df)
+
+
+def detectable_difference(sd: float, n: int, power: float = 0.8, alpha: float = 0.05) -> float:
+  """The smallest true paired mean difference the two-sided paired t-test at alpha detects
+  with the given power, for per-pair SD sd and n pairs (bisection on the power); NaN for
+  n < 2 or an unknown SD."""
+  if n < 2 or not (sd > 0 and math.isfinite(sd)):
+    return math.nan
+  df = n - 1.0
+  c = t_quantile(1.0 - alpha / 2.0, df)
+  scale = math.sqrt(n) / sd
+  lo, hi = 0.0, sd
+  while _two_sided_tail(hi * scale, c, df) < power:
+    hi *= 2.0
+  for _ in range(50):
+    mid = 0.5 * (lo + hi)
+    if _two_sided_tail(mid * scale, c, df) < power:
+      lo = mid
+    else:
+      hi = mid
+  return 0.5 * (lo + hi)
+
+
+def delta_m(metrics: dict[str, float], baseline: dict[str, float],
+            higher_better: Sequence[str] = ()) -> float:
+  """The multi-task gain Delta_m of Maninis et al. 2019 / Vandenhende et al. 2021, in %: the
+  mean over the given primary metrics k (one per task) of (-1)^l_k (M_k - B_k) / B_k * 100,
+  l_k = 1 for lower-is-better metrics, 0 for those named in higher_better; > 0 is better.
+  NaN where a baseline metric is 0 or not finite: the relative change is undefined there."""
+  keys = sorted(baseline)
+  if not keys or not all(math.isfinite(baseline[k]) and baseline[k] != 0 for k in keys):
+    return math.nan
+  signs = {k: (1.0 if k in higher_better else -1.0) for k in keys}
+  return float(np.mean([signs[k] * (metrics[k] - baseline[k]) / baseline[k] * 100.0
+                        for k in keys]))

@@ -132,3 +132,19 @@ def test_loading_a_workdir_without_checkpoints_writes_nothing(tmp_path):
   with pytest.raises(ckpt.SljaxError, match="no checkpoint saved yet"):
     ckpt.load_params(workdir)
   assert [p.name for p in workdir.iterdir()] == [ckpt.CONFIG_FILE]
+
+
+def _converted(folder):
+  from sljax.nets import convert
+  return convert.save_converted(folder, {"params": {"w": np.ones(2, np.float32)}},
+                                {"maxdisp": 32})
+
+
+def test_converted_folder_named_like_a_step_is_not_a_step(tmp_path, workdir):
+  """Only WORKDIR/checkpoints/STEP is a step; a converted model in a folder named "7", or
+  one inside a workdir's other subfolders, is read as the converted model."""
+  for folder in (tmp_path / "7", workdir / "exported" / "model"):
+    _converted(folder)
+    name, kwargs, variables, config = ckpt.load_for_inference(folder)
+    assert (name, kwargs, config["source"]) == ("psmnet", {"maxdisp": 32}, str(folder))
+    np.testing.assert_array_equal(variables["params"]["w"], [1.0, 1.0])

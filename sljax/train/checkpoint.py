@@ -99,7 +99,8 @@ def storage_failure(exc: BaseException, what: str, checkpoints: str | os.PathLik
   code, path = found
   checkpoints = Path(checkpoints)
   step = re.search(r"/(\d+)\.orbax-checkpoint-tmp", path or "")
-  if what == SAVING and step:  # a background save: its step is in the path
+  if what.startswith("saving") and step:
+    # Orbax reports a failed background save at the next save or wait: name the failed one.
     what = f"saving checkpoint {step.group(1)}"
   where = path or str(checkpoints)
   good = last_good_step(checkpoints)

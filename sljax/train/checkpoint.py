@@ -47,6 +47,7 @@ LAYOUT_KEY = "packed_layout"  # in meta: [[path parts], dtype, shape] per leaf
 STORAGE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.EFBIG)
 _TS_CODE = re.compile(r"os_error_code='?(\d+)")  # TensorStore's errors carry the OS error code
 _QUOTED_PATH = re.compile(r'"(/[^"]+)"')
+SAVING = "saving a checkpoint"
 _HINT = {errno.ENOSPC: "free some space", errno.EDQUOT: "free some space (disk quota)",
          errno.EFBIG: "free some space", errno.EROFS: "make it writable",
          errno.EACCES: "make it writable (permissions)",
@@ -97,12 +98,17 @@ def storage_failure(exc: BaseException, what: str, checkpoints: str | os.PathLik
     return None
   code, path = found
   checkpoints = Path(checkpoints)
+  step = re.search(r"/(\d+)\.orbax-checkpoint-tmp", path or "")
+  if what.startswith("saving") and step:
+    # Orbax reports a failed background save at the next save or wait: name the failed one.
+    what = f"saving checkpoint {step.group(1)}"
   where = path or str(checkpoints)
   good = last_good_step(checkpoints)
   kept = (f"the last good checkpoint is step {good} ({checkpoints / str(good)}), intact"
           if good is not None else "no checkpoint was saved yet")
+  again = "continue with --resume" if good is not None else "run again"
   return SljaxError(f"{what} failed: {os.strerror(code)} ({where}); stopped, {kept}; "
-                    f"{_HINT[code]} and continue with --resume")
+                    f"{_HINT[code]} and {again}")
 
 
 @contextlib.contextmanager
@@ -211,7 +217,7 @@ def check(manager: ocp.CheckpointManager) -> None:
   """Raises storage_failure's SljaxError now if a finished background save failed (instead
   of at the next save, an epoch later); free when nothing failed."""
   if not manager.is_saving_in_progress():
-    with storage_guard("saving a checkpoint", manager.directory):
+    with storage_guard(SAVING, manager.directory):
       manager.wait_until_finished()
 
 
@@ -219,7 +225,7 @@ def finish(manager: ocp.CheckpointManager) -> None:
   """Waits for the pending save and closes the manager (also when the save failed: then
   storage_failure's SljaxError)."""
   try:
-    with storage_guard("saving a checkpoint", manager.directory):
+    with storage_guard(SAVING, manager.directory):
       manager.wait_until_finished()
   finally:
     manager.close()

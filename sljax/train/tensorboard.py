@@ -11,6 +11,7 @@ rows), so a curve never shows both the interrupted and the resumed run.
 """
 
 import shutil
+import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -50,8 +51,10 @@ class TensorBoardWriter:
     logdir = Path(workdir) / TB_DIR
     if first_step == 0:  # a fresh start: the curves of an earlier attempt go, as the JSONL rows
       shutil.rmtree(logdir, ignore_errors=True)
-    self.writer = writer_class(logdir=str(logdir), purge_step=first_step + 1,
-                               flush_secs=30)
+    # tensorboardX names a file by the second it opens: a resume within the same second would
+    # reopen (and truncate) the interrupted attempt's file, so the nanoseconds go in the name.
+    self.writer = writer_class(logdir=str(logdir), purge_step=first_step + 1, flush_secs=30,
+                               filename_suffix=f".{time.time_ns() % 10**9:09d}")
 
   def write(self, file: str, rows: Sequence[dict[str, Any]]) -> None:
     """Adds each row's numeric columns as scalars at the row's global step."""

@@ -9,6 +9,7 @@ import sys
 
 import numpy as np
 import pytest
+import tensorboardX  # noqa: F401  (in the test extra: these tests run, never skip)
 
 from sljax.errors import SljaxError
 from sljax.train import loop
@@ -17,7 +18,6 @@ from sljax.train.config import validate
 
 from test_loop import _config, tiny  # noqa: F401  (fixture)
 
-tensorboardX = pytest.importorskip("tensorboardX")
 QUIET = dict(log=lambda line: None, progress=False)
 
 

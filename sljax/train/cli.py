@@ -61,7 +61,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def resolve(args: argparse.Namespace, backend: str) -> tuple[TrainConfig, str, Path]:
   """(config, preset note, workdir): preset, or the saved config on --resume, then flags."""
-  from sljax.train.loop import default_workdir  # pylint: disable=import-outside-toplevel
+  from sljax.train.workdir import default_workdir  # pylint: disable=import-outside-toplevel
   given = {k: getattr(args, k) for k, f in FIELDS.items()
            if f.metadata["flag"] and getattr(args, k) is not None}
   base = preset_config(args.preset, backend)

@@ -7,7 +7,7 @@ import pkgutil
 import sys
 
 from sljax import commands
-from sljax.errors import SljaxError
+from sljax.errors import SljaxError, quiet_libraries
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -20,13 +20,6 @@ def build_parser() -> argparse.ArgumentParser:
     module = importlib.import_module(f"sljax.commands.{info.name}")
     module.register(sub)
   return parser
-
-
-def quiet_libraries() -> None:
-  """Keeps library chatter (orbax logs each read-only checkpoint opening as a warning) to
-  errors only."""
-  from absl import logging as absl_logging  # pylint: disable=import-outside-toplevel
-  absl_logging.set_verbosity(absl_logging.ERROR)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -5,8 +5,7 @@ import dataclasses
 import sys
 from pathlib import Path
 
-from sljax.cli import quiet_libraries
-from sljax.errors import SljaxError
+from sljax.errors import SljaxError, quiet_libraries
 from sljax.train import checkpoint as ckpt
 from sljax.train.config import FIELDS, PRESETS, TrainConfig, config_from_json, preset_config
 

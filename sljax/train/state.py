@@ -1,5 +1,7 @@
-"""Training state (params, batch_stats, opt_state, step) and its creation."""
+"""Training state (params, batch_stats, opt_state, step) and its creation; LoopState, the
+loop's bookkeeping saved beside it in each checkpoint."""
 
+import dataclasses
 import functools
 from typing import Any
 
@@ -64,3 +66,50 @@ def create_state(variables: dict[str, Any], tx: optax.GradientTransformation) ->
   params[UNCERTAINTY_KEY] = init_uncertainty()
   return TrainState(step=jnp.zeros((), jnp.int32), params=params,
                     batch_stats=dict(variables.get("batch_stats", {})), opt_state=tx.init(params))
+
+
+@dataclasses.dataclass(frozen=True)
+class LoopState:
+  """The loop's bookkeeping beside the TrainState; each checkpoint's metadata.
+
+  history: epoch-mean training (L_sl, L_disp) of the finished epochs (DWA reads it);
+  partial: (sum L_sl, sum L_disp, steps) of the current epoch so far.
+  """
+  step: int = 0
+  history: tuple[tuple[float, float], ...] = ()
+  partial: tuple[float, float, int] = (0.0, 0.0, 0)
+  best_val: float | None = None
+  last_val: float | None = None
+
+  def add_step(self, loss_sl: float, loss_disp: float) -> "LoopState":
+    """After one step with these (unweighted) training losses."""
+    s_sl, s_disp, n = self.partial
+    return dataclasses.replace(self, step=self.step + 1,
+                               partial=(s_sl + loss_sl, s_disp + loss_disp, n + 1))
+
+  def close_epoch(self) -> "LoopState":
+    """The epoch's mean losses join the history; the partial sums restart."""
+    s_sl, s_disp, n = self.partial
+    return dataclasses.replace(self, history=self.history + ((s_sl / n, s_disp / n),),
+                               partial=(0.0, 0.0, 0))
+
+  def validated(self, val_mae: float | None) -> "LoopState":
+    """After a validation that measured val_mae (None: nothing measured)."""
+    best = self.best_val
+    if val_mae is not None and (best is None or val_mae < best):
+      best = val_mae
+    return dataclasses.replace(self, last_val=val_mae, best_val=best)
+
+  def to_meta(self) -> dict[str, Any]:
+    """JSON metadata saved with a checkpoint."""
+    return {"step": self.step, "history": [list(e) for e in self.history],
+            "partial": list(self.partial), "best_val": self.best_val, "last_val": self.last_val}
+
+  @classmethod
+  def from_meta(cls, meta: dict[str, Any]) -> "LoopState":
+    """The LoopState saved by to_meta (runs saved before last_val existed: None)."""
+    s_sl, s_disp, n = meta["partial"]
+    return cls(step=int(meta["step"]),
+               history=tuple((float(a), float(b)) for a, b in meta["history"]),
+               partial=(float(s_sl), float(s_disp), int(n)), best_val=meta.get("best_val"),
+               last_val=meta.get("last_val"))

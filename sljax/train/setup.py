@@ -1,0 +1,172 @@
+"""A run's setup before anything compiles: options, data, split, workdir, model options and
+--init-from weights, each checked with one SljaxError line; the run's announcement."""
+
+import dataclasses
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import traverse_util
+
+from sljax import tune
+from sljax.data.dataset import split_indices, take_fraction
+from sljax.errors import SljaxError, require
+from sljax.nets import build_model, detach_sl, registry
+from sljax.train import checkpoint as ckpt
+from sljax.train.config import TrainConfig, validate
+from sljax.train.feed import DataInfo, check_source, open_source
+from sljax.train.workdir import prepare_workdir, write_config
+
+
+def model_kwargs(config: TrainConfig, channels: int, t: int | None) -> dict[str, Any]:
+  """Keyword arguments of sljax.nets.build_model for this run (the options the net takes)."""
+  values = {"maxdisp": config.maxdisp, "t": t, "depth": config.unet_depth,
+            "base_width": config.unet_width}
+  kw: dict[str, Any] = {"in_channels": channels}
+  kw.update({k: v for k, v in values.items() if k in config.spec.options})
+  return kw
+
+
+def load_init(path: str, config: TrainConfig) -> tuple[str, dict[str, Any]]:
+  """(source net name, variables) of an --init-from checkpoint/converted PSMNet; a twin's
+  checkpoint gives its disparity path to a single-task run."""
+  name, _, variables, _ = ckpt.load_for_inference(path)
+  if registry.spec(name).single == config.net:
+    variables, name = detach_sl(variables), config.net
+  return name, variables
+
+
+def merge_init(target: dict[str, Any], source: dict[str, Any], source_name: str,
+               config: TrainConfig, where: str) -> dict[str, Any]:
+  """Target variables with every leaf the source has replaced; SljaxError on any mismatch.
+
+  Leaves only the target has (the twin's SL path when starting from a plain PSMNet) keep their
+  initial values; a source leaf missing from the target or of another shape is an error.
+  """
+  out = {}
+  for col in ("params", "batch_stats"):
+    tflat = traverse_util.flatten_dict(dict(target.get(col, {})))
+    sflat = traverse_util.flatten_dict(dict(source.get(col, {})))
+    extra = sorted(set(sflat) - set(tflat))
+    if extra:
+      raise SljaxError(f"--init-from {where}: a {source_name} checkpoint does not fit model "
+                       f"{config.net}: {col} {'/'.join(extra[0])} has no counterpart")
+    for path, v in sflat.items():
+      tshape, sshape = tuple(np.shape(tflat[path])), tuple(np.shape(v))
+      if tshape != sshape:
+        raise SljaxError(f"--init-from {where}: {col} {'/'.join(path)} has shape {sshape} but "
+                         f"model {config.net} needs {tshape} (different model or input channels)")
+    require(col == "batch_stats" or sflat, f"--init-from {where}: no parameters found")
+    merged = dict(tflat)
+    merged.update({p: jnp.asarray(v, tflat[p].dtype) for p, v in sflat.items()})
+    out[col] = traverse_util.unflatten_dict(merged) if merged else {}
+  return out
+
+
+@dataclasses.dataclass(frozen=True)
+class Setup:
+  """A checked run: its data, split, workdir and model options (nothing compiled yet)."""
+  config: TrainConfig
+  workdir: Path
+  source: Any
+  train_idx: tuple[int, ...]
+  val_idx: tuple[int, ...]
+  info: DataInfo
+  kwargs: dict[str, Any]
+  resume: bool
+  init: tuple[str, dict[str, Any]] | None = None  # --init-from: (source net, its variables)
+
+  @property
+  def steps_per_epoch(self) -> int:
+    """Full batches per epoch (the remainder of the shuffled scenes is dropped)."""
+    return len(self.train_idx) // self.config.batch_size
+
+  @property
+  def total_steps(self) -> int:
+    """Steps of the whole run."""
+    return self.steps_per_epoch * self.config.epochs
+
+
+def resolve_ynn(config: TrainConfig, workdir: Path, resume: bool,
+                log: Callable[[str], None]) -> TrainConfig:
+  """The config with --ynn auto resolved: a resumed run keeps its saved choice (the same
+  programs), a new one takes this CPU's tuned choice (sljax.tune)."""
+  if config.ynn != "auto":
+    return config
+  if resume and (workdir / ckpt.CONFIG_FILE).exists():
+    return dataclasses.replace(config, ynn=ckpt.read_config(workdir).get("ynn", "on"))
+  return dataclasses.replace(config, ynn=tune.choice(log=log).name)
+
+
+def setup(config: TrainConfig, workdir: Path, resume: bool, overwrite: bool,
+          log: Callable[[str], None], preset_note: str = "", source: Any = None) -> Setup:
+  """Checks the options, data and workdir (SljaxError before anything compiles), writes the
+  resolved config.json and announces the run; source: the scenes (default open_source)."""
+  validate(config)
+  config = resolve_ynn(config, workdir, resume, log)
+  n_dev, n_proc = jax.device_count(), jax.process_count()
+  require(config.batch_size % n_dev == 0,
+          f"--batch-size {config.batch_size}: must be a multiple of the {n_dev} devices")
+  require(config.batch_size % n_proc == 0,
+          f"--batch-size {config.batch_size}: must be a multiple of the {n_proc} processes")
+  source = open_source(config) if source is None else source
+  train_idx, val_idx = split_indices(source, config.test_fraction, seed=config.seed)
+  train_idx = take_fraction(train_idx, config.fraction, seed=config.seed)
+  if config.max_val is not None:
+    val_idx = val_idx[:config.max_val]
+  require(len(train_idx) >= config.batch_size,
+          f"--batch-size {config.batch_size}: larger than the {len(train_idx)} training scenes "
+          f"(fraction {config.fraction} of {len(source)} scenes)")
+  require(len(val_idx) > 0, f"{config.data or 'synthetic data'}: the held-out split is empty")
+  steps_per_epoch = len(train_idx) // config.batch_size
+  log(announce(config, preset_note, steps_per_epoch, len(train_idx), len(val_idx)))
+  info = check_source(source, config)
+  kwargs = model_kwargs(config, info.channels, info.t)
+  config_json = dict(config.to_json(), net=config.net, model_kwargs=kwargs, t=info.t,
+                     gray=config.use_gray, steps_per_epoch=steps_per_epoch,
+                     n_train=len(train_idx), n_val=len(val_idx))
+  do_resume = prepare_workdir(workdir, config_json, resume, overwrite)
+  init = None
+  if config.init_from and not do_resume:
+    # Shapes are compared on an abstract init, so a mismatch errors before compiling anything.
+    model = build_model(config.net, **kwargs)
+    x = jax.ShapeDtypeStruct((1, *config.size, info.channels), jnp.float32)
+    abstract = jax.eval_shape(
+        lambda a, b: model.init(jax.random.PRNGKey(0), a, b, train=False), x, x)
+    init = load_init(config.init_from, config)
+    merge_init(dict(abstract), init[1], init[0], config, config.init_from)
+  write_config(workdir, config_json)
+  return Setup(config, workdir, source, tuple(train_idx), tuple(val_idx), info, kwargs,
+               do_resume, init)
+
+
+def announce(config: TrainConfig, preset_note: str, steps_per_epoch: int,
+             n_train: int, n_val: int) -> str:
+  """The first output line: preset, run shape and the estimated time per epoch."""
+  h, w = config.size
+  scale = (h * w) / (64 * 64)
+  if "maxdisp" in config.spec.options:
+    scale *= (0.5 + 0.5 * config.maxdisp / 32)
+  per_sample = config.spec.sec_per_sample_64 * scale
+  if jax.default_backend() != "cpu":
+    per_sample /= 100.0
+  est = per_sample * steps_per_epoch * config.batch_size
+  strategy = f"/{config.strategy}" if registry.spec(config.model).twin else ""
+  return (f"sljax train: preset {config.preset}{preset_note}: {config.net}{strategy}, {h}x{w}, "
+          f"maxdisp {config.maxdisp}, {config.epochs} epochs x {steps_per_epoch} steps of "
+          f"{config.batch_size} ({n_train} train / {n_val} val scenes) on "
+          f"{jax.device_count()} {jax.default_backend()} device(s); estimated "
+          f"~{_fmt_seconds(est)} per epoch (measured ETA in the progress bar)")
+
+
+def _fmt_seconds(s: float) -> str:
+  if s < 1:
+    return "<1 s"
+  if s < 90:
+    return f"{s:.0f} s"
+  if s < 5400:
+    return f"{s / 60:.1f} min"
+  return f"{s / 3600:.1f} h"

@@ -1,0 +1,136 @@
+"""The run directory's on-disk format, shared by training, inference and experiments.
+
+    <workdir>/config.json     the resolved run (TrainConfig fields + what the data decided)
+    <workdir>/metrics.jsonl   a row per training step
+    <workdir>/epochs.jsonl    a row per epoch (losses, weights, validation, throughput)
+    <workdir>/checkpoints/N/  orbax checkpoints (sljax.train.checkpoint)
+
+Writes happen on the main process only; every process checks the directory first.
+"""
+
+import json
+import shutil
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import jax
+from jax.experimental import multihost_utils
+
+from sljax.errors import SljaxError
+from sljax.nets import registry
+from sljax.train.checkpoint import CHECKPOINT_DIR, CONFIG_FILE, read_config, storage_guard
+from sljax.train.config import TrainConfig, diff_configs, dumps
+from sljax.train.tensorboard import TensorBoardWriter
+
+METRICS_FILE = "metrics.jsonl"
+EPOCHS_FILE = "epochs.jsonl"
+
+__all__ = ["CHECKPOINT_DIR", "CONFIG_FILE", "EPOCHS_FILE", "METRICS_FILE", "MetricWriter",
+           "default_workdir", "prepare_workdir", "read_config", "restart_logs", "sync",
+           "write_config"]
+
+
+def default_workdir(config: TrainConfig) -> Path:
+  """runs/<model>-<strategy>-<seed> (single-task models: runs/<model>-<seed>)."""
+  strategies = registry.spec(config.model).twin is not None
+  name = (f"{config.model}-{config.strategy}-{config.seed}" if strategies
+          else f"{config.model}-{config.seed}")
+  return Path("runs") / name
+
+
+def sync(name: str) -> None:
+  """Waits for every process (multi-process runs), e.g. between workdir checks and writes."""
+  if jax.process_count() > 1:
+    multihost_utils.sync_global_devices(name)
+
+
+def prepare_workdir(workdir: Path, config_json: dict[str, Any], resume: bool,
+                    overwrite: bool) -> bool:
+  """Checks the workdir against the run (every process, before any writes), then clears it
+  for --overwrite (the main process); returns whether there is a checkpoint to resume."""
+  cfg_path = workdir / CONFIG_FILE
+  ckpt_dir = workdir / CHECKPOINT_DIR
+  has_ckpt = ckpt_dir.is_dir() and any(p.name.isdigit() for p in ckpt_dir.iterdir())
+  if cfg_path.exists() and not overwrite:
+    saved = read_config(workdir)
+    diff = diff_configs(saved, config_json)
+    if diff:
+      detail = ", ".join(f"{k}: {saved.get(k)!r} -> {config_json.get(k)!r}" for k in diff[:4])
+      raise SljaxError(f"{workdir}: holds another run ({detail}); choose another --workdir or "
+                       "pass --overwrite to replace it")
+    if not resume and (has_ckpt or (workdir / METRICS_FILE).exists()):
+      raise SljaxError(f"{workdir}: holds this run already; pass --resume to continue it or "
+                       "--overwrite to start again")
+  sync("sljax-workdir-checked")
+  if overwrite:
+    if jax.process_index() == 0:
+      shutil.rmtree(ckpt_dir, ignore_errors=True)
+      for name in (METRICS_FILE, EPOCHS_FILE, CONFIG_FILE):
+        (workdir / name).unlink(missing_ok=True)
+    has_ckpt = False
+  return has_ckpt and resume
+
+
+def write_config(workdir: Path, config_json: dict[str, Any]) -> None:
+  """Writes the resolved config.json (the main process; the only place it is written)."""
+  if jax.process_index() == 0:
+    with storage_guard(f"writing {CONFIG_FILE}", workdir / CHECKPOINT_DIR):
+      workdir.mkdir(parents=True, exist_ok=True)
+      (workdir / CONFIG_FILE).write_text(dumps(config_json) + "\n")
+  sync("sljax-workdir-ready")
+
+
+def _truncate_jsonl(path: Path, keep: Callable[[dict[str, Any]], bool]) -> None:
+  """Drops lines written after the checkpoint a run resumes from (and a torn last line)."""
+  if not path.exists():
+    return
+  lines = []
+  for line in path.read_text().splitlines():
+    try:
+      rec = json.loads(line)
+    except json.JSONDecodeError:
+      continue
+    if keep(rec):
+      lines.append(line)
+  path.write_text("".join(l + "\n" for l in lines))
+
+
+def restart_logs(workdir: Path, step: int, steps_per_epoch: int) -> None:
+  """Drops the log lines after the checkpoint resumed from (all of them for a fresh start)."""
+  if jax.process_index() != 0:
+    return
+  _truncate_jsonl(workdir / METRICS_FILE, lambda r: r.get("step", 0) <= step)
+  _truncate_jsonl(workdir / EPOCHS_FILE, lambda r: r.get("epoch", 0) <= step // steps_per_epoch)
+
+
+class MetricWriter:
+  """The run's JSON lines: metrics.jsonl (a row per step), epochs.jsonl (a row per epoch),
+  mirrored to TensorBoard event files with --tensorboard. Writes on the main process only; a
+  full or read-only disk ends the run with one line (checkpoint.storage_guard)."""
+
+  def __init__(self, workdir: Path, enabled: bool, tensorboard: bool = False,
+               first_step: int = 0):
+    self.checkpoints = workdir / CHECKPOINT_DIR
+    with storage_guard("opening the run's logs", self.checkpoints):
+      self.files = ({name: open(workdir / name, "a", encoding="utf-8")
+                     for name in (METRICS_FILE, EPOCHS_FILE)} if enabled else {})
+      self.tensorboard = TensorBoardWriter(workdir, first_step) if enabled and tensorboard \
+          else None
+
+  def write(self, name: str, rows: Sequence[dict[str, Any]]) -> None:
+    """Appends rows to one of the files and flushes it."""
+    with storage_guard(f"writing {name}", self.checkpoints):
+      if name in self.files:
+        self.files[name].write("".join(json.dumps(r) + "\n" for r in rows))
+        self.files[name].flush()
+      if self.tensorboard is not None:
+        self.tensorboard.write(name, rows)
+
+  def close(self) -> None:
+    """Closes the files."""
+    with storage_guard("closing the run's logs", self.checkpoints):
+      for f in self.files.values():
+        f.close()
+      if self.tensorboard is not None:
+        self.tensorboard.close()

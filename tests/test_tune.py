@@ -113,9 +113,9 @@ def test_both_settings_compute_the_same_function():
   and off agree to float32 rounding. (A randomly initialised PSMNet is a poor probe: its
   near-flat disparity softmax turns rounding into tenths of a pixel at ties.)"""
   from sljax.nets import build_model
-  model = build_model("unet-disp", in_channels=3, depth=3, base_width=8)
+  model = build_model("unet-disp", in_channels=3, depth=2, base_width=4)
   rng = np.random.default_rng(0)
-  x, y = (rng.random((2, 32, 32, 3), np.float32) for _ in range(2))
+  x, y = (rng.random((2, 16, 16, 3), np.float32) for _ in range(2))
   variables = model.init(jax.random.PRNGKey(0), x, y, train=False)
 
   def f(params):

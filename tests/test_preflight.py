@@ -2,8 +2,6 @@
 structure and CRCs, PFM headers and sizes, calib.txt, shapes, pattern counts), cached by size
 and mtime outside the dataset, and `sljax info --check`."""
 
-import json
-import os
 import zlib
 
 import cv2

@@ -138,7 +138,7 @@ def choice(tune: bool | None = None, log: Callable[[str], None] = print) -> Kern
   found = cached_choice()
   if found is not None:
     return found
-  log(f"tuning the kernels for this CPU ({machine.cpu_description()}), once per CPU kind and "
+  log(f"tuning XLA's settings for this CPU ({machine.cpu_description()}), once per CPU kind and "
       f"jax version; SLJAX_TUNE=0 skips it")
   t0 = time.perf_counter()
   best, table = measure()

@@ -106,7 +106,6 @@ def setup(config: TrainConfig, workdir: Path, resume: bool, overwrite: bool,
   """Checks the options, data and workdir (SljaxError before anything compiles), writes the
   resolved config.json and announces the run; source: the scenes (default open_source)."""
   validate(config)
-  config = resolve_ynn(config, workdir, resume, log)
   n_dev, n_proc = jax.device_count(), jax.process_count()
   require(config.batch_size % n_dev == 0,
           f"--batch-size {config.batch_size}: must be a multiple of the {n_dev} devices")
@@ -123,6 +122,7 @@ def setup(config: TrainConfig, workdir: Path, resume: bool, overwrite: bool,
   require(len(val_idx) > 0, f"{config.data or 'synthetic data'}: the held-out split is empty")
   steps_per_epoch = len(train_idx) // config.batch_size
   log(announce(config, preset_note, steps_per_epoch, len(train_idx), len(val_idx)))
+  config = resolve_ynn(config, workdir, resume, log)  # after the checks: it may compile
   info = check_source(source, config)
   kwargs = model_kwargs(config, info.channels, info.t)
   config_json = dict(config.to_json(), net=config.net, model_kwargs=kwargs, t=info.t,

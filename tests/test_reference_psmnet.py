@@ -22,7 +22,6 @@ import reference_weights as rw
 from sljax import inference
 from sljax.nets import PSMNet, PSMNetMTL, detach_sl
 from sljax.nets.convert import convert_state_dict
-from sljax.nets.layers import BN_MOMENTUM
 from sljax.nets.psmnet import reference_key
 
 CASES = {c.name: c for c in rw.CASES}
@@ -81,16 +80,15 @@ def _reference_order(by_key, suffix):
   return np.concatenate([by_key[k] for k in rw.reference_shapes() if k.endswith(suffix)])
 
 
-def _batch_norm_calls(model, *args):
-  """Reference key prefix of each BatchNorm -> (values per channel n, calls) in training."""
+def _values_per_channel(model, *args):
+  """Reference key prefix of each BatchNorm -> values per channel n it averages in training."""
   seen = {}
 
   def record(next_fun, call_args, kwargs, context):
     if isinstance(context.module, nn.BatchNorm) and context.method_name == "__call__":
       x = call_args[0]
-      key = reference_key(tuple(context.module.path) + ("mean",)).rsplit(".", 1)[0]
-      n = x.size // x.shape[-1]
-      seen[key] = (n, seen.get(key, (n, 0))[1] + 1)
+      seen[reference_key(tuple(context.module.path) + ("mean",)).rsplit(".", 1)[0]] = (
+          x.size // x.shape[-1])
     return next_fun(*call_args, **kwargs)
 
   with nn.intercept_methods(record):
@@ -110,30 +108,15 @@ def test_train_mode_outputs_and_batch_statistics_match_the_reference(fixture, va
   ours = _by_reference_key(updates["batch_stats"])
   np.testing.assert_allclose(_reference_order(ours, "running_mean"),
                              fixture["train/running_mean"], rtol=0, atol=STATS_ATOL)
-  # PyTorch averages the unbiased batch variance (x n / (n - 1), n values per channel) into
-  # running_var, flax the biased one: undo the factor in the reference's k updates
-  # (v_k = m^k v_0 + sum of (1 - m) m^j b_j) before comparing. The feature extractor runs
-  # twice (left, right) so its layers update twice, as in the reference.
-  m, initial = BN_MOMENTUM, rw.state_dict()
-  expected, calls_by_layer = {}, _batch_norm_calls(model, *args)
-  for prefix, (n, calls) in calls_by_layer.items():
-    v0 = initial[prefix + ".running_var"].astype(np.float64)
-    ref = fixture["train/running_var"][_offsets()[prefix + ".running_var"]]
-    expected[prefix + ".running_var"] = m ** calls * v0 + (ref - m ** calls * v0) * (n - 1) / n
-  assert len(expected) == sum(k.endswith("running_var") for k in rw.reference_shapes())
-  assert {n for n, _ in calls_by_layer.values()} >= {2}  # SPP branches: 1x1 maps, batch 2
+  # PyTorch averages the unbiased batch variance (x n / (n - 1)) into running_var. Where n is
+  # small the biased one (flax's own BatchNorm) is far off: the SPP branches' 1x1 maps at
+  # batch 2 have n = 2, a factor 2. The feature extractor runs twice (left, right), so its
+  # layers update twice, as in the reference.
+  n_by_layer = _values_per_channel(model, *args)
+  assert len(n_by_layer) == sum(k.endswith("running_var") for k in rw.reference_shapes())
+  assert 2 in set(n_by_layer.values())
   np.testing.assert_allclose(_reference_order(ours, "running_var"),
-                             _reference_order(expected, "running_var"), rtol=0, atol=STATS_ATOL)
-
-
-def _offsets():
-  """Reference running_var key -> its slice of the fixture's concatenated vector."""
-  out, at = {}, 0
-  for k, shape in rw.reference_shapes().items():
-    if k.endswith("running_var"):
-      out[k] = slice(at, at + shape[0])
-      at += shape[0]
-  return out
+                             fixture["train/running_var"], rtol=0, atol=STATS_ATOL)
 
 
 def test_pad_mode_matches_the_reference_protocol(fixture, variables):

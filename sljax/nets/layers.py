@@ -1,8 +1,8 @@
 """Shared building blocks: PyTorch-faithful initialisers, conv + BatchNorm blocks, linear resizing.
 
 BatchNorm uses PyTorch's defaults (momentum 0.1 there, i.e. flax momentum 0.9; epsilon 1e-5) so
-that reference weights and training recipes carry over. One difference is kept on purpose:
-flax's running variance is the biased batch variance, PyTorch stores the unbiased one.
+that reference weights and training recipes carry over, and its running variance averages the
+unbiased batch variance as PyTorch's does (flax's own averages the biased one).
 """
 
 from __future__ import annotations
@@ -29,9 +29,30 @@ conv_init = nn.initializers.variance_scaling(2.0, "fan_out", "normal")
 conv_transpose_init = nn.initializers.variance_scaling(1.0 / 3.0, "fan_out", "uniform")
 
 
-def batch_norm(name: str | None = None) -> nn.BatchNorm:
-  """A BatchNorm with PyTorch's momentum and epsilon (scale 1, bias 0 at init)."""
-  return nn.BatchNorm(momentum=BN_MOMENTUM, epsilon=BN_EPSILON, name=name)
+class BatchNorm(nn.BatchNorm):
+  """flax's BatchNorm (same variables) whose running variance takes PyTorch's unbiased update."""
+
+  @nn.compact
+  def __call__(self, x: jax.Array, use_running_average: bool | None = None) -> jax.Array:
+    """Normalises as flax does; in training, rescales the running-variance update by n/(n-1)."""
+    train = not nn.merge_param("use_running_average", self.use_running_average,
+                               use_running_average)
+    updating = train and not self.is_initializing()
+    old = self.get_variable("batch_stats", "var") if updating else None
+    y = super().__call__(x, use_running_average=not train)
+    if updating:
+      # flax stored m * old + (1 - m) * biased; PyTorch averages in biased * n / (n - 1). The
+      # difference matters where n is small: the SPP branches' pooled maps have n = batch.
+      n = x.size // x.shape[-1]
+      new = self.get_variable("batch_stats", "var")
+      self.put_variable("batch_stats", "var",
+                        new + (new - self.momentum * old) / max(n - 1, 1))
+    return y
+
+
+def batch_norm(name: str | None = None) -> BatchNorm:
+  """A BatchNorm with PyTorch's momentum, epsilon and running-variance update."""
+  return BatchNorm(momentum=BN_MOMENTUM, epsilon=BN_EPSILON, name=name)
 
 
 class ConvBN2D(nn.Module):

@@ -15,6 +15,7 @@ import dataclasses
 import math
 from typing import Any
 
+import cv2
 import numpy as np
 
 from sljax.errors import SljaxError
@@ -74,7 +75,6 @@ class SGBMPredictor:
     return round_up_16(0.25 * width)
 
   def _one(self, left: np.ndarray, right: np.ndarray, nd: int) -> np.ndarray:
-    import cv2
     c = self.config
     cn = left.shape[2]
     to8 = lambda a: np.round(a * 255.0).astype(np.uint8)

@@ -26,9 +26,15 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from tqdm import tqdm
 
 from sljax import metrics
+from sljax.corr.uncertainty import pattern_uncertainty
+from sljax.data import scared
+from sljax.data.pfm import read_pfm, write_pfm
+from sljax.data.scene import present_parts
 from sljax.errors import SljaxError
+from sljax.viz import Panel, save_panels
 
 REGIONS = ("full", "seg")
 _LEFT_FILES = {"disp0.pfm", "mask0.png", "sl0", "calib.txt", "meta.json"}
@@ -56,7 +62,6 @@ def _load(source, i: int):
   """Scene i without raw captures (not needed here) when the source is a folder."""
   paths = getattr(source, "paths", None)
   if paths is not None and hasattr(source, "get"):
-    from sljax.data.scene import present_parts
     parts = {p for p, files in present_parts(paths[i]).items()
              if p != "raw" and (p == "im" or _LEFT_FILES & set(files))}
     return source.get(i, parts=parts | {"im"})
@@ -85,7 +90,6 @@ def _disp_range(gt: np.ndarray | None, pred: np.ndarray) -> tuple[float, float]:
 
 
 def _figure(path: Path, label: str, scene, out: dict[str, np.ndarray], title: str) -> None:
-  from sljax.viz import Panel, save_panels
   pred = out["disparity"]
   gt = scene.disp0
   lo, hi = _disp_range(gt, pred)
@@ -117,7 +121,6 @@ def _figure(path: Path, label: str, scene, out: dict[str, np.ndarray], title: st
 
 def _uncertainty(out: dict[str, np.ndarray]) -> np.ndarray:
   """Pixel-wise uncertainty of the left view's predicted patterns (aligned with the disparity)."""
-  from sljax.corr.uncertainty import pattern_uncertainty
   return np.asarray(pattern_uncertainty(out["patterns"]), dtype=np.float32)
 
 
@@ -127,12 +130,10 @@ def _scared_row(source, i: int, scene, disparity: np.ndarray, where: str
   paths = getattr(source, "paths", None)
   if paths is None or scene.meta.get("source") != "SCARED" or scene.calib is None:
     return None
-  from sljax.data import scared
   gt_path = paths[i] / scared.ORIGINAL_DEPTH
   if not gt_path.exists() or "original" not in scene.meta:
     return {"note": f"no {scared.ORIGINAL_DEPTH} / meta 'original' (imported before they were "
                     "kept): re-import the keyframe to score it in the original frame"}
-  from sljax.data.pfm import read_pfm
   original = scared.read_original(scene.meta, where)
   gt = read_pfm(gt_path)
   if gt.shape != original["size"]:
@@ -146,8 +147,6 @@ def evaluate(predictor, source, indices: list[int] | None = None, *, out_dir: Pa
              save_predictions: bool = False, figures: bool = False,
              progress: bool = True, info: dict[str, Any] | None = None) -> dict[str, Any]:
   """Runs the predictor over the scenes and returns the report (written when out_dir is set)."""
-  from tqdm import tqdm
-
   indices = list(range(len(source))) if indices is None else list(indices)
   if not indices:
     raise SljaxError("no scenes to evaluate (empty dataset or split)")
@@ -198,7 +197,6 @@ def evaluate(predictor, source, indices: list[int] | None = None, *, out_dir: Pa
       if figures:
         out = dict(out, uncertainty=_uncertainty(out))
     if out_dir is not None and save_predictions:
-      from sljax.data.pfm import write_pfm
       path = out_dir / "predictions" / f"{label}.pfm"
       path.parent.mkdir(parents=True, exist_ok=True)
       write_pfm(path, out["disparity"])

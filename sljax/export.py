@@ -32,8 +32,14 @@ import os
 from pathlib import Path
 from typing import Any, Callable
 
+import jax
+import jax.numpy as jnp
 import numpy as np
+from jax import export as jex
 
+from sljax import inference
+from sljax.corr import correlation
+from sljax.data.dataset import resize_image
 from sljax.errors import SljaxError
 
 FORMAT = "sljax-export"
@@ -101,7 +107,6 @@ def _checked_matrices(resize, h: int, w: int, what: str) -> tuple[np.ndarray, np
 
 def _resize_to(x, mh: np.ndarray, mw: np.ndarray):
   """BxHxW(xC) -> Bx h' x w' (xC) with fixed per-axis matrices."""
-  import jax.numpy as jnp
   if x.ndim == 3:
     return jnp.einsum("ph,bhw,qw->bpq", mh, x, mw)
   return jnp.einsum("ph,bhwc,qw->bpqc", mh, x, mw)
@@ -109,13 +114,6 @@ def _resize_to(x, mh: np.ndarray, mw: np.ndarray):
 
 def inference_function(predictor, size: tuple[int, int]) -> Callable:
   """f(left, right) -> outputs dict for BxHxWxC float32 views of the given size (see above)."""
-  import jax
-  import jax.numpy as jnp
-
-  from sljax import inference
-  from sljax.corr import correlation
-  from sljax.data.dataset import resize_image
-
   h, w = size
   model, variables, c = predictor.model, predictor.variables, predictor.channels
   variables = jax.tree_util.tree_map(jnp.asarray, variables)
@@ -168,9 +166,6 @@ def inference_function(predictor, size: tuple[int, int]) -> Callable:
 
 def export_model(predictor, size: tuple[int, int]):
   """jax.export.Exported of the predictor's inference at size (H, W), batch symbolic."""
-  import jax
-  from jax import export as jex
-
   h, w = size
   c = predictor.channels
   spec = jax.ShapeDtypeStruct(jex.symbolic_shape(f"b, {h}, {w}, {c}"), np.float32)
@@ -186,7 +181,6 @@ def export_model(predictor, size: tuple[int, int]):
 
 def sidecar(predictor, exported, size: tuple[int, int], source: str) -> dict[str, Any]:
   """What a user needs to call the artifact, as a JSON-able dict."""
-  import jax
   h, w = size
   outputs = {k: [None if not isinstance(d, int) else d for d in v.shape]
              for k, v in exported.out_tree.unflatten(exported.out_avals).items()}

@@ -53,11 +53,22 @@ import functools
 import os
 from typing import Any
 
+import cv2
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 from sljax import tune
+from sljax.corr.correlation import sl_disparity
+from sljax.corr.uncertainty import view_uncertainty
+from sljax.data.dataset import resize_image
 from sljax.data.scene import to_gray
 from sljax.errors import SljaxError
+from sljax.nets import build_model, registry
+from sljax.nets.psmnet import PSMNet, normalization_zero
+from sljax.nets.psmnet_mtl import PSMNetMTL, SLOnly, detach_sl
+from sljax.nets.unet import INPUT_ZERO, UNet
+from sljax.train.checkpoint import load_for_inference
 
 PAD_MULTIPLE = 16  # PSMNet reference (and the default for models sljax does not know)
 MODES = ("pad", "resize")
@@ -77,9 +88,6 @@ class PadRule:
 
 def pad_rule(model, channels: int) -> PadRule:
   """The pad protocol for a model with `channels` input channels (see the module docstring)."""
-  from sljax.nets.psmnet import PSMNet, normalization_zero
-  from sljax.nets.psmnet_mtl import PSMNetMTL
-  from sljax.nets.unet import INPUT_ZERO, UNet
   if isinstance(model, (PSMNet, PSMNetMTL)):
     return PadRule(PAD_MULTIPLE, tuple(float(v) for v in normalization_zero(channels)))
   if isinstance(model, UNet):
@@ -174,7 +182,6 @@ def convert_channels(images: np.ndarray, channels: int) -> np.ndarray:
 
 def _resize_maps(maps: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
   """Bilinear (half-pixel centres) resize of BxHxW or BxHxWxC float maps."""
-  import cv2
   if maps.shape[1:3] == tuple(hw):
     return maps
   out = []
@@ -220,7 +227,6 @@ _TRACES: collections.Counter = collections.Counter()  # model -> traces (compila
 
 def _forward(model, variables, left, right) -> dict:
   """Eval-mode outputs: float32 disparity and pattern probabilities (sigmoid of the logits)."""
-  import jax
   _TRACES[model] += 1  # runs only while tracing: counts compilations
   out = model.apply(variables, left, right, train=False)
   res = {}
@@ -237,7 +243,6 @@ def _forward(model, variables, left, right) -> dict:
 def _jitted_forward(ynn: bool = True):
   """`_forward` jitted with the model static, so equal models share compilations; `ynn`:
   XLA:CPU's YNNPACK fusions on or off (sljax.tune's forward choice)."""
-  import jax
   options = tune.KernelChoice(forward_ynn=ynn).compiler_options("forward")
   return jax.jit(_forward, static_argnums=0, compiler_options=options)
 
@@ -251,8 +256,6 @@ TWIN_SPLIT_BYTES = 256 * 2**20
 
 def _twin_halves(model):
   """(PSMNet, SLOnly) with the twin's configuration."""
-  from sljax.nets.psmnet import PSMNet
-  from sljax.nets.psmnet_mtl import SLOnly
   kw = {"maxdisp": model.maxdisp, "in_channels": model.in_channels,
         "align_corners": model.align_corners}
   return PSMNet(**kw), SLOnly(t=model.t, **kw)
@@ -260,7 +263,6 @@ def _twin_halves(model):
 
 def _sl_forward(model, variables, left, right):
   """Pattern probabilities of the twin's SL path alone (SLOnly)."""
-  import jax
   _TRACES[model] += 1
   return {"patterns": jax.nn.sigmoid(model.apply(variables, left, right, train=False))}
 
@@ -268,14 +270,12 @@ def _sl_forward(model, variables, left, right):
 @functools.cache
 def _jitted_sl_forward(ynn: bool = True):
   """`_sl_forward` jitted as `_jitted_forward` is."""
-  import jax
   options = tune.KernelChoice(forward_ynn=ynn).compiler_options("forward")
   return jax.jit(_sl_forward, static_argnums=0, compiler_options=options)
 
 
 def twin_split_needed(model, shape: tuple[int, ...]) -> bool:
   """True for a psmnet-mtl whose cost volume for a BxHxWxC input exceeds TWIN_SPLIT_BYTES."""
-  from sljax.nets.psmnet_mtl import PSMNetMTL
   if not isinstance(model, PSMNetMTL):
     return False
   b, h, w = shape[0], shape[1], shape[2]
@@ -288,7 +288,6 @@ def forward(model, variables, left, right, split: bool | None = None, ynn: bool 
   split: run the twin as two programs (see TWIN_SPLIT_BYTES); None decides by size.
   ynn: XLA:CPU's YNNPACK fusions on or off (the forward choice of sljax.tune).
   """
-  from sljax.nets.psmnet_mtl import detach_sl
   if split is None:
     split = twin_split_needed(model, np.shape(left))
   if not split:
@@ -316,9 +315,6 @@ def _abstract_run(model, c: int, h: int, w: int) -> tuple[Any, tuple[str, ...]]:
   """(variable shapes, output names) of the model on 1 x h x w x c inputs: traced once per
   equal model and shape in a process (tracing a PSMNet takes seconds; an experiment grid loads
   many checkpoints of one model)."""
-  import jax
-  import jax.numpy as jnp
-
   x = jax.ShapeDtypeStruct((1, h, w, c), jnp.float32)
   shapes = jax.eval_shape(lambda a, b: model.init(jax.random.PRNGKey(0), a, b, train=False),
                           x, x)
@@ -354,8 +350,6 @@ class Predictor:
                sl_max_disp: int | None = None, sl_window: int | None = None,
                name: str | None = None, split_twin: bool | None = None,
                kernels: "tune.KernelChoice" = tune.DEFAULT):
-    import jax
-
     if mode not in MODES:
       raise SljaxError(f"mode must be one of {MODES}, got {mode!r}")
     try:
@@ -406,8 +400,6 @@ class Predictor:
                calib: Any = None) -> dict[str, np.ndarray]:
     """Predicts disparity (and patterns) for a pair; `calib` is accepted and unused."""
     del calib
-    from sljax.data.dataset import resize_image
-
     lf, rf, batched = prepare_pair(left, right, self.channels, self.name)
     b, h, w, _ = lf.shape
     if self.mode == "pad":
@@ -423,13 +415,11 @@ class Predictor:
     if self.mode == "pad":
       out = {k: v[:, ph:, :w] for k, v in out.items()}
     if "patterns_right" in out:  # unet-sl: disparity by correlating the predicted patterns
-      from sljax.corr.correlation import sl_disparity
       window = {} if self.sl_window is None else {"window": self.sl_window}
       disp, _, conf = sl_disparity(out["patterns"], out["patterns_right"],
                                    max_disp=self.sl_max_disp, confidence=True, **window)
       out["disparity"], out["confidence"] = disp, conf
     elif "patterns" in out:  # mean |2p - 1| over patterns: 1 - sljax.corr's uncertainty
-      from sljax.corr.uncertainty import view_uncertainty
       out["confidence"] = 1.0 - view_uncertainty(out["patterns"])
     if self.mode == "resize":
       scale = w / out["disparity"].shape[2]
@@ -444,7 +434,6 @@ def make_predictor(model_name: str, model_kwargs: dict, variables: dict, train_s
                    sl_window: int | None = None, name: str | None = None,
                    kernels: "tune.KernelChoice" = tune.DEFAULT) -> Predictor:
   """Predictor for a model built by sljax.nets.build_model(model_name, **model_kwargs)."""
-  from sljax.nets import build_model
   model = build_model(model_name, **dict(model_kwargs or {}))
   return Predictor(model, variables, model_name=model_name, model_kwargs=model_kwargs,
                    train_size=train_size, mode=mode, gray=gray, sl_max_disp=sl_max_disp,
@@ -461,8 +450,6 @@ def load(checkpoint: str | os.PathLike, mode: str = "pad", maxdisp: int | None =
   tune_kernels: use this CPU's tuned compiler choice (sljax.tune; measured on first use and
   cached); None follows $SLJAX_TUNE (on unless 0), False keeps XLA's defaults.
   """
-  from sljax.nets import registry
-  from sljax.train.checkpoint import load_for_inference
   path = os.fspath(checkpoint)
   model_name, model_kwargs, variables, config = load_for_inference(path)
   config = dict(config or {})

@@ -3,7 +3,9 @@
 import dataclasses
 import os
 
+import matplotlib
 import numpy as np
+from matplotlib.figure import Figure
 
 
 @dataclasses.dataclass(frozen=True)
@@ -20,14 +22,10 @@ class Panel:
 def save_panels(path: str | os.PathLike, panels: list[Panel], ncols: int = 4,
                 title: str | None = None, tile_inches: float = 3.0) -> None:
   """Writes a grid of panels to a PNG; non-finite map values are drawn grey."""
-  import matplotlib
-  matplotlib.use("Agg")
-  import matplotlib.pyplot as plt
-
   ncols = max(1, min(ncols, len(panels)))
   nrows = -(-len(panels) // ncols)
-  fig, axes = plt.subplots(nrows, ncols, figsize=(tile_inches * ncols * 1.15, tile_inches * nrows),
-                           squeeze=False)
+  fig = Figure(figsize=(tile_inches * ncols * 1.15, tile_inches * nrows))
+  axes = fig.subplots(nrows, ncols, squeeze=False)
   for ax in axes.flat:
     ax.axis("off")
   for ax, p in zip(axes.flat, panels):
@@ -41,7 +39,7 @@ def save_panels(path: str | os.PathLike, panels: list[Panel], ncols: int = 4,
       finite = img[np.isfinite(img)]
       vmin = p.vmin if p.vmin is not None else (float(finite.min()) if finite.size else 0.0)
       vmax = p.vmax if p.vmax is not None else (float(finite.max()) if finite.size else 1.0)
-      cmap = plt.get_cmap(p.cmap).with_extremes(bad="0.5")
+      cmap = matplotlib.colormaps[p.cmap].with_extremes(bad="0.5")
       im = ax.imshow(np.ma.masked_invalid(img), cmap=cmap, vmin=vmin, vmax=vmax,
                      interpolation="nearest")
       bar = fig.colorbar(im, ax=ax, fraction=0.046, pad=0.02)
@@ -53,4 +51,3 @@ def save_panels(path: str | os.PathLike, panels: list[Panel], ncols: int = 4,
   fig.tight_layout()
   os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
   fig.savefig(path, dpi=100)
-  plt.close(fig)

@@ -2,6 +2,11 @@
 
 import argparse
 
+import numpy as np
+
+from sljax.errors import require
+from sljax.nets import convert
+
 
 def register(subparsers) -> None:
   """Adds the convert-psmnet subcommand."""
@@ -25,11 +30,6 @@ def register(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
   """Converts and writes; prints a one-line summary."""
-  import numpy as np
-
-  from sljax.errors import require
-  from sljax.nets import convert
-
   require(args.maxdisp > 0 and args.maxdisp % 16 == 0,
           f"--maxdisp must be a positive multiple of 16, got {args.maxdisp}")
   state_dict = convert.read_state_dict(args.ckpt)

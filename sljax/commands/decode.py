@@ -1,6 +1,17 @@
 """`sljax decode DATASET`: raw structured-light captures -> sl0/, sl1/ and code disparity."""
 
 import argparse
+import sys
+
+import numpy as np
+from tqdm import tqdm
+
+from sljax.data.dataset import FolderSource
+from sljax.data.pfm import write_pfm
+from sljax.data.scene import write_patterns
+from sljax.errors import SljaxError, require
+from sljax.sl.decode import DecodeConfig, count_patterns, decode_captures
+from sljax.sl.match import disparity_from_codes
 
 _DEFAULT_SHADOW = 10.0  # 8-bit grey levels; mirrors sljax.sl.decode.DecodeConfig
 _DEFAULT_BIT = 4.0
@@ -32,18 +43,6 @@ def register(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
   """Decodes every scene with raw captures; returns 0 on success."""
-  import sys
-
-  import numpy as np
-  from tqdm import tqdm
-
-  from sljax.data.dataset import FolderSource
-  from sljax.data.pfm import write_pfm
-  from sljax.data.scene import write_patterns
-  from sljax.errors import SljaxError, require
-  from sljax.sl.decode import DecodeConfig, count_patterns, decode_captures
-  from sljax.sl.match import disparity_from_codes
-
   require(args.shadow_threshold >= 0 and args.bit_threshold >= 0,
           "--shadow-threshold and --bit-threshold must be >= 0")
   config = DecodeConfig(shadow_threshold=args.shadow_threshold / 255.0,

@@ -1,6 +1,13 @@
 """`sljax evaluate CHECKPOINT_OR_MODEL DATASET --out DIR`: metrics, reports and pictures."""
 
 import argparse
+from pathlib import Path
+
+from sljax import inference
+from sljax.baselines import SGBMConfig, SGBMPredictor
+from sljax.data.dataset import FolderSource, split_indices
+from sljax.errors import SljaxError
+from sljax.evaluate import check_out_dir, evaluate, markdown_report
 
 
 def register(subparsers) -> None:
@@ -45,8 +52,6 @@ def register(subparsers) -> None:
 
 def run(args) -> int:
   """Runs the evaluation and prints the Markdown report."""
-  from sljax.errors import SljaxError
-
   if args.model is not None:
     if args.dataset is not None:
       raise SljaxError("with --model give only the DATASET folder as positional argument")
@@ -56,11 +61,6 @@ def run(args) -> int:
       raise SljaxError("expected CHECKPOINT_OR_MODEL DATASET (or DATASET with --model)")
     model, dataset = args.source, args.dataset
 
-  from pathlib import Path
-
-  from sljax.data.dataset import FolderSource, split_indices
-  from sljax.evaluate import check_out_dir, evaluate
-
   if args.num_disparities is not None and model != "sgbm":
     raise SljaxError("--num-disparities applies to the sgbm baseline only")
   if not Path(dataset).is_dir():
@@ -68,11 +68,9 @@ def run(args) -> int:
   source = FolderSource(dataset)
   out = check_out_dir(args.out, args.overwrite)  # before the (slow) model loading
   if model == "sgbm":
-    from sljax.baselines import SGBMConfig, SGBMPredictor
     predictor = SGBMPredictor(SGBMConfig(num_disparities=args.num_disparities))
     checkpoint = None
   else:
-    from sljax import inference
     if not Path(model).exists():
       raise SljaxError(f"CHECKPOINT_OR_MODEL {model}: no such checkpoint (or use 'sgbm')")
     predictor = inference.load(model, mode=args.mode)
@@ -90,7 +88,6 @@ def run(args) -> int:
   report = evaluate(predictor, source, indices, out_dir=out,
                     save_predictions=args.save_predictions, figures=args.figures,
                     info={"checkpoint": checkpoint, "dataset": str(dataset), "split": args.split})
-  from sljax.evaluate import markdown_report
   print(markdown_report(report))
   print(f"wrote {out}/metrics.json, metrics.md, per_scene.csv")
   return 0

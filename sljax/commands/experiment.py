@@ -2,6 +2,8 @@
 
 import argparse
 
+from sljax.experiment import calibrate as cal, plans, report as rep, runner
+
 
 def register(subparsers) -> None:
   """Adds the `experiment` subcommand and its run / report / plans actions."""
@@ -57,7 +59,6 @@ def register(subparsers) -> None:
 
 def run_plan(args: argparse.Namespace) -> int:
   """Runs the plan and says how to report it."""
-  from sljax.experiment import plans, runner  # pylint: disable=import-outside-toplevel
   seeds = args.seeds if args.seeds is not None else 1 if args.scale == "smoke" else 3
   plan = plans.build_plan(args.plan, args.scale, seeds, args.data, tuple(args.eval_data))
   res = runner.run(plan, args.out, progress=not args.no_progress)
@@ -68,7 +69,6 @@ def run_plan(args: argparse.Namespace) -> int:
 
 def calibrate(args: argparse.Namespace) -> int:
   """Runs the calibration and prints the budgets by the plateau rule."""
-  from sljax.experiment import calibrate as cal  # pylint: disable=import-outside-toplevel
   result = cal.calibrate(args.plan, args.scale, args.out, progress=not args.no_progress)
   print(f"budgets for scale {args.scale} by the plateau rule (commit them into "
         "sljax/experiment/plans.py, SCALES[...].budgets):")
@@ -81,7 +81,6 @@ def calibrate(args: argparse.Namespace) -> int:
 
 def report(args: argparse.Namespace) -> int:
   """Writes the report and prints where."""
-  from sljax.experiment import report as rep  # pylint: disable=import-outside-toplevel
   path = rep.write_report(args.out)
   print(f"wrote {path} (+ report.json, figures/)")
   return 0
@@ -90,7 +89,6 @@ def report(args: argparse.Namespace) -> int:
 def list_plans(args: argparse.Namespace) -> int:
   """Prints the plans and scales."""
   del args
-  from sljax.experiment import plans  # pylint: disable=import-outside-toplevel
   print(plans.__doc__.split("Plans:")[1].strip())
   for scale in plans.SCALES.values():
     print(f"scale {scale.name}: {scale.size}x{scale.size}, t = {scale.t}, maxdisp "

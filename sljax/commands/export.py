@@ -1,6 +1,10 @@
 """`sljax export MODEL OUT --size HxW`: the inference function as a jax.export artifact."""
 
 import argparse
+from pathlib import Path
+
+from sljax import export, inference
+from sljax.errors import SljaxError
 
 
 def register(subparsers) -> None:
@@ -32,11 +36,6 @@ def register(subparsers) -> None:
 
 def run(args) -> int:
   """Exports and prints what was written."""
-  from pathlib import Path
-
-  from sljax import export
-  from sljax.errors import SljaxError
-
   size = export.parse_size(args.size)
   if args.model == "sgbm":
     raise SljaxError("MODEL sgbm: the OpenCV baseline is not a JAX model; nothing to export")
@@ -47,7 +46,6 @@ def run(args) -> int:
   for p in (out, side):  # before the (slow) loading and tracing
     if p.exists() and not args.overwrite:
       raise SljaxError(f"{p}: exists (pass --overwrite to replace it)")
-  from sljax import inference
   predictor = inference.load(args.model, mode=args.mode, maxdisp=args.maxdisp)
   out, side = export.write_export(predictor, size, out, args.model, overwrite=args.overwrite)
   print(f"wrote {out} ({out.stat().st_size / 2**20:.2f} MiB, {predictor.describe()}) and {side}")

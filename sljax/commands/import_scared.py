@@ -2,6 +2,11 @@
 
 import argparse
 
+import numpy as np
+
+from sljax.data.scared import import_scared
+from sljax.data.scene import load_scene
+
 
 def register(subparsers) -> None:
   """Adds the import-scared subcommand."""
@@ -18,11 +23,6 @@ def register(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
   """Runs the conversion and prints a one-line summary."""
-  import numpy as np
-
-  from sljax.data.scared import import_scared
-  from sljax.data.scene import load_scene
-
   out = import_scared(args.keyframe_dir, args.out_dir, overwrite=args.overwrite)
   scene = load_scene(out, parts={"disp", "calib"})
   d = scene.disp0[np.isfinite(scene.disp0)]

@@ -6,6 +6,16 @@ import os
 import struct
 from pathlib import Path
 
+import numpy as np
+from tqdm import tqdm
+
+from sljax.data import preflight
+from sljax.data.calib import read_calib
+from sljax.data.dataset import FolderSource, split_indices
+from sljax.data.pfm import read_pfm
+from sljax.data.scene import present_parts
+from sljax.errors import SljaxError
+
 _FILES = ("im1.png", "disp0.pfm", "disp1.pfm", "mask0.png", "sl0", "sl1", "raw0", "raw1",
           "calib.txt", "meta.json")
 _SHORT = {"im1.png": "im1", "disp0.pfm": "disp0", "disp1.pfm": "disp1", "mask0.png": "mask0",
@@ -54,12 +64,6 @@ def _count(folder: Path, prefix: str = "") -> int:
 
 def _scene_row(path: Path, problems: list[str], name: str, group: str) -> dict:
   """Facts about one scene folder, read cheaply (PNG headers, PFMs, file listings)."""
-  import numpy as np
-
-  from sljax.data.calib import read_calib
-  from sljax.data.pfm import read_pfm
-  from sljax.errors import SljaxError
-
   row: dict = {"name": name, "group": group, "files": set()}
   try:
     w, h, depth, colour = png_header(path / "im0.png")
@@ -111,10 +115,6 @@ def _scene_row(path: Path, problems: list[str], name: str, group: str) -> dict:
 def check(src, use_cache: bool = True) -> int:
   """`sljax info --check`: the pre-flight check of every part of every scene; prints each bad
   scene's line and raises SljaxError when there is one."""
-  from sljax.data import preflight
-  from sljax.data.scene import present_parts
-  from sljax.errors import SljaxError
-
   jobs = [([i], list(present_parts(p))) for i, p in enumerate(src.paths)]
   problems, counts = preflight.scan(src, jobs, use_cache=use_cache)
   for line in problems:
@@ -144,10 +144,6 @@ def _table(rows: list[list[str]]) -> str:
 
 def run(args: argparse.Namespace) -> int:
   """Prints the summary; returns 1 when problems were found."""
-  from tqdm import tqdm
-
-  from sljax.data.dataset import FolderSource, split_indices
-
   src = FolderSource(args.dataset)
   if args.check:
     return check(src, use_cache=not args.no_cache)

@@ -1,6 +1,14 @@
 """`sljax make-data`: render a synthetic dataset (scene folders + dataset.json)."""
 
 import argparse
+import json
+from pathlib import Path
+
+from tqdm import tqdm
+
+from sljax.data.scene import write_scene
+from sljax.data.synthetic import SynthConfig, render_scene
+from sljax.errors import require
 
 
 def register(subparsers) -> None:
@@ -28,15 +36,6 @@ def register(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
   """Renders and writes the scenes with a progress bar."""
-  import json
-  from pathlib import Path
-
-  from tqdm import tqdm
-
-  from sljax.data.scene import write_scene
-  from sljax.data.synthetic import SynthConfig, render_scene
-  from sljax.errors import require
-
   out = Path(args.out)
   require(args.n >= 1, f"--n must be >= 1, got {args.n}")
   require(not out.exists() or out.is_dir(), f"{out}: exists and is not a folder")

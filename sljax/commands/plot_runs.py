@@ -7,6 +7,13 @@ import os
 from pathlib import Path
 from typing import Any
 
+from matplotlib.figure import Figure
+from matplotlib.ticker import MaxNLocator
+
+from sljax.data.scene import read_json_object
+from sljax.errors import SljaxError
+from sljax.nets.registry import NETS
+
 EPOCHS_FILE = "epochs.jsonl"
 CONFIG_FILE = "config.json"
 
@@ -29,7 +36,6 @@ def register(subparsers) -> None:
 
 def run_label(config: dict[str, Any], workdir: Path) -> str:
   """model/strategy for PSMNet runs, the model for the UNets, else the folder name."""
-  from sljax.nets.registry import NETS  # pylint: disable=import-outside-toplevel
   model = config.get("model")
   strategy = config.get("strategy")
   if model is None:
@@ -41,8 +47,6 @@ def run_label(config: dict[str, Any], workdir: Path) -> str:
 
 def read_run(workdir: str | os.PathLike) -> dict[str, Any]:
   """{'workdir', 'label', 'records'} of one run; SljaxError naming a missing/bad file."""
-  from sljax.errors import SljaxError
-
   workdir = Path(workdir)
   path = workdir / EPOCHS_FILE
   if not path.is_file():
@@ -62,7 +66,6 @@ def read_run(workdir: str | os.PathLike) -> dict[str, Any]:
   config: dict[str, Any] = {}
   cfg_path = workdir / CONFIG_FILE
   if cfg_path.is_file():
-    from sljax.data.scene import read_json_object  # pylint: disable=import-outside-toplevel
     config = read_json_object(cfg_path, str(cfg_path))
   return {"workdir": str(workdir), "label": run_label(config, workdir), "records": records}
 
@@ -99,12 +102,8 @@ def summary_table(runs: list[dict[str, Any]]) -> str:
 def plot(runs: list[dict[str, Any]], out: str | os.PathLike, title: str = "Validation MAE",
          log: bool = False) -> None:
   """One line per run: validation MAE (px) against epoch."""
-  import matplotlib
-  matplotlib.use("Agg")
-  import matplotlib.pyplot as plt
-  from matplotlib.ticker import MaxNLocator
-
-  fig, ax = plt.subplots(figsize=(6.4, 4.2))
+  fig = Figure(figsize=(6.4, 4.2))
+  ax = fig.subplots()
   for r in runs:
     pts = [(rec["epoch"], rec["val_mae"]) for rec in r["records"] if _finite(rec.get("val_mae"))]
     if pts:
@@ -121,13 +120,10 @@ def plot(runs: list[dict[str, Any]], out: str | os.PathLike, title: str = "Valid
   fig.tight_layout()
   Path(out).parent.mkdir(parents=True, exist_ok=True)
   fig.savefig(out, dpi=120)
-  plt.close(fig)
 
 
 def run(args) -> int:
   """Reads the runs, writes the PNG and the table, prints the table."""
-  from sljax.errors import SljaxError
-
   runs = [read_run(w) for w in args.workdirs]
   labels = [r["label"] for r in runs]
   for r in runs:  # several runs of one configuration: tell them apart by folder name

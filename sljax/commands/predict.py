@@ -1,6 +1,10 @@
 """`sljax predict MODEL LEFT RIGHT --out DIR` (or MODEL PAIRS_DIR): disparity, depth, points."""
 
 import argparse
+from pathlib import Path
+
+from sljax import predict
+from sljax.errors import SljaxError
 
 
 def register(subparsers) -> None:
@@ -45,11 +49,6 @@ def register(subparsers) -> None:
 
 def run(args) -> int:
   """Finds the pairs, loads the model, predicts and prints one line per pair."""
-  from pathlib import Path
-
-  from sljax import predict
-  from sljax.errors import SljaxError
-
   if args.maxdisp is not None and args.maxdisp <= 0:
     raise SljaxError(f"--maxdisp must be positive, got {args.maxdisp}")
   if args.max_depth is not None and not args.max_depth > 0:

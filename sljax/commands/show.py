@@ -1,6 +1,14 @@
 """`sljax show`: a contact sheet of one scene (views, disparity, patterns, mask)."""
 
 import argparse
+from pathlib import Path
+
+import numpy as np
+
+from sljax.data.dataset import find_scenes
+from sljax.data.scene import load_scene, present_parts
+from sljax.errors import require
+from sljax.viz import Panel, save_panels
 
 
 def register(subparsers) -> None:
@@ -17,9 +25,6 @@ def register(subparsers) -> None:
 
 def _pattern_panels(sl, side: str):
   """A few patterns (coarsest, middle, finest); unknown drawn mid grey."""
-  import numpy as np
-
-  from sljax.viz import Panel
   t = sl.shape[-1]
   picks = sorted({0, t // 2, t - 1})
   return [Panel(f"{side} pattern {k}", np.where(np.isnan(sl[..., k]), 0.5, sl[..., k]))
@@ -28,15 +33,6 @@ def _pattern_panels(sl, side: str):
 
 def run(args: argparse.Namespace) -> int:
   """Loads the scene and writes the picture."""
-  from pathlib import Path
-
-  import numpy as np
-
-  from sljax.data.dataset import find_scenes
-  from sljax.data.scene import load_scene
-  from sljax.errors import require
-  from sljax.viz import Panel, save_panels
-
   path = Path(args.path)
   require(path.is_dir(), f"{path}: no such scene or dataset folder")
   if (path / "im0.png").exists():
@@ -66,5 +62,4 @@ def run(args: argparse.Namespace) -> int:
 
 def _present(scene_dir) -> set:
   """Parts a scene folder holds (so that optional parts are not requested)."""
-  from sljax.data.scene import present_parts
   return set(present_parts(scene_dir))

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import argparse
 
+from sljax.errors import require
 from sljax.nets.registry import NAMES
+from sljax.nets.summary import format_summary, param_summary
 
 
 def register(subparsers) -> None:
@@ -26,9 +28,6 @@ def register(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
   """Prints the summary table."""
-  from sljax.errors import require
-  from sljax.nets.summary import format_summary, param_summary
-
   h, w = args.size
   require(h > 0 and w > 0, f"--size must be positive, got {h} {w}")
   require(args.batch > 0, f"--batch must be positive, got {args.batch}")

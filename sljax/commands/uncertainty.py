@@ -4,6 +4,12 @@ import json
 import os
 from pathlib import Path
 
+import numpy as np
+
+from sljax.corr import correlation, uncertainty
+from sljax.data.scene import load_scene
+from sljax.errors import SljaxError, require
+
 HIST_PNG = "uncertainty_hist.png"
 MAPS_PNG = "uncertainty_maps.png"
 METRICS_JSON = "metrics.json"
@@ -37,10 +43,6 @@ def register(subparsers) -> None:
 
 def _load_pred(path: Path) -> dict:
   """Reads and checks the prediction .npz."""
-  import numpy as np
-
-  from sljax.errors import SljaxError, require
-
   require(path.is_file(), f"{path}: prediction file not found")
   try:
     with np.load(path, allow_pickle=False) as z:
@@ -61,12 +63,6 @@ def _load_pred(path: Path) -> dict:
 
 def run(args) -> int:
   """Runs the analysis and writes the metrics and the two pictures."""
-  import numpy as np
-
-  from sljax.corr import correlation, uncertainty
-  from sljax.data.scene import load_scene
-  from sljax.errors import require
-
   require(args.window >= 1 and args.window % 2 == 1,
           f"--window must be a positive odd number, got {args.window}")
   require(args.max_disp is None or args.max_disp >= 0,

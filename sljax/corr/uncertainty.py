@@ -10,8 +10,11 @@ disparity error with Pearson and Spearman correlation and a least-squares line (
 import os
 
 import numpy as np
+from matplotlib import colors as mcolors
+from matplotlib.figure import Figure
 
 from sljax.errors import require
+from sljax.viz import Panel, save_panels
 
 
 def view_uncertainty(p: np.ndarray) -> np.ndarray:
@@ -93,11 +96,6 @@ def plot_uncertainty_histogram(path: str | os.PathLike, uncertainty: np.ndarray,
   """Writes a log-scaled 2D histogram of normalised uncertainty vs normalised error (jet colour
   map) with the least-squares line in red, as the paper's Fig. 5; returns the analysis of the
   normalised values."""
-  import matplotlib
-  matplotlib.use("Agg")
-  import matplotlib.colors as mcolors
-  import matplotlib.pyplot as plt
-
   u = np.asarray(uncertainty, dtype=np.float64)
   e = np.asarray(error, dtype=np.float64)
   require(u.shape == e.shape, f"uncertainty {u.shape} and error {e.shape} must have the same shape")
@@ -107,7 +105,8 @@ def plot_uncertainty_histogram(path: str | os.PathLike, uncertainty: np.ndarray,
   require(keep.sum() >= 2, f"{os.fspath(path)}: fewer than 2 valid pixels to plot")
   un, en = _normalise(u[keep]), _normalise(e[keep])
   stats = analyse_uncertainty(un, en)
-  fig, ax = plt.subplots(figsize=(5.5, 4.5))
+  fig = Figure(figsize=(5.5, 4.5))
+  ax = fig.subplots()
   counts, _, _ = np.histogram2d(un, en, bins=bins, range=((0, 1), (0, 1)))
   img = ax.imshow(np.ma.masked_equal(counts.T, 0), origin="lower", extent=(0, 1, 0, 1),
                   aspect="auto", cmap="jet",
@@ -126,15 +125,12 @@ def plot_uncertainty_histogram(path: str | os.PathLike, uncertainty: np.ndarray,
   fig.tight_layout()
   os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
   fig.savefig(path, dpi=100)
-  plt.close(fig)
   return stats
 
 
 def plot_uncertainty_maps(path: str | os.PathLike, error: np.ndarray, u_left: np.ndarray,
                           u_right: np.ndarray | None = None) -> None:
   """Writes disparity error, left uncertainty and right uncertainty side by side (paper Fig. 4)."""
-  from sljax.viz import Panel, save_panels
-
   error = np.asarray(error, np.float32)
   finite = error[np.isfinite(error)]
   # A few gross mismatches would wash out the map; the scale stops at the 99th percentile.

@@ -33,9 +33,10 @@ from typing import Any
 
 import cv2
 import numpy as np
+from tqdm import tqdm
 
 from sljax.data.calib import read_calib
-from sljax.data.dataset import PART_FIELD, FolderSource
+from sljax.data.dataset import FolderSource, PART_FIELD
 from sljax.data.pfm import _HEADER as PFM_HEADER
 from sljax.data.scene import _PATTERN_FILE, _RAW_FILE, _numbered_files, read_json_object
 from sljax.errors import SljaxError
@@ -278,7 +279,6 @@ def scan(source, jobs: Sequence[tuple[Iterable[int], Iterable[str]]], *,
          progress: bool = True, use_cache: bool = True) -> tuple[list[str], dict[str, int]]:
   """(one line per bad scene, {'scenes', 'cached'}) for the scenes of a FolderSource:
   jobs = [(scene indices, scene-folder parts to read)]."""
-  from tqdm import tqdm  # pylint: disable=import-outside-toplevel
   wanted: dict[int, set[str]] = {}
   for indices, parts in jobs:
     for i in indices:

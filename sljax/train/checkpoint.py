@@ -35,7 +35,9 @@ import orbax.checkpoint as ocp
 from flax import traverse_util
 from orbax.checkpoint.checkpoint_managers import preservation_policy as pp
 
+from sljax.data.scene import read_json_object
 from sljax.errors import SljaxError, require
+from sljax.nets import convert
 
 CHECKPOINT_DIR = "checkpoints"
 CONFIG_FILE = "config.json"
@@ -284,7 +286,6 @@ def restore(manager: ocp.CheckpointManager, step: int,
 
 def read_config(workdir: str | os.PathLike) -> dict[str, Any]:
   """The resolved training config saved in a workdir."""
-  from sljax.data.scene import read_json_object  # pylint: disable=import-outside-toplevel
   path = Path(workdir) / CONFIG_FILE
   require(path.is_file(), f"{path}: missing (not a training workdir)")
   return read_json_object(path, str(path))
@@ -339,7 +340,6 @@ def load_for_inference(path: str | os.PathLike) -> tuple[str, dict[str, Any], di
   if _is_workdir(path):
     config, variables, step = load_params(path, step)
     return config["net"], dict(config["model_kwargs"]), variables, dict(config, step=step)
-  from sljax.nets import convert  # pylint: disable=import-outside-toplevel
   name, kwargs, variables = convert.load_converted(path)
   return name, dict(kwargs), variables, {"net": name, "model_kwargs": dict(kwargs),
                                          "source": str(path)}

@@ -6,10 +6,13 @@ import dataclasses
 import sys
 from pathlib import Path
 
+import jax
+
 from sljax.errors import SljaxError
 from sljax.quiet import quiet_libraries
 from sljax.train import checkpoint as ckpt
 from sljax.train.config import FIELDS, PRESETS, TrainConfig, config_from_json, preset_config
+from sljax.train.loop import default_workdir, train
 
 
 def add_config_flags(parser: argparse.ArgumentParser) -> None:
@@ -68,7 +71,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def resolve(args: argparse.Namespace, backend: str) -> tuple[TrainConfig, str, Path]:
   """(config, preset note, workdir): preset, or the saved config on --resume, then flags."""
-  from sljax.train.loop import default_workdir  # pylint: disable=import-outside-toplevel
   given = {k: getattr(args, k) for k, f in FIELDS.items()
            if f.metadata["flag"] and getattr(args, k) is not None}
   base = preset_config(args.preset, backend)
@@ -94,14 +96,11 @@ def run(args: argparse.Namespace, prog: str = "train.py") -> int:
   """Trains as the parsed arguments say (train.py and `sljax train`); SljaxError -> one line
   on stderr naming `prog`, exit code 2."""
   try:
-    # pylint: disable=import-outside-toplevel
-    import jax
     if args.distributed:
       # Cross-process collectives on CPU need gloo (GPUs and TPUs bring their own).
       jax.config.update("jax_cpu_collectives_implementation", "gloo")
       jax.distributed.initialize()
     quiet_libraries()
-    from sljax.train.loop import train
     config, note, workdir = resolve(args, jax.default_backend())
     result = train(config, workdir, resume=args.resume, overwrite=args.overwrite,
                    stop_after=args.stop_after, preset_note=note, profile_dir=args.profile,

@@ -14,6 +14,7 @@ from sljax.errors import SljaxError, require
 from sljax.losses.disparity import DISP_LOSSES
 from sljax.losses.weighting import STRATEGIES
 from sljax.nets import registry
+from sljax.train import tensorboard
 
 MODELS = registry.MODELS
 PRESETS = ("auto", "paper", "quick")
@@ -185,7 +186,6 @@ def validate(config: TrainConfig) -> None:
   require(0 < config.test_fraction < 1,
           f"--test-fraction {config.test_fraction}: must be in (0, 1)")
   if config.tensorboard:
-    from sljax.train import tensorboard  # pylint: disable=import-outside-toplevel
     tensorboard.summary_writer_class()  # installed? (else one line now, before anything runs)
 
 

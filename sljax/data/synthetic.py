@@ -55,6 +55,7 @@ import numpy as np
 from sljax.data import synth_geometry as geo
 from sljax.data import synth_scenes as scenes
 from sljax.data import synth_sensor as sensor
+from sljax.data import synth_surface as surface
 from sljax.data.calib import Calib
 from sljax.data.scene import Scene
 from sljax.errors import require
@@ -137,83 +138,8 @@ class SyntheticScene(Scene):
 
 
 # ----------------------------------------------------------------------------------------------
-# Rendering (inside jit); scene descriptions come from synth_scenes, noise and blur from
-# synth_sensor.
-
-
-def _camera(desc, cfg: SynthConfig):
-  """Left camera centre and rotation (columns: x right, y down, z forward in world axes)."""
-  el, az = desc["elevation"], desc["azimuth"]
-  offset = jnp.stack([jnp.cos(el) * jnp.cos(az), jnp.cos(el) * jnp.sin(az), jnp.sin(el)])
-  centre = desc["aim"] + desc["dist"] * offset
-  z = -offset
-  x = jnp.stack(geo.normalize(jnp.cross(z, jnp.array([0.0, 0.0, 1.0]))))
-  y = jnp.cross(z, x)
-  return centre, jnp.stack([x, y, z], axis=1)
-
-
-# Facet ids of first hits: room walls by exit axis, podium side and top, then ellipsoid k.
-_POD_SIDE, _POD_TOP, _ELL = 3, 4, 5
-
-
-def _normal(p, d, facet, desc):
-  """Outward normals (unit except on ellipsoids, where M_k p - m_k) at first hits p."""
-  room = geo.box_normal(facet, d)
-  pod = geo.podium_normal(p, facet == _POD_TOP, desc["podium_r"], d)
-  ell = geo.ellipsoid_normal(p, jnp.maximum(facet - _ELL, 0), desc["frames"], desc["centres"])
-  return tuple(jnp.where(facet >= _ELL, e, jnp.where(facet >= _POD_SIDE, q, r))
-               for r, q, e in zip(room, pod, ell))
-
-
-def _blocked(origin, p, desc, cfg: SynthConfig, eps: float = 1e-4):
-  """Whether the open segments origin -> p cross an object or the podium (room cannot)."""
-  v = tuple(pi - oi for pi, oi in zip(p, origin))
-  frames, centres = desc["frames"], desc["centres"]
-  v_local = geo.to_frames(v, frames)
-  # One origin (projector) or one per view: (K, 1 or V, 1, 1) components.
-  o_local = geo.local_components(
-      geo.origins_local(jnp.stack(origin, -1).reshape(-1, 3), frames, centres), 2)
-  hit = geo.any_leading(geo.segments_enter_sphere(o_local, v_local, eps))
-  if cfg.domain == "objects":
-    t_pod, _ = geo.ray_podium(origin, v, desc["podium_r"], cfg.podium_height_m, t_min=eps)
-    hit = hit | (t_pod < 1.0 - eps)
-  return hit
-
-
-def _textures(p, facet, desc, cfg: SynthConfig):
-  """Albedo inputs at points p: objects (grey,); tissue (mottle texture, vessel field)."""
-  # One texture per point: the object's waves on the object, the room's elsewhere (same values
-  # as evaluating both and selecting, half the sines).
-  on_obj = facet >= _ELL
-  k_obj, ph_obj = desc["waves_obj"]
-  k_room, ph_room = desc["waves_room"]
-  total = 0.0
-  for j in range(k_obj.shape[0]):
-    arg = sum(p[i] * jnp.where(on_obj, k_obj[j, i], k_room[j, i]) for i in range(3))
-    total = total + jnp.sin(arg + jnp.where(on_obj, ph_obj[j], ph_room[j]))
-  tex = total * (1.0 / math.sqrt(k_obj.shape[0]))
-  amp = cfg.texture_amplitude
-  if cfg.domain == "objects":
-    base = jnp.where(on_obj, 0.6, jnp.where(facet >= _POD_SIDE, 0.7, 0.5))
-    return (base * (1.0 + amp * tex),)
-  vessel = jnp.exp(-(scenes.solid_texture(p, desc["waves_vessel"]) / 0.08) ** 2)
-  return (tex, vessel)
-
-
-def _albedo(facet, tex, cfg: SynthConfig):
-  """RGB albedo (component tuple) from the texture values of _textures."""
-  if cfg.domain == "objects":
-    return tex * 3  # (grey,) -> (grey, grey, grey)
-  # Tissue: reddish, mottled, with dark vessel lines along the zero sets of a smooth field.
-  tex, vessel = tex
-  amp = cfg.texture_amplitude
-  on_obj = facet >= _ELL
-  mottle = 1.0 + 0.12 * amp * tex
-  dark = min(max(0.55 * amp, 0.0), 1.0) * vessel
-  tissue = [base * mottle * (1.0 - dark * v)
-            for base, v in zip((0.75, 0.33, 0.28), (0.4, 0.8, 0.7))]
-  table = [base * (1.0 + 0.1 * tex) for base in (0.22, 0.36, 0.38)]
-  return tuple(jnp.where(on_obj, a, b) for a, b in zip(tissue, table))
+# Rendering (inside jit); scene descriptions come from synth_scenes, what a hit looks like
+# from synth_surface, noise and blur from synth_sensor.
 
 
 def _stripe_columns(cfg: SynthConfig) -> np.ndarray:
@@ -256,7 +182,7 @@ def _rig(seed, index, cfg: SynthConfig) -> dict[str, Any]:
   key_noise = jax.random.fold_in(jax.random.fold_in(root, 2), index)
   sample = scenes.sample_objects if cfg.domain == "objects" else scenes.sample_tissue
   desc = sample(key_shape, key_view, cfg)
-  cam_l, rot = _camera(desc, cfg)
+  cam_l, rot = surface.camera(desc, cfg)
   rot_p = rot @ scenes.axis_rotation(0, jnp.deg2rad(cfg.projector_rotation_deg[0])) \
       @ scenes.axis_rotation(1, jnp.deg2rad(cfg.projector_rotation_deg[1])) \
       @ scenes.axis_rotation(2, jnp.deg2rad(cfg.projector_rotation_deg[2]))
@@ -309,8 +235,8 @@ def _stage_first_hit(rig, e0, cfg: SynthConfig):
   else:
     t_pod, top = jnp.full_like(t_room, jnp.inf), False
   t = jnp.minimum(jnp.minimum(t_room, t_pod), t_obj)
-  facet = jnp.where(t_obj <= t, _ELL + k,
-                    jnp.where(t_pod <= t, jnp.where(top, _POD_TOP, _POD_SIDE), axis))
+  facet = jnp.where(t_obj <= t, surface.ELL + k,
+                    jnp.where(t_pod <= t, jnp.where(top, surface.POD_TOP, surface.POD_SIDE), axis))
   return t, facet
 
 
@@ -321,8 +247,8 @@ def _stage_surface(rig, t, facet, cfg: SynthConfig):
   proj = tuple(rig["proj"][i] for i in range(3))
   # Segments to the projector (the rig light sits there, so its shadows are the projector's) and
   # to the other camera (exact occlusion between the views).
-  return (_normal(p, d, facet, rig["desc"]), _blocked(proj, p, rig["desc"], cfg),
-          _blocked(other, p, rig["desc"], cfg), _textures(p, facet, rig["desc"], cfg))
+  return (surface.normal(p, d, facet, rig["desc"]), surface.blocked(proj, p, rig["desc"], cfg),
+          surface.blocked(other, p, rig["desc"], cfg), surface.textures(p, facet, rig["desc"], cfg))
 
 
 def _stage_shading(rig, t, facet, normal, blocked_p, blocked_o, tex, cfg: SynthConfig):
@@ -347,7 +273,7 @@ def _stage_shading(rig, t, facet, normal, blocked_p, blocked_o, tex, cfg: SynthC
   to_other = tuple(oi - pi for oi, pi in zip(other, p))
   seen = ((x_other > -0.5) & (x_other < cfg.size - 0.5) & (geo.dot(normal, to_other) > 0)
           & ~blocked_o)
-  albedo = _albedo(facet, tex, cfg)
+  albedo = surface.albedo(facet, tex, cfg)
   grey = _LUMA[0] * albedo[0] + _LUMA[1] * albedo[1] + _LUMA[2] * albedo[2]
   irradiance = cfg.projector_power * jnp.maximum(cos_p, 0.0) * reach
   known = reach & (grey * irradiance >= cfg.min_contrast)
@@ -376,12 +302,13 @@ def _stage_outputs(rig, t, facet, tex, shade, spec, col, known, seen, cfg: Synth
   rate = cfg.min_stripe_px * _column_rate(col)
   sl = jnp.stack([jnp.where(known & (float(wk) >= rate), b.astype(jnp.float32), jnp.nan)
                   for b, wk in zip(bits, _stripe_columns(cfg))], -1)
-  image = jnp.stack([a * shade + spec for a in _albedo(facet, tex, cfg)], -1)
+  image = jnp.stack([a * shade + spec for a in surface.albedo(facet, tex, cfg)], -1)
   noise_key = jax.random.fold_in(rig["key_noise"], 0)
   image = jnp.clip(image + cfg.image_noise * sensor.noise(noise_key, image.shape), 0, 1)
   desc = rig["desc"]
   return dict(im=image, disp=cfg.baseline_m * cfg.focal / t, depth=t, sl=sl,
-              mask=facet >= (_ELL if cfg.domain == "tissue" else _POD_SIDE), occ=~seen,
+              mask=facet >= (surface.ELL if cfg.domain == "tissue" else surface.POD_SIDE),
+              occ=~seen,
               col=col, cam=rig["cam_l"], dist=desc["dist"], size=desc["size"],
               azimuth=desc["azimuth"], elevation=desc["elevation"])
 

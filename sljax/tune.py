@@ -34,11 +34,10 @@ import jax.numpy as jnp
 import jaxlib
 import numpy as np
 
-from sljax import machine
+from sljax import cache, machine
 from sljax.nets import build_model
 
 ENV_TUNE = "SLJAX_TUNE"
-ENV_CACHE = "SLJAX_CACHE_DIR"
 YNN_OFF = {"xla_cpu_experimental_ynn_fusion_type": ""}
 MARGIN = 0.05  # a setting replaces XLA's default only when it is this much faster
 
@@ -81,12 +80,8 @@ def enabled(flag: bool | None = None) -> bool:
 
 
 def cache_path() -> Path:
-  """The tuning cache file in the user's cache directory (overridable by $SLJAX_CACHE_DIR)."""
-  root = os.environ.get(ENV_CACHE)
-  if not root:
-    root = os.path.join(os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache"),
-                        "sljax")
-  return Path(root) / "tune.json"
+  """The tuning cache file in the user's cache directory (sljax.cache.user_cache_dir)."""
+  return cache.user_cache_dir() / "tune.json"
 
 
 def cache_key() -> str:

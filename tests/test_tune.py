@@ -9,7 +9,7 @@ import jax
 import numpy as np
 import pytest
 
-from sljax import cli, inference, machine, tune
+from sljax import cache, cli, inference, machine, tune
 from sljax.train import checkpoint as ckpt
 from sljax.train import loop
 from sljax.train import step as stp
@@ -50,7 +50,7 @@ def test_format_table_marks_the_choice():
 
 @pytest.fixture
 def cache_dir(tmp_path, monkeypatch):
-  monkeypatch.setenv(tune.ENV_CACHE, str(tmp_path / "cache"))
+  monkeypatch.setenv(cache.ENV_DIR, str(tmp_path / "cache"))
   monkeypatch.setenv(tune.ENV_TUNE, "1")
   return tmp_path / "cache"
 

@@ -6,6 +6,7 @@ import dataclasses
 import sys
 from pathlib import Path
 
+from sljax.cache import enable_compile_cache
 from sljax.errors import SljaxError
 from sljax.quiet import quiet_libraries
 from sljax.train import checkpoint as ckpt
@@ -101,6 +102,7 @@ def run(args: argparse.Namespace, prog: str = "train.py") -> int:
       jax.config.update("jax_cpu_collectives_implementation", "gloo")
       jax.distributed.initialize()
     quiet_libraries()
+    enable_compile_cache()
     from sljax.train.loop import train
     config, note, workdir = resolve(args, jax.default_backend())
     result = train(config, workdir, resume=args.resume, overwrite=args.overwrite,

@@ -10,6 +10,7 @@ import importlib
 import os
 import sys
 
+from sljax.cache import enable_compile_cache
 from sljax.errors import SljaxError
 from sljax.quiet import quiet_libraries
 
@@ -56,6 +57,7 @@ def main(argv: list[str] | None = None) -> int:
   argv = sys.argv[1:] if argv is None else argv
   args = build_parser(argv).parse_args(argv)
   quiet_libraries()
+  enable_compile_cache()
   try:
     result = args.func(args)
   except SljaxError as e:

@@ -12,16 +12,27 @@ ISA_FLAGS = (("avx2", "AVX2"), ("avx512f", "AVX-512"), ("avx512_bf16", "AVX512_B
              ("avx512_vnni", "AVX512_VNNI"), ("amx_tile", "AMX"))
 
 
-def cpu_info(cpuinfo: str = "/proc/cpuinfo") -> dict:
-  """The CPU as fields: model name, family and model numbers, ISA flags people know, cores."""
+def _first_processor(cpuinfo: str = "/proc/cpuinfo") -> dict[str, str]:
+  """The first processor's /proc/cpuinfo entries ({} where there is no such file)."""
   info: dict[str, str] = {}
   try:
     with open(cpuinfo, encoding="utf-8") as f:
       for line in f:
         key, _, value = line.partition(":")
-        info.setdefault(key.strip(), value.strip())  # the first processor's entries
+        info.setdefault(key.strip(), value.strip())
   except OSError:
     pass
+  return info
+
+
+def cpu_flags(cpuinfo: str = "/proc/cpuinfo") -> set[str]:
+  """Every ISA flag the kernel reports (what compiled code may use)."""
+  return set(_first_processor(cpuinfo).get("flags", "").split())
+
+
+def cpu_info(cpuinfo: str = "/proc/cpuinfo") -> dict:
+  """The CPU as fields: model name, family and model numbers, ISA flags people know, cores."""
+  info = _first_processor(cpuinfo)
   flags = set(info.get("flags", "").split())
   return {"model": info.get("model name") or platform.processor() or "unknown CPU",
           "family": info.get("cpu family"), "model_number": info.get("model"),

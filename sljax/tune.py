@@ -13,8 +13,9 @@ are chosen where the model is built.
 
 How. `measure` compiles PSMNet itself (128x128, maxdisp 48, batch 1: the real mix of 2D and 3D
 convolutions) as a forward and as a training program, with the fusions on and off, and times
-them interleaved, the minimum of a few calls each: about a minute on a 2-core CPU, most of it
-compiling. A setting replaces XLA's default only when it is faster by more than `MARGIN`. The
+them in interleaved rounds: about a minute on a 2-core CPU, most of it compiling. A setting
+replaces XLA's default only when it was faster in every round and by more than `MARGIN` in the
+median round (two tunings on a busy Zen 3 once disagreed when one fastest call decided). The
 winner is kept in a JSON cache in the user's cache directory (`$SLJAX_CACHE_DIR`, else
 `$XDG_CACHE_HOME/sljax`, else `~/.cache/sljax`), keyed by the CPU kind
 (`sljax.machine.cpu_key`) and the jax and jaxlib versions: measured once per machine kind and
@@ -34,13 +35,13 @@ import jax.numpy as jnp
 import jaxlib
 import numpy as np
 
-from sljax import machine
+from sljax import cache, machine
 from sljax.nets import build_model
 
 ENV_TUNE = "SLJAX_TUNE"
-ENV_CACHE = "SLJAX_CACHE_DIR"
 YNN_OFF = {"xla_cpu_experimental_ynn_fusion_type": ""}
 MARGIN = 0.05  # a setting replaces XLA's default only when it is this much faster
+RULE = 2  # the decision rule's version: choices cached under another rule are measured again
 
 
 NAMES = {(True, True): "on", (False, False): "off", (False, True): "forward-off",
@@ -81,12 +82,8 @@ def enabled(flag: bool | None = None) -> bool:
 
 
 def cache_path() -> Path:
-  """The tuning cache file in the user's cache directory (overridable by $SLJAX_CACHE_DIR)."""
-  root = os.environ.get(ENV_CACHE)
-  if not root:
-    root = os.path.join(os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache"),
-                        "sljax")
-  return Path(root) / "tune.json"
+  """The tuning cache file in the user's cache directory (sljax.cache.user_cache_dir)."""
+  return cache.user_cache_dir() / "tune.json"
 
 
 def cache_key() -> str:
@@ -109,7 +106,7 @@ def write_cache(key: str, choice: KernelChoice, table: list[dict], seconds: floa
   """Stores one key's choice and its measurements (atomically: write, then rename)."""
   path = path or cache_path()
   data = read_cache(path)
-  data[key] = {"choice": dataclasses.asdict(choice), "table": table,
+  data[key] = {"choice": dataclasses.asdict(choice), "rule": RULE, "table": table,
                "seconds": round(seconds, 1), "cpu": machine.cpu_description(),
                "time": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
   path.parent.mkdir(parents=True, exist_ok=True)
@@ -122,7 +119,7 @@ def write_cache(key: str, choice: KernelChoice, table: list[dict], seconds: floa
 def cached_choice(path: Path | None = None) -> KernelChoice | None:
   """This machine's cached choice, or None."""
   entry = read_cache(path).get(cache_key())
-  if not entry:
+  if not entry or entry.get("rule") != RULE:
     return None
   try:
     return KernelChoice(**entry["choice"])
@@ -187,14 +184,15 @@ def _compiled(fns, args, kind: str, ynn: bool):
   return jax.jit(fns[kind], compiler_options=None if ynn else dict(YNN_OFF)).lower(*args).compile()
 
 
-def measure(repeats: int = 3, clock: Callable[[], float] = time.perf_counter,
+def measure(repeats: int = 5, clock: Callable[[], float] = time.perf_counter,
             timings: Callable[[str, bool], float] | None = None, size: int = 128
             ) -> tuple[KernelChoice, list[dict]]:
-  """Times each program kind with YNNPACK fusions on and off; returns the choice and the table.
-  `timings(kind, ynn) -> seconds` replaces the measurement (tests)."""
+  """Times each program kind with YNNPACK fusions on and off in `repeats` interleaved rounds;
+  returns the choice and the table. `timings(kind, ynn) -> seconds` replaces the measurement
+  (tests: the same value every round)."""
   keys = [(kind, ynn) for kind in ("forward", "train") for ynn in (True, False)]
   if timings is not None:
-    times = {k: timings(*k) for k in keys}
+    samples = {k: [timings(*k)] * repeats for k in keys}
   else:
     fns, args = workload(size=size)
     programs = {k: _compiled(fns, args, *k) for k in keys}
@@ -206,26 +204,40 @@ def measure(repeats: int = 3, clock: Callable[[], float] = time.perf_counter,
         t0 = clock()
         jax.block_until_ready(programs[k](*args))
         samples[k].append(clock() - t0)
-    times = {k: min(v) for k, v in samples.items()}
-  best = choose(times)
-  table = [{"kind": kind, "ynn": ynn, "seconds": round(times[(kind, ynn)], 5)} for kind, ynn in keys]
+  best = choose(samples)
+  table = [{"kind": kind, "ynn": ynn, "seconds": round(float(np.median(samples[(kind, ynn)])), 5),
+            "off_vs_on": [round(r, 3) for r in _ratios(samples, kind)]}
+           for kind, ynn in keys]
   return best, table
 
 
-def choose(times: dict[tuple[str, bool], float], margin: float = MARGIN) -> KernelChoice:
-  """Per kind, fusions off only when that is faster than XLA's default by more than `margin`
-  (the noise of a shared machine does not move the choice)."""
-  off = lambda kind: times[(kind, False)] < times[(kind, True)] * (1 - margin)
+def _ratios(samples: dict[tuple[str, bool], list[float]], kind: str) -> list[float]:
+  """Per round, the time with the fusions off over the time with them on (< 1: off faster)."""
+  return [off / on for off, on in zip(samples[(kind, False)], samples[(kind, True)])]
+
+
+def choose(samples: dict[tuple[str, bool], list[float]],
+           margin: float = MARGIN) -> KernelChoice:
+  """Per kind, fusions off only when off was faster in every round and by more than `margin`
+  in the median round: XLA's default stays unless the evidence is consistent, so the noise of
+  a shared machine does not flip the choice from one tuning to the next."""
+  def off(kind):
+    ratios = _ratios(samples, kind)
+    return max(ratios) < 1.0 and float(np.median(ratios)) < 1.0 - margin
   return KernelChoice(forward_ynn=not off("forward"), train_ynn=not off("train"))
 
 
 def format_table(table: list[dict], best: KernelChoice) -> str:
-  """The measurements as a Markdown table, each program's time relative to the chosen setting."""
+  """The measurements as a Markdown table: each program's median time relative to the chosen
+  setting, and with the fusions off the per-round off/on ratios' range."""
   chosen = {"forward": best.forward_ynn, "train": best.train_ynn}
   ref = {r["kind"]: r["seconds"] for r in table if r["ynn"] == chosen[r["kind"]]}
-  lines = ["| program (PSMNet) | YNNPACK fusions | ms | vs chosen |", "| --- | --- | ---: | ---: |"]
+  lines = ["| program (PSMNet) | YNNPACK fusions | ms | vs chosen | off/on by round |",
+           "| --- | --- | ---: | ---: | --- |"]
   for r in table:
     mark = " (chosen)" if r["ynn"] == chosen[r["kind"]] else ""
+    ratios = r.get("off_vs_on") or []
+    spread = f"{min(ratios):.2f}-{max(ratios):.2f}" if ratios and not r["ynn"] else ""
     lines.append(f"| {r['kind']} | {'on' if r['ynn'] else 'off'} | {r['seconds'] * 1e3:.1f} | "
-                 f"{r['seconds'] / ref[r['kind']]:.2f}x{mark} |")
+                 f"{r['seconds'] / ref[r['kind']]:.2f}x{mark} | {spread} |")
   return "\n".join(lines)

@@ -9,7 +9,7 @@ import jax
 import numpy as np
 import pytest
 
-from sljax import cli, inference, machine, tune
+from sljax import cache, cli, inference, machine, tune
 from sljax.train import checkpoint as ckpt
 from sljax.train import loop
 from sljax.train import step as stp
@@ -40,17 +40,40 @@ def test_default_kept_unless_clearly_faster():
   assert best.name == "train-off"
 
 
+def test_a_choice_cached_under_another_rule_is_measured_again(cache_dir):
+  best, table = tune.measure(timings=fake({("forward", False): 0.5}))
+  path = tune.write_cache(tune.cache_key(), best, table, 1.0)
+  assert tune.cached_choice() == best
+  data = json.loads(path.read_text())
+  data[tune.cache_key()]["rule"] = tune.RULE - 1
+  path.write_text(json.dumps(data))
+  assert tune.cached_choice() is None
+
+
+def test_a_round_that_disagrees_keeps_the_default():
+  on = [1.0, 1.0, 1.0, 1.0, 1.0]
+  consistent = {("forward", True): on, ("forward", False): [0.6, 0.7, 0.62, 0.65, 0.9],
+                ("train", True): on, ("train", False): [0.9, 0.91, 0.92, 0.9, 0.93]}
+  assert tune.choose(consistent) == tune.KernelChoice(forward_ynn=False, train_ynn=False)
+  # Faster in the median round, slower in one (a burst of load): not consistent evidence.
+  burst = {**consistent, ("forward", False): [0.6, 0.7, 1.05, 0.65, 0.6]}
+  assert tune.choose(burst).forward_ynn
+  # Faster in every round but within the margin in the median one.
+  small = {**consistent, ("train", False): [0.99, 0.9, 0.97, 0.96, 0.98]}
+  assert tune.choose(small).train_ynn
+
+
 def test_format_table_marks_the_choice():
   best, table = tune.measure(timings=fake({("forward", False): 0.5}))
   text = tune.format_table(table, best)
   assert text.count("(chosen)") == 2
-  assert "| forward | off | 500.0 | 1.00x (chosen) |" in text
-  assert "| forward | on | 1000.0 | 2.00x |" in text
+  assert "| forward | off | 500.0 | 1.00x (chosen) | 0.50-0.50 |" in text
+  assert "| forward | on | 1000.0 | 2.00x |  |" in text
 
 
 @pytest.fixture
 def cache_dir(tmp_path, monkeypatch):
-  monkeypatch.setenv(tune.ENV_CACHE, str(tmp_path / "cache"))
+  monkeypatch.setenv(cache.ENV_DIR, str(tmp_path / "cache"))
   monkeypatch.setenv(tune.ENV_TUNE, "1")
   return tmp_path / "cache"
 

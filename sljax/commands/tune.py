@@ -20,7 +20,8 @@ def register(subparsers) -> None:
                   "--ynn on keeps XLA's defaults.")
   p.add_argument("--show", action="store_true",
                  help="print the cached choice and its table without measuring")
-  p.add_argument("--repeats", type=int, default=3, help="timed calls per candidate (default 3)")
+  p.add_argument("--repeats", type=int, default=5,
+                 help="interleaved timing rounds (default 5)")
   p.set_defaults(func=run)
 
 

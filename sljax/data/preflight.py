@@ -35,6 +35,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
+from sljax.cache import user_cache_dir
 from sljax.data.calib import read_calib
 from sljax.data.dataset import FolderSource, PART_FIELD
 from sljax.data.pfm import _HEADER as PFM_HEADER
@@ -239,12 +240,8 @@ def _still_valid(scene_dir: Path, entry: dict[str, Any]) -> bool:
 
 
 def cache_dir() -> Path:
-  """Where check results are kept: SLJAX_CACHE_DIR, else XDG_CACHE_HOME/sljax, else
-  ~/.cache/sljax (never the dataset)."""
-  if os.environ.get("SLJAX_CACHE_DIR"):
-    return Path(os.environ["SLJAX_CACHE_DIR"])
-  base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
-  return Path(base) / "sljax"
+  """Where check results are kept: the user's sljax cache folder (sljax.cache)."""
+  return user_cache_dir()
 
 
 def cache_file(root: Path) -> Path:

@@ -190,14 +190,21 @@ def pack(tree: Any) -> dict[str, jax.Array]:
           for dt in sorted({x.dtype for x in leaves}, key=str)}
 
 
-def unpack(packed: dict[str, jax.Array], lay: list[list[Any]]) -> list[jax.Array]:
-  """The leaves that pack concatenated, given their layout (inverse of pack)."""
+def unpack(packed: dict[str, jax.Array], lay: list[list[Any]],
+           sharding: jax.sharding.Sharding) -> list[jax.Array]:
+  """The leaves that pack concatenated, given their layout (inverse of pack), placed with
+  `sharding`. Sliced on the host: as one XLA program the few hundred slices of a long vector
+  took 27 s to compile for PSMNet and 47 s for its twin (a 2-core Zen 3), longer than a
+  smoke-scale training run."""
+  # The state is replicated (train/step.py), so every device holds the whole vector.
+  host = {dt: np.asarray(v.addressable_data(0)) for dt, v in packed.items()}
   offsets = dict.fromkeys(packed, 0)
   leaves = []
   for _, dtype, shape in lay:
     n = math.prod(shape)
-    leaves.append(jax.lax.slice_in_dim(packed[dtype], offsets[dtype], offsets[dtype] + n)
-                  .reshape(shape))
+    leaf = host[dtype][offsets[dtype]:offsets[dtype] + n].reshape(shape)
+    leaves.append(jax.make_array_from_callback(tuple(shape), sharding,
+                                               lambda index, leaf=leaf: leaf[index]))
     offsets[dtype] += n
   return leaves
 
@@ -233,10 +240,6 @@ def finish(manager: ocp.CheckpointManager) -> None:
     manager.close()
 
 
-def _hashable(lay: list[list[Any]]) -> tuple:
-  return tuple((tuple(parts), dtype, tuple(shape)) for parts, dtype, shape in lay)
-
-
 def _restore_packed(manager: ocp.CheckpointManager, step: int, lay: list[list[Any]],
                     abstract_state: Any | None) -> Any:
   """The state of a packed checkpoint, as abstract_state's tree with its shardings (else nested
@@ -257,7 +260,7 @@ def _restore_packed(manager: ocp.CheckpointManager, step: int, lay: list[list[An
   abstract = {dt: jax.ShapeDtypeStruct((n,), dt, sharding=sharding) for dt, n in sizes.items()}
   packed = manager.restore(step, args=ocp.args.Composite(
       state=ocp.args.StandardRestore(abstract)))["state"]
-  leaves = jax.jit(unpack, static_argnums=1, out_shardings=sharding)(packed, _hashable(lay))
+  leaves = unpack(packed, lay, sharding)
   if abstract_state is not None:
     return jax.tree.unflatten(jax.tree.structure(abstract_state), leaves)
   return traverse_util.unflatten_dict({tuple(parts): leaf for (parts, _, _), leaf

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import jax
 
+from sljax.cache import enable_compile_cache
 from sljax.errors import SljaxError
 from sljax.quiet import quiet_libraries
 from sljax.train import checkpoint as ckpt
@@ -101,6 +102,7 @@ def run(args: argparse.Namespace, prog: str = "train.py") -> int:
       jax.config.update("jax_cpu_collectives_implementation", "gloo")
       jax.distributed.initialize()
     quiet_libraries()
+    enable_compile_cache()
     config, note, workdir = resolve(args, jax.default_backend())
     result = train(config, workdir, resume=args.resume, overwrite=args.overwrite,
                    stop_after=args.stop_after, preset_note=note, profile_dir=args.profile,

@@ -1,0 +1,61 @@
+"""sljax's folder in the user's cache directory, and JAX's persistent compilation cache in it.
+
+Compiling PSMNet's training step takes about a minute on a 2-core CPU and its twin's two, and
+the same programs compile again in every run: every seed of an experiment, every resume, every
+`sljax predict`. With the compilation cache on, XLA's executables are kept on disk and a later
+process loads a program instead of compiling it. A loaded program is the one a compile would
+give (the key is the program's HLO, the compiler options and the jax/jaxlib versions), so the
+numbers are the same; only the time differs.
+
+The executables sit in a folder per CPU (its model and full ISA flag set: an executable uses
+the instructions of the CPU that compiled it, and a home directory can be shared by different
+machines) and per jax/jaxlib version, at most MAX_BYTES in all (least recently used go first).
+`SLJAX_COMPILE_CACHE=off` turns it off, `SLJAX_COMPILE_CACHE=DIR` moves it, and a
+`JAX_COMPILATION_CACHE_DIR` the user set wins. sljax's command lines (`sljax ...`,
+`python train.py`) turn it on; code importing sljax decides for itself (`enable_compile_cache`).
+"""
+
+import hashlib
+import os
+from pathlib import Path
+
+import jax
+import jaxlib
+
+from sljax import machine
+
+ENV_DIR = "SLJAX_CACHE_DIR"
+ENV_COMPILE = "SLJAX_COMPILE_CACHE"
+OFF = ("0", "off", "false", "no")
+MAX_BYTES = 2 * 2**30
+
+
+def user_cache_dir() -> Path:
+  """$SLJAX_CACHE_DIR, else $XDG_CACHE_HOME/sljax, else ~/.cache/sljax (never a dataset)."""
+  if os.environ.get(ENV_DIR):
+    return Path(os.environ[ENV_DIR])
+  return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "sljax"
+
+
+def compile_cache_dir() -> Path | None:
+  """The folder of this CPU's and jax version's executables (None: turned off)."""
+  setting = os.environ.get(ENV_COMPILE, "").strip()
+  if setting.lower() in OFF:
+    return None
+  root = Path(setting) if setting else user_cache_dir() / "xla"
+  flags = ",".join(sorted(machine.cpu_flags()))
+  isa = hashlib.sha1(flags.encode()).hexdigest()[:8]
+  return root / f"{machine.cpu_key()}-{isa}-jax-{jax.__version__}-jaxlib-{jaxlib.__version__}"
+
+
+def enable_compile_cache() -> Path | None:
+  """Turns JAX's persistent compilation cache on in compile_cache_dir(); returns the folder in
+  use (the user's JAX_COMPILATION_CACHE_DIR when set; None when turned off)."""
+  if jax.config.jax_compilation_cache_dir:
+    return Path(jax.config.jax_compilation_cache_dir)
+  folder = compile_cache_dir()
+  if folder is None:
+    return None
+  jax.config.update("jax_compilation_cache_dir", str(folder))
+  jax.config.update("jax_compilation_cache_max_size", MAX_BYTES)
+  return folder

@@ -1,0 +1,69 @@
+"""The user cache folder and JAX's persistent compilation cache (sljax.cache)."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import jax
+import jaxlib
+
+from sljax import cache, machine
+
+# A child process that compiles one program with the cache in a given folder and reports its
+# output and how many compilations the cache served (jax's monitoring events).
+CHILD = """
+import json, sys
+import jax, jax.numpy as jnp
+from sljax.cache import enable_compile_cache
+hits = []
+jax.monitoring.register_event_listener(
+    lambda name, **kw: hits.append(name) if name.endswith("cache_hits") else None)
+folder = enable_compile_cache()
+f = jax.jit(lambda x: jnp.cumsum(jnp.sin(x) * 3.0) @ jnp.cos(x))
+y = f(jnp.linspace(0.0, 1.0, 257))
+print(json.dumps({"folder": str(folder), "y": float(y), "hits": len(hits)}))
+"""
+
+
+def _child(env: dict) -> dict:
+  out = subprocess.run([sys.executable, "-c", CHILD], env=env, capture_output=True, text=True,
+                       check=True)
+  return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def test_user_cache_dir_order(monkeypatch, tmp_path):
+  monkeypatch.setenv("SLJAX_CACHE_DIR", str(tmp_path / "a"))
+  assert cache.user_cache_dir() == tmp_path / "a"
+  monkeypatch.delenv("SLJAX_CACHE_DIR")
+  monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+  assert cache.user_cache_dir() == tmp_path / "xdg" / "sljax"
+
+
+def test_compile_cache_folder_is_per_cpu_flags_and_versions(monkeypatch, tmp_path):
+  monkeypatch.setenv("SLJAX_COMPILE_CACHE", str(tmp_path))
+  monkeypatch.setattr(machine, "cpu_flags", lambda *a: {"sse2", "avx2"})
+  a = cache.compile_cache_dir()
+  monkeypatch.setattr(machine, "cpu_flags", lambda *a: {"sse2", "avx2", "avx512f"})
+  b = cache.compile_cache_dir()
+  assert a.parent == b.parent == tmp_path and a != b  # another ISA: another folder
+  assert a.name.startswith(machine.cpu_key()) and a.name.endswith(
+      f"jax-{jax.__version__}-jaxlib-{jaxlib.__version__}")
+  for off in ("off", "0", "no"):
+    monkeypatch.setenv("SLJAX_COMPILE_CACHE", off)
+    assert cache.compile_cache_dir() is None
+
+
+def test_second_process_loads_the_program_and_gets_the_same_numbers(tmp_path):
+  env = dict(os.environ, SLJAX_COMPILE_CACHE=str(tmp_path / "xla"),
+             JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0")
+  env.pop("JAX_COMPILATION_CACHE_DIR", None)
+  first = _child(env)
+  folder = Path(first["folder"])
+  assert folder.parent == tmp_path / "xla" and any(folder.iterdir())
+  second = _child(env)
+  assert first["hits"] == 0 and second["hits"] >= 1
+  assert second["y"] == first["y"]
+  off = _child(dict(env, SLJAX_COMPILE_CACHE="off"))
+  assert off["folder"] == "None" and off["hits"] == 0 and off["y"] == first["y"]

@@ -10,7 +10,6 @@ import importlib
 import os
 import sys
 
-from sljax.cache import enable_compile_cache
 from sljax.errors import SljaxError
 from sljax.quiet import quiet_libraries
 
@@ -57,6 +56,8 @@ def main(argv: list[str] | None = None) -> int:
   argv = sys.argv[1:] if argv is None else argv
   args = build_parser(argv).parse_args(argv)
   quiet_libraries()
+  # Imported here, at the command-line edge, so that `sljax --help` does not import jax.
+  from sljax.cache import enable_compile_cache  # pylint: disable=import-outside-toplevel
   enable_compile_cache()
   try:
     result = args.func(args)

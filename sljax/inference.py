@@ -441,14 +441,16 @@ def make_predictor(model_name: str, model_kwargs: dict, variables: dict, train_s
 
 
 def load(checkpoint: str | os.PathLike, mode: str = "pad", maxdisp: int | None = None,
-         tune_kernels: bool | None = None) -> Predictor:
+         tune_kernels: bool | None = None, kernels: tune.KernelChoice | None = None
+         ) -> Predictor:
   """Predictor from a training workdir, its checkpoints dir, or a converted PSMNet dir.
 
   maxdisp (optional) replaces the disparity range: the cost volume's depth for psmnet and
   psmnet-mtl (a multiple of 16; the weights do not depend on it), the correlation's search
   range u for unet-sl (in the pixels the network sees); unet-disp has none.
   tune_kernels: use this CPU's tuned compiler choice (sljax.tune; measured on first use and
-  cached); None follows $SLJAX_TUNE (on unless 0), False keeps XLA's defaults.
+  cached); None follows $SLJAX_TUNE (on unless 0), False keeps XLA's defaults. kernels, when
+  given, is the choice itself (e.g. the one a run trained with) and nothing is tuned.
   """
   path = os.fspath(checkpoint)
   model_name, model_kwargs, variables, config = load_for_inference(path)
@@ -468,6 +470,6 @@ def load(checkpoint: str | os.PathLike, mode: str = "pad", maxdisp: int | None =
   predictor = make_predictor(model_name, model_kwargs, variables, train_size=config.get("size"),
                              mode=mode, gray=config.get("gray"), sl_max_disp=sl_max_disp,
                              sl_window=config.get("corr_window"), name=path,
-                             kernels=tune.choice(tune_kernels))
+                             kernels=kernels or tune.choice(tune_kernels))
   predictor.train_config = config
   return predictor

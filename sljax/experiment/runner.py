@@ -29,7 +29,7 @@ from typing import Any
 
 from tqdm import tqdm
 
-from sljax import inference
+from sljax import inference, tune
 from sljax.data.dataset import FolderSource, parse_fraction, split_indices
 from sljax.data.scene import read_json_object
 from sljax.data.synthetic import SynthConfig, SyntheticSource
@@ -207,6 +207,14 @@ def _eval_source(cell: Cell, evalset: EvalSet):
   return source, list(range(len(source)))
 
 
+def _final_predictor(out: Path, cell: Cell) -> inference.Predictor:
+  """The cell's final checkpoint (resize protocol) with the compiler choice it trained with:
+  scoring never tunes, and at the smoke scale nothing is tuned at all."""
+  ynn = ckpt.read_config(cell_dir(out, cell.name)).get("ynn", "on")
+  return inference.load(final_checkpoint(out, cell.name), mode="resize",
+                        kernels=tune.KernelChoice.from_name(ynn))
+
+
 def choose_window(out: Path, cell: Cell) -> int | None:
   """The correlation window of a v2 unet-sl cell, chosen on its validation split from the
   plan's candidates (the lowest Full MAE; ties: the smaller window), kept in
@@ -222,7 +230,7 @@ def choose_window(out: Path, cell: Cell) -> int | None:
     return int(saved["chosen"])
   source, indices = validation_indices(cell)
   maes = {}
-  predictor = inference.load(final_checkpoint(out, cell.name), mode="resize")
+  predictor = _final_predictor(out, cell)
   for window in cell.windows:
     predictor.sl_window = window
     rep = evaluate(predictor, source, indices, progress=False)
@@ -239,7 +247,7 @@ def evaluate_cell(out: Path, cell: Cell, evalset: EvalSet) -> dict[str, Any]:
   a v2 unet-sl cell with the window chosen on validation) and writes eval/SET.json."""
   window = choose_window(out, cell)
   source, indices = _eval_source(cell, evalset)
-  predictor = inference.load(final_checkpoint(out, cell.name), mode="resize")
+  predictor = _final_predictor(out, cell)
   info = {"cell": cell.name, "set": evalset.name, "kind": evalset.kind}
   if window is not None:
     predictor.sl_window = window

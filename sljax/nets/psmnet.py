@@ -41,15 +41,13 @@ Parameter names follow the reference (see `reference_key`): top level `feature_e
 
 from __future__ import annotations
 
-import functools
-
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from sljax.errors import require
-from sljax.nets.conv3d import Conv3D, ConvTranspose3D
+from sljax.kernels import Conv3D, ConvTranspose3D, phase_regression
 from sljax.nets.layers import (ConvBN2D, ConvBN3D, batch_norm, conv_init, conv_transpose_init,
                                linear_resize_matrix, linear_resize_phases, resize_linear)
 
@@ -101,50 +99,6 @@ def disparity_regression(cost: jax.Array) -> jax.Array:
   return jnp.einsum("bdhw,d->bhw", prob, disp)
 
 
-def _phase_planes(c: jax.Array, phases) -> list[jax.Array]:
-  """Disparity planes f*i + r (in order) of edge-extended costs c [B, D + 2, H, W]."""
-  d = c.shape[1] - 2
-  return [w0 * c[:, 1 + s + i] + w1 * c[:, 2 + s + i] for i in range(d) for s, w0, w1 in phases]
-
-
-def _phase_regression_parts(c, phases):
-  ups = _phase_planes(c, phases)
-  top = functools.reduce(jnp.maximum, ups)
-  exps = [jnp.exp(u - top) for u in ups]
-  z = sum(exps)
-  return sum(k * e for k, e in enumerate(exps)) / z, top + jnp.log(z)
-
-
-@functools.partial(jax.custom_vjp, nondiff_argnums=(1,))
-def _phase_regression(c: jax.Array, phases) -> jax.Array:
-  return _phase_regression_parts(c, phases)[0]
-
-
-def _phase_regression_fwd(c, phases):
-  pred, lse = _phase_regression_parts(c, phases)
-  return pred, (c, pred, lse)
-
-
-def _phase_regression_bwd(phases, res, g):
-  # d pred / d u_k = p_k (k - pred) with p_k = exp(u_k - logsumexp); each plane of c collects
-  # the interpolation weights of the (at most 2f) upsampled planes that read it. Written out
-  # (autodiff's graph is 20x slower on XLA:CPU) and free of the maximum, which XLA would
-  # otherwise recompute inside every plane's fusion.
-  c, pred, lse = res
-  f = len(phases)
-  terms = [[] for _ in range(c.shape[1])]
-  for k, u in enumerate(_phase_planes(c, phases)):
-    i, (s, w0, w1) = k // f, phases[k % f]
-    gu = jnp.exp(u - lse) * (k - pred) * g
-    terms[1 + s + i].append(w0 * gu)
-    terms[2 + s + i].append(w1 * gu)
-  zero = jnp.zeros_like(pred)
-  return (jnp.stack([sum(t) if t else zero for t in terms], axis=1),)
-
-
-_phase_regression.defvjp(_phase_regression_fwd, _phase_regression_bwd)
-
-
 def regress_upsampled(cost: jax.Array, maxdisp: int, height: int, width: int,
                       align_corners: bool = False) -> jax.Array:
   """disparity_regression(upsample_cost(...)) without the [B, maxdisp, H, W] volume.
@@ -164,7 +118,7 @@ def regress_upsampled(cost: jax.Array, maxdisp: int, height: int, width: int,
   mw = jnp.asarray(linear_resize_matrix(cost.shape[3], width, align_corners), cost.dtype)
   c = jnp.einsum("Hh,bdhw,Ww->bdHW", mh, cost, mw)
   c = jnp.concatenate([c[:, :1], c, c[:, -1:]], axis=1)  # edge extension along disparity
-  return _phase_regression(c, phases)
+  return phase_regression(c, phases)
 
 
 def upsample_cost(cost: jax.Array, maxdisp: int, height: int, width: int,

@@ -36,7 +36,7 @@ import jax
 import jax.numpy as jnp
 
 from sljax.errors import require
-from sljax.nets.conv3d import Conv3D
+from sljax.kernels import Conv3D
 from sljax.nets.layers import ConvBN2D, ConvBN3D, conv_init, resize_linear
 from sljax.nets.psmnet import (check_pair, disparity_outputs, extract_cost_volume,
                                stacked_hourglass)

@@ -26,7 +26,8 @@ import jax
 import jax.numpy as jnp
 
 from sljax.errors import require
-from sljax.nets.layers import ConvBN2D, UpConv2x2, conv_init, max_pool_2x2
+from sljax.kernels import max_pool_2x2
+from sljax.nets.layers import ConvBN2D, UpConv2x2, conv_init
 
 HEADS = ("sl", "disp")
 INPUT_ZERO = 0.5  # the [0, 1] input that the centring 2x - 1 maps to 0: the pad value at test time

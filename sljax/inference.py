@@ -254,7 +254,7 @@ def _twin_halves(model):
   from sljax.nets.psmnet import PSMNet
   from sljax.nets.psmnet_mtl import SLOnly
   kw = {"maxdisp": model.maxdisp, "in_channels": model.in_channels,
-        "align_corners": model.align_corners}
+        "align_corners": model.align_corners, "conv_impl": model.conv_impl}
   return PSMNet(**kw), SLOnly(t=model.t, **kw)
 
 

@@ -25,8 +25,10 @@ slower), concatenating the depth taps on channels (same speed or slower, 3x memo
 Which runs. `impl` = "auto" | "lax" | "fast" (impl.py): "auto" is "fast" on CPU and "lax"
 (the plain `lax.conv_general_dilated`) elsewhere; None, i.e. nothing explicit, takes
 $SLJAX_CONV3D (auto | lax | fast), else "auto". The networks carry the choice as their
-`conv_impl` field, resolved when the model is constructed (`impl_field`), and pass it to
-every convolution module, so two models built with "lax" and "fast" run side by side.
+`conv_impl` field, resolved to "lax" or "fast" when the model is constructed
+(`ResolvesConvImpl`), and pass it to every convolution module, so two models built with
+"lax" and "fast" run side by side in one process. The kernel functions and modules called
+with impl=None still read the environment when traced (the networks never do so).
 """
 
 from sljax.kernels.args import (PaddingLike, explicit_padding, ntuple, pairs, resolve_padding,
@@ -36,14 +38,14 @@ from sljax.kernels.conv2d import conv2d
 from sljax.kernels.conv3d import (conv3d, conv_transpose3d, fold_conv3d, lax_conv3d,
                                   phase_conv_transpose3d)
 from sljax.kernels.fold import tap_products_conv3d
-from sljax.kernels.impl import ENV_IMPL, IMPLS, conv_impl, impl_field
+from sljax.kernels.impl import ENV_IMPL, IMPLS, ResolvesConvImpl, conv_impl
 from sljax.kernels.modules import Conv2D, Conv3D, ConvBase, ConvTranspose3D
 from sljax.kernels.pool import max_pool_2x2
 from sljax.kernels.regression import phase_regression
 from sljax.kernels.vjp import vjp_saving_inputs
 
 __all__ = ["BLOCK_VALUES", "ENV_IMPL", "IMPLS", "Conv2D", "Conv3D", "ConvBase", "ConvTranspose3D",
-           "PaddingLike", "conv2d", "conv3d", "conv_impl", "conv_transpose3d", "explicit_padding",
-           "fold_conv3d", "impl_field", "lax_conv3d", "max_pool_2x2", "ntuple", "pairs",
+           "PaddingLike", "ResolvesConvImpl", "conv2d", "conv3d", "conv_impl", "conv_transpose3d",
+           "explicit_padding", "fold_conv3d", "lax_conv3d", "max_pool_2x2", "ntuple", "pairs",
            "phase_conv_transpose3d", "phase_regression", "resolve_padding", "tap_products_conv3d",
            "transpose_padding", "vjp_saving_inputs"]

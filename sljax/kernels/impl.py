@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import os
 
 import jax
@@ -22,10 +21,15 @@ def conv_impl(impl: str | None = None) -> str:
   return choice
 
 
-def impl_field() -> dataclasses.Field:
-  """A model field whose default is `conv_impl()` when the model is constructed.
+class ResolvesConvImpl:
+  """Mixin for flax modules with a `conv_impl` field: resolved when the module is constructed.
 
-  So the environment is read once, where the model is built, not when it is traced: a
-  compiled step cached for one model never silently runs the other implementation.
+  The field becomes 'lax' or 'fast' (`conv_impl`: None takes $SLJAX_CONV3D, "auto" the
+  backend's choice; anything else is a ValueError), so the environment is read once, where
+  the model is built, not when it is traced: a compiled step cached for one model never
+  silently runs the other implementation, and two models can hold different choices.
   """
-  return dataclasses.field(default_factory=conv_impl)
+
+  def __post_init__(self):
+    object.__setattr__(self, "conv_impl", conv_impl(self.conv_impl))
+    super().__post_init__()

@@ -83,9 +83,9 @@ class ConvTranspose3D(ConvBase):
 
   def convolve(self, x: jax.Array, kernel: jax.Array) -> jax.Array:
     """The transposed 3D convolution."""
-    return conv_transpose3d(x, kernel, ntuple(self.strides, 3),
-                            transpose_padding(kernel.shape[:3], self.padding, self.output_padding),
-                            self.impl, self.block_values)
+    padding = transpose_padding(kernel.shape[:3], self.padding, self.output_padding)
+    return conv_transpose3d(x, kernel, ntuple(self.strides, 3), padding, self.impl,
+                            self.block_values)
 
 
 class Conv2D(ConvBase):

@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sljax.kernels import Conv2D, Conv3D
+from sljax.kernels import Conv2D, Conv3D, ResolvesConvImpl
 
 BN_MOMENTUM = 0.9  # flax convention: running = momentum * running + (1 - momentum) * batch
 BN_EPSILON = 1e-5
@@ -55,7 +55,7 @@ def batch_norm(name: str | None = None) -> BatchNorm:
   return BatchNorm(momentum=BN_MOMENTUM, epsilon=BN_EPSILON, name=name)
 
 
-class ConvBN2D(nn.Module):
+class ConvBN2D(ResolvesConvImpl, nn.Module):
   """Conv2d (no bias, PyTorch padding) followed by BatchNorm: the reference's `convbn`."""
 
   features: int
@@ -63,6 +63,7 @@ class ConvBN2D(nn.Module):
   strides: int = 1
   padding: int = 1
   dilation: int = 1
+  conv_impl: str | None = None  # "auto" | "lax" | "fast"; None: $SLJAX_CONV3D (sljax.kernels)
 
   @nn.compact
   def __call__(self, x: jax.Array, train: bool) -> jax.Array:
@@ -71,23 +72,25 @@ class ConvBN2D(nn.Module):
     x = Conv2D(self.features, (self.kernel_size, self.kernel_size),
                strides=(self.strides, self.strides), padding=((p, p), (p, p)),
                kernel_dilation=(self.dilation, self.dilation), use_bias=False,
-               kernel_init=conv_init, name="conv")(x)
+               kernel_init=conv_init, impl=self.conv_impl, name="conv")(x)
     return batch_norm("bn")(x, use_running_average=not train)
 
 
-class ConvBN3D(nn.Module):
+class ConvBN3D(ResolvesConvImpl, nn.Module):
   """Conv3d (no bias, PyTorch padding) followed by BatchNorm: the reference's `convbn_3d`."""
 
   features: int
   kernel_size: int = 3
   strides: int = 1
   padding: int = 1
+  conv_impl: str | None = None  # "auto" | "lax" | "fast"; None: $SLJAX_CONV3D (sljax.kernels)
 
   @nn.compact
   def __call__(self, x: jax.Array, train: bool) -> jax.Array:
     """Applies conv then BN on NDHWC input."""
     x = Conv3D(self.features, (self.kernel_size,) * 3, strides=self.strides,
-               padding=self.padding, use_bias=False, kernel_init=conv_init, name="conv")(x)
+               padding=self.padding, use_bias=False, kernel_init=conv_init, impl=self.conv_impl,
+               name="conv")(x)
     return batch_norm("bn")(x, use_running_average=not train)
 
 

@@ -5,9 +5,10 @@ Guarantees. Every implementation of a convolution equals `lax.conv_general_dilat
 and in both gradients to float rounding, for any strides, padding and blocking; the pooling
 equals `nn.max_pool` (gradient to the first maximum, ties included) and the regression the
 plain composition of upsampling, softmax and regression. Guarded by tests/test_conv3d.py
-(each kernel against lax, every blocking, bfloat16, the modules against flax's, "lax" and
-"fast" networks in one process), tests/test_unet.py::test_max_pool_equals_flax_max_pool and
-tests/test_psmnet.py::test_regress_upsampled_equals_the_composition.
+(each kernel against lax, every blocking, bfloat16, the modules against flax's),
+tests/test_conv_impl.py (whole networks built with "lax" and "fast" in one process: outputs
+and parameter gradients in float64), tests/test_unet.py::test_max_pool_equals_flax_max_pool
+and tests/test_psmnet.py::test_regress_upsampled_equals_the_composition.
 
 Why. XLA:CPU's 3D convolution is slow (tens of GFLOP/s on 2 cores, and its stride-2 and
 transposed gradients take seconds at PSMNet's sizes), while its 2D convolution is close to
@@ -28,7 +29,8 @@ $SLJAX_CONV3D (auto | lax | fast), else "auto". The networks carry the choice as
 `conv_impl` field, resolved to "lax" or "fast" when the model is constructed
 (`ResolvesConvImpl`), and pass it to every convolution module, so two models built with
 "lax" and "fast" run side by side in one process. The kernel functions and modules called
-with impl=None still read the environment when traced (the networks never do so).
+with impl=None still read the environment when traced (the networks never do so). The
+pooling and the regression have one form, used on every platform.
 """
 
 from sljax.kernels.args import (PaddingLike, explicit_padding, ntuple, pairs, resolve_padding,

@@ -26,8 +26,9 @@ class ResolvesConvImpl:
 
   The field becomes 'lax' or 'fast' (`conv_impl`: None takes $SLJAX_CONV3D, "auto" the
   backend's choice; anything else is a ValueError), so the environment is read once, where
-  the model is built, not when it is traced: a compiled step cached for one model never
-  silently runs the other implementation, and two models can hold different choices.
+  the model is built, not when it is traced: what runs is fixed by the model object (and
+  part of its hash, so jit with the model static compiles each choice apart), and two models
+  in one process can hold different choices.
   """
 
   def __post_init__(self):

@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from sljax.kernels.args import explicit_padding
+from sljax.kernels.args import explicit_padding, ntuple
 from sljax.kernels.blocks import (BLOCK_VALUES, block_shape, blocked, conv2d_kernel_grad,
                                   plain_conv2d)
 from sljax.kernels.impl import conv_impl
@@ -58,7 +58,7 @@ def conv2d(x: jax.Array, kernel: jax.Array, strides: Sequence[int] = (1, 1), pad
   (`block_values` input values each), which XLA:CPU computes 1.3-1.6x faster than in one
   piece at PSMNet's feature-extraction shapes.
   """
-  strides, dilation = tuple(int(v) for v in strides), tuple(int(v) for v in dilation)
+  strides, dilation = ntuple(strides, 2), ntuple(dilation, 2)
   padding = explicit_padding(padding, x.shape[1:3], kernel.shape[:2], strides, dilation)
   if conv_impl(impl) == "lax":
     return plain_conv2d(x, kernel, strides, padding, dilation)

@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from sljax.kernels.args import explicit_padding, pairs
+from sljax.kernels.args import explicit_padding, ntuple, pairs
 from sljax.kernels.blocks import BLOCK_VALUES
 from sljax.kernels.fold import (fold_forward, fold_kernel_grad, input_grad_padding,
                                 tap_products_conv3d)
@@ -84,7 +84,7 @@ def fold_conv3d(x: jax.Array, kernel: jax.Array, strides: Sequence[int], padding
   faster than 3D ones, and both on small blocks. Stride-1 layers with few outputs (PSMNet's
   32 -> 1 classifiers) take `tap_products_conv3d` instead.
   """
-  strides = tuple(int(v) for v in strides)
+  strides = ntuple(strides, 3)
   pad = explicit_padding(padding, x.shape[1:4], kernel.shape[:3], strides)
   if strides == (1, 1, 1) and np.prod(kernel.shape[:3]) * kernel.shape[4] <= kernel.shape[3]:
     return tap_products_conv3d(x, kernel, pad)
@@ -102,7 +102,7 @@ def phase_conv_transpose3d(x: jax.Array, kernel: jax.Array, strides: Sequence[in
   (over the union of input offsets) is gathered from `kernel` by 0/1 selection, then the
   phases are interleaved (pixel shuffle) and the output cropped to its exact size.
   """
-  strides = tuple(int(v) for v in strides)
+  strides = ntuple(strides, 3)
   return _phase(x, kernel, strides, pairs(padding), int(block_values))
 
 
@@ -112,14 +112,14 @@ def conv3d(x: jax.Array, kernel: jax.Array, strides: Sequence[int] = (1, 1, 1),
   """NDHWC 3D convolution, numerically equal to lax.conv_general_dilated."""
   if conv_impl(impl) == "lax":
     return lax_conv3d(x, kernel, strides, padding)
-  return fold_conv3d(x, kernel, tuple(strides), padding, block_values)
+  return fold_conv3d(x, kernel, strides, padding, block_values)
 
 
 def conv_transpose3d(x: jax.Array, kernel: jax.Array, strides: Sequence[int] = (2, 2, 2),
                      padding=((1, 2),) * 3, impl: str | None = None,
                      block_values: int = BLOCK_VALUES) -> jax.Array:
   """Transposed 3D conv = conv of the s-dilated input (flax's unflipped kernel layout)."""
-  strides = tuple(strides)
+  strides = ntuple(strides, 3)
   if conv_impl(impl) == "lax":
     return lax_conv3d(x, kernel, (1, 1, 1), padding, lhs_dilation=strides)
   if isinstance(padding, str):

@@ -23,7 +23,6 @@ PyTorch is imported only here (pip install "sljax[torch]").
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from pathlib import Path
 
@@ -32,9 +31,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from common import best_time, machine, peak_gflops, record  # first: puts this checkout's sljax on the path
+from sljax import kernels as c3
 from sljax.losses.disparity import PSMNET_OUTPUT_WEIGHTS, disparity_loss
 from sljax.nets import build_model
-from sljax.nets import conv3d as c3
 
 
 # ------------------------------------------------------------------------- PyTorch stacks
@@ -276,31 +275,21 @@ def jax_loss(out, gt, maxdisp):
 
 
 def jax_time(name, batch, size, maxdisp, repeats, train, impl=None):
-  """sljax forward (eval) or forward+backward (train) time; impl sets SLJAX_CONV3D."""
-  old = os.environ.get("SLJAX_CONV3D")
-  if impl is not None:
-    os.environ["SLJAX_CONV3D"] = impl  # read when the model is traced
-  try:
-    model = build_model(name, maxdisp=maxdisp)
-    left, right, gt = (jnp.asarray(a) for a in inputs(batch, size, maxdisp))
-    variables = jax.jit(model.init)(jax.random.PRNGKey(0), left[:1], right[:1])
-    if not train:
-      f = jax.jit(lambda v, l, r: model.apply(v, l, r, train=False))
-      return best_time(lambda: jax.block_until_ready(f(variables, left, right)), repeats)
+  """sljax forward (eval) or forward+backward (train) time; impl: the model's conv_impl."""
+  model = build_model(name, maxdisp=maxdisp, conv_impl=impl)
+  left, right, gt = (jnp.asarray(a) for a in inputs(batch, size, maxdisp))
+  variables = jax.jit(model.init)(jax.random.PRNGKey(0), left[:1], right[:1])
+  if not train:
+    f = jax.jit(lambda v, l, r: model.apply(v, l, r, train=False))
+    return best_time(lambda: jax.block_until_ready(f(variables, left, right)), repeats)
 
-    def loss(params, l, r, g):
-      out, _ = model.apply({**variables, "params": params}, l, r, train=True,
-                           mutable=["batch_stats"])
-      return jax_loss(out, g, maxdisp)
-    g = jax.jit(jax.grad(loss))
-    return best_time(lambda: jax.block_until_ready(g(variables["params"], left, right, gt)),
-                     repeats)
-  finally:
-    if impl is not None:
-      if old is None:
-        os.environ.pop("SLJAX_CONV3D", None)
-      else:
-        os.environ["SLJAX_CONV3D"] = old
+  def loss(params, l, r, g):
+    out, _ = model.apply({**variables, "params": params}, l, r, train=True,
+                         mutable=["batch_stats"])
+    return jax_loss(out, g, maxdisp)
+  g = jax.jit(jax.grad(loss))
+  return best_time(lambda: jax.block_until_ready(g(variables["params"], left, right, gt)),
+                   repeats)
 
 
 # ------------------------------------------------------------------------- micro benchmarks

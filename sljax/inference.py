@@ -257,7 +257,7 @@ TWIN_SPLIT_BYTES = 256 * 2**20
 def _twin_halves(model):
   """(PSMNet, SLOnly) with the twin's configuration."""
   kw = {"maxdisp": model.maxdisp, "in_channels": model.in_channels,
-        "align_corners": model.align_corners}
+        "align_corners": model.align_corners, "conv_impl": model.conv_impl}
   return PSMNet(**kw), SLOnly(t=model.t, **kw)
 
 

@@ -9,7 +9,7 @@ slower without them. So the choice is made per program kind: forward-only progra
 function (only float rounding differs), and the choice is an explicit argument of the programs
 that use it (`KernelChoice.compiler_options(kind)`, passed to `jax.jit`), never process state.
 The fast CPU convolution kernels themselves (folded / lax, block sizes) are not tuned yet: they
-are chosen where the model is built.
+are chosen where the model is built (its `conv_impl`, `sljax.kernels`).
 
 How. `measure` compiles PSMNet itself (128x128, maxdisp 48, batch 1: the real mix of 2D and 3D
 convolutions) as a forward and as a training program, with the fusions on and off, and times

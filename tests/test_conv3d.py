@@ -1,4 +1,4 @@
-"""The fast 3D convolutions equal lax.conv_general_dilated, forward and gradients."""
+"""The fast convolution kernels equal lax.conv_general_dilated, forward and gradients."""
 
 import flax.linen as nn
 import jax
@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 from jax import lax
 
-from sljax.nets import conv3d as c3
+from sljax import kernels as c3
+from sljax.nets import conv3d as old_home
 
 DIMS = ("NDHWC", "DHWIO", "NDHWC")
 
@@ -25,19 +26,26 @@ def _assert_close(a, b, rtol=2e-5):
   np.testing.assert_allclose(a / scale, b / scale, atol=rtol)
 
 
+def _value_and_grads(f, w):
+  def run(x, k):
+    y, vjp = jax.vjp(f, x, k)
+    return (y,) + vjp(w)
+  return run
+
+
 def _check_against(ref, fast, x, k, seed):
   """Compares outputs and both gradients of fast vs ref, each side compiled once."""
   w = jnp.asarray(np.random.RandomState(seed).randn(*jax.eval_shape(ref, x, k).shape),
                   jnp.float32)
-
-  def value_and_grads(f):
-    def run(x, k):
-      y, vjp = jax.vjp(f, x, k)
-      return (y,) + vjp(w)
-    return jax.jit(run)(x, k)
-
-  for a, b in zip(value_and_grads(fast), value_and_grads(ref)):
+  for a, b in zip(*(jax.jit(_value_and_grads(f, w))(x, k) for f in (fast, ref))):
     _assert_close(a, b)
+
+
+def _loops(f, x, k):
+  """Loops in the program of f's value and gradients (several blocks run in a loop)."""
+  w = jnp.zeros(jax.eval_shape(f, x, k).shape, x.dtype)
+  text = str(jax.make_jaxpr(_value_and_grads(f, w))(x, k))
+  return text.count("scan[") + text.count("while[")  # fori_loop: a scan (static trip count)
 
 
 # (x shape, kernel shape, strides, padding): PSMNet's cases first, then odd ones.
@@ -135,6 +143,15 @@ def test_modules_have_flax_parameters_and_outputs():
     _assert_close(jax.jit(ours.apply)(v, x), jax.jit(theirs.apply)(v, x))
 
 
+def test_old_import_path_reexports_the_kernels():
+  """sljax.nets.conv3d (the kernels' old home) gives the very objects of sljax.kernels."""
+  for name in old_home.__all__:
+    assert getattr(old_home, name) is getattr(c3, name), name
+  x, k = _data(16, (1, 4, 5, 5, 2), (3, 3, 3, 2, 3))
+  _assert_close(old_home.conv3d(x, k, impl="fast"),
+                lax.conv_general_dilated(x, k, (1, 1, 1), ((1, 1),) * 3, dimension_numbers=DIMS))
+
+
 def test_impl_selection(monkeypatch):
   assert c3.conv_impl("lax") == "lax"
   monkeypatch.setenv("SLJAX_CONV3D", "lax")
@@ -160,37 +177,39 @@ def test_bfloat16_inputs_compute_in_bfloat16():
                                  atol=0.15)
 
 
-# Block sizes (in values of one input plane) that force every blocking of `_blocked`: one
+# Block sizes (in values of one input plane) that force every blocking of `blocked`: one
 # plane per block, chunks of planes, whole batch items, and one block for everything.
 BLOCKINGS = [1, 2, 3, 10 ** 9]
 
 
 @pytest.mark.parametrize("planes", BLOCKINGS)
 @pytest.mark.parametrize("x_shape,k_shape,strides,padding", CONV_CASES[:4])
-def test_blocked_folded_conv_equals_lax(monkeypatch, planes, x_shape, k_shape, strides,
+def test_blocked_folded_conv_equals_lax(planes, x_shape, k_shape, strides,
                                         padding):
   """Every block shape (loops over batch items and plane chunks) gives lax's conv and grads."""
-  monkeypatch.setattr(c3, "BLOCK_VALUES", planes * int(np.prod(x_shape[2:])))
+  block = planes * int(np.prod(x_shape[2:]))
   x, k = _data(7, x_shape, k_shape)
 
   def ref(x, k):
     return lax.conv_general_dilated(x, k, strides, padding, dimension_numbers=DIMS)
 
-  _check_against(ref, lambda x, k: c3.conv3d(x, k, strides, padding, impl="fast"), x, k, 8)
+  fast = lambda x, k: c3.conv3d(x, k, strides, padding, impl="fast", block_values=block)
+  _check_against(ref, fast, x, k, 8)
 
 
 @pytest.mark.parametrize("planes", [1, 10 ** 9])
-def test_blocked_transposed_conv_equals_lax(monkeypatch, planes):
+def test_blocked_transposed_conv_equals_lax(planes):
   x_shape, k_shape, strides, padding = TRANSPOSE_CASES[1]
-  monkeypatch.setattr(c3, "BLOCK_VALUES", planes * int(np.prod(x_shape[2:])))
+  block = planes * int(np.prod(x_shape[2:]))
   x, k = _data(9, x_shape, k_shape)
 
   def ref(x, k):
     return lax.conv_general_dilated(x, k, (1, 1, 1), padding, lhs_dilation=strides,
                                     dimension_numbers=DIMS)
 
-  _check_against(ref, lambda x, k: c3.conv_transpose3d(x, k, strides, padding, impl="fast"),
-                 x, k, 10)
+  fast = lambda x, k: c3.conv_transpose3d(x, k, strides, padding, impl="fast",
+                                          block_values=block)
+  _check_against(ref, fast, x, k, 10)
 
 
 @pytest.mark.parametrize("padding", [((1, 1),) * 3, ((0, 2), (1, 0), (2, 1))])
@@ -213,17 +232,40 @@ def test_tap_products_path_for_few_outputs_equals_lax(padding):
     ((2, 1), ((0, 2), (1, 0)), (1, 3)),       # odd ones
     ((1, 1), "SAME", (1, 1)),
 ])
-def test_blocked_conv2d_equals_lax(monkeypatch, rows, strides, padding, dilation):
+def test_blocked_conv2d_equals_lax(rows, strides, padding, dilation):
   """conv2d's row-blocked kernel gradient equals XLA's, for every blocking."""
   x, k = _data(13, (2, 9, 7, 3), (3, 3, 3, 4))
-  monkeypatch.setattr(c3, "BLOCK_VALUES", rows * 9 * 3)
+  block = rows * 9 * 3
 
   def ref(x, k):
     return lax.conv_general_dilated(x, k, strides, padding, rhs_dilation=dilation,
                                     dimension_numbers=("NHWC", "HWIO", "NHWC"))
 
-  _check_against(ref, lambda x, k: c3.conv2d(x, k, strides, padding, dilation, impl="fast"),
-                 x, k, 14)
+  fast = lambda x, k: c3.conv2d(x, k, strides, padding, dilation, impl="fast",
+                                block_values=block)
+  _check_against(ref, fast, x, k, 14)
+
+
+def test_block_values_reaches_the_blocking():
+  """block_values is the kernels' argument: one-plane blocks run in loops, the default in one
+  block, and both equal lax (the module field too)."""
+  x, k = _data(17, (1, 6, 8, 8, 6), (3, 3, 3, 6, 4))
+  x2, k2 = _data(18, (2, 9, 7, 3), (3, 3, 3, 4))
+  cases = [
+      (lambda b: lambda x, k: c3.conv3d(x, k, impl="fast", block_values=b),
+       lambda x, k: c3.lax_conv3d(x, k, (1, 1, 1), ((1, 1),) * 3), x, k),
+      (lambda b: lambda x, k: c3.conv_transpose3d(x, k, impl="fast", block_values=b),
+       lambda x, k: c3.lax_conv3d(x, k, (1, 1, 1), ((1, 2),) * 3, (2, 2, 2)), x, k),
+      (lambda b: lambda x, k: c3.conv2d(x, k, impl="fast", block_values=b),
+       lambda x, k: lax.conv_general_dilated(x, k, (1, 1), ((1, 1),) * 2,
+                                             dimension_numbers=("NHWC", "HWIO", "NHWC")), x2, k2),
+      (lambda b: lambda x, k: c3.Conv3D(4, impl="fast", block_values=b).apply(
+          {"params": {"kernel": k}}, x),
+       lambda x, k: c3.lax_conv3d(x, k, (1, 1, 1), ((1, 1),) * 3), x, k),
+  ]
+  for fast, ref, x, k in cases:
+    assert _loops(fast(1), x, k) > 0 and _loops(fast(c3.BLOCK_VALUES), x, k) == 0
+    _check_against(ref, fast(1), x, k, 19)
 
 
 def test_conv2d_module_equals_flax_conv():

@@ -142,7 +142,7 @@ def test_upconv_equals_flax_conv_transpose():
 def test_max_pool_equals_flax_max_pool():
   """max_pool_2x2 equals nn.max_pool, values and gradients, ties included (first maximum)."""
   import flax.linen as nn
-  from sljax.nets.layers import max_pool_2x2
+  from sljax.kernels import max_pool_2x2
   rng = np.random.RandomState(1)
   x = rng.randn(2, 6, 8, 3).astype(np.float32)
   x[0, :2, :2] = 1.5   # ties: a flat window, and a window with two equal maxima

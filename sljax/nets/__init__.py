@@ -45,7 +45,9 @@ def build_model(name: str, *, maxdisp: int = 96, t: int = 8, gray: bool = False,
 
   maxdisp (PSMNets; multiple of 16), t (patterns; psmnet-mtl, unet-sl), gray or in_channels
   (channels per view: 1 or 3) apply where relevant; align_corners (PSMNets) and depth,
-  base_width (UNets) are model options. Unknown names or options raise SljaxError.
+  base_width (UNets) are model options; conv_impl ("auto" | "lax" | "fast", every network;
+  left out: $SLJAX_CONV3D, else "auto") chooses the convolution kernels (sljax.kernels) and
+  is resolved here, when the model is constructed. Unknown names or options raise SljaxError.
   """
   s = spec(name)
   unknown = sorted(set(kwargs) - set(s.options))

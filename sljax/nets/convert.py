@@ -80,7 +80,7 @@ def psmnet_template(in_channels: int = 3) -> tuple[dict, frozenset[tuple[str, ..
   import jax
   import jax.numpy as jnp
 
-  from sljax.nets.conv3d import ConvTranspose3D
+  from sljax.kernels import ConvTranspose3D
   from sljax.nets.psmnet import PSMNet
 
   transposed: set[tuple[str, ...]] = set()

@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sljax.nets.conv3d import Conv2D, Conv3D
+from sljax.kernels import Conv2D, Conv3D, ResolvesConvImpl
 
 BN_MOMENTUM = 0.9  # flax convention: running = momentum * running + (1 - momentum) * batch
 BN_EPSILON = 1e-5
@@ -55,7 +55,7 @@ def batch_norm(name: str | None = None) -> BatchNorm:
   return BatchNorm(momentum=BN_MOMENTUM, epsilon=BN_EPSILON, name=name)
 
 
-class ConvBN2D(nn.Module):
+class ConvBN2D(ResolvesConvImpl, nn.Module):
   """Conv2d (no bias, PyTorch padding) followed by BatchNorm: the reference's `convbn`."""
 
   features: int
@@ -63,6 +63,7 @@ class ConvBN2D(nn.Module):
   strides: int = 1
   padding: int = 1
   dilation: int = 1
+  conv_impl: str | None = None  # "auto" | "lax" | "fast"; None: $SLJAX_CONV3D (sljax.kernels)
 
   @nn.compact
   def __call__(self, x: jax.Array, train: bool) -> jax.Array:
@@ -71,23 +72,25 @@ class ConvBN2D(nn.Module):
     x = Conv2D(self.features, (self.kernel_size, self.kernel_size),
                strides=(self.strides, self.strides), padding=((p, p), (p, p)),
                kernel_dilation=(self.dilation, self.dilation), use_bias=False,
-               kernel_init=conv_init, name="conv")(x)
+               kernel_init=conv_init, impl=self.conv_impl, name="conv")(x)
     return batch_norm("bn")(x, use_running_average=not train)
 
 
-class ConvBN3D(nn.Module):
+class ConvBN3D(ResolvesConvImpl, nn.Module):
   """Conv3d (no bias, PyTorch padding) followed by BatchNorm: the reference's `convbn_3d`."""
 
   features: int
   kernel_size: int = 3
   strides: int = 1
   padding: int = 1
+  conv_impl: str | None = None  # "auto" | "lax" | "fast"; None: $SLJAX_CONV3D (sljax.kernels)
 
   @nn.compact
   def __call__(self, x: jax.Array, train: bool) -> jax.Array:
     """Applies conv then BN on NDHWC input."""
     x = Conv3D(self.features, (self.kernel_size,) * 3, strides=self.strides,
-               padding=self.padding, use_bias=False, kernel_init=conv_init, name="conv")(x)
+               padding=self.padding, use_bias=False, kernel_init=conv_init, impl=self.conv_impl,
+               name="conv")(x)
     return batch_norm("bn")(x, use_running_average=not train)
 
 
@@ -114,40 +117,6 @@ class UpConv2x2(nn.Module):
     b, h, w, _ = x.shape
     y = jnp.einsum("bhwi,acio->bhawco", x.astype(dtype), kernel[::-1, ::-1].astype(dtype))
     return y.reshape(b, 2 * h, 2 * w, self.features) + bias.astype(dtype)
-
-
-def _windows_2x2(x: jax.Array) -> jax.Array:
-  """[B, H, W, C] -> [B, H/2, 2, W/2, 2, C] (a reshape: no data moves)."""
-  b, h, w, c = x.shape
-  return x.reshape(b, h // 2, 2, w // 2, 2, c)
-
-
-@jax.custom_vjp
-def max_pool_2x2(x: jax.Array) -> jax.Array:
-  """nn.max_pool(x, (2, 2), strides=(2, 2)) on NHWC x with even height and width.
-
-  The gradient goes to the first maximum of each window (row-major), as XLA's
-  select-and-scatter (and PyTorch) do, but as elementwise masks on a reshape: XLA:CPU's
-  select-and-scatter is several times slower. Splitting ties instead (jnp.max's own gradient)
-  changes training on images with flat regions, where ties are common.
-  """
-  return jnp.max(_windows_2x2(x), axis=(2, 4))
-
-
-def _max_pool_fwd(x):
-  return max_pool_2x2(x), x
-
-
-def _max_pool_bwd(x, g):
-  win = _windows_2x2(x)
-  eq = win == jnp.max(win, axis=(2, 4), keepdims=True)
-  e00, e01, e10, e11 = eq[:, :, 0, :, 0], eq[:, :, 0, :, 1], eq[:, :, 1, :, 0], eq[:, :, 1, :, 1]
-  first = [[e00, e01 & ~e00], [e10 & ~(e00 | e01), e11 & ~(e00 | e01 | e10)]]
-  sel = jnp.stack([jnp.stack(row, axis=3) for row in first], axis=2)  # [B, H/2, 2, W/2, 2, C]
-  return (jnp.where(sel, g[:, :, None, :, None], 0).reshape(x.shape).astype(g.dtype),)
-
-
-max_pool_2x2.defvjp(_max_pool_fwd, _max_pool_bwd)
 
 
 @functools.lru_cache(maxsize=256)

@@ -41,15 +41,13 @@ Parameter names follow the reference (see `reference_key`): top level `feature_e
 
 from __future__ import annotations
 
-import functools
-
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from sljax.errors import require
-from sljax.nets.conv3d import Conv3D, ConvTranspose3D
+from sljax.kernels import Conv3D, ConvTranspose3D, ResolvesConvImpl, phase_regression
 from sljax.nets.layers import (ConvBN2D, ConvBN3D, batch_norm, conv_init, conv_transpose_init,
                                linear_resize_matrix, linear_resize_phases, resize_linear)
 
@@ -101,50 +99,6 @@ def disparity_regression(cost: jax.Array) -> jax.Array:
   return jnp.einsum("bdhw,d->bhw", prob, disp)
 
 
-def _phase_planes(c: jax.Array, phases) -> list[jax.Array]:
-  """Disparity planes f*i + r (in order) of edge-extended costs c [B, D + 2, H, W]."""
-  d = c.shape[1] - 2
-  return [w0 * c[:, 1 + s + i] + w1 * c[:, 2 + s + i] for i in range(d) for s, w0, w1 in phases]
-
-
-def _phase_regression_parts(c, phases):
-  ups = _phase_planes(c, phases)
-  top = functools.reduce(jnp.maximum, ups)
-  exps = [jnp.exp(u - top) for u in ups]
-  z = sum(exps)
-  return sum(k * e for k, e in enumerate(exps)) / z, top + jnp.log(z)
-
-
-@functools.partial(jax.custom_vjp, nondiff_argnums=(1,))
-def _phase_regression(c: jax.Array, phases) -> jax.Array:
-  return _phase_regression_parts(c, phases)[0]
-
-
-def _phase_regression_fwd(c, phases):
-  pred, lse = _phase_regression_parts(c, phases)
-  return pred, (c, pred, lse)
-
-
-def _phase_regression_bwd(phases, res, g):
-  # d pred / d u_k = p_k (k - pred) with p_k = exp(u_k - logsumexp); each plane of c collects
-  # the interpolation weights of the (at most 2f) upsampled planes that read it. Written out
-  # (autodiff's graph is 20x slower on XLA:CPU) and free of the maximum, which XLA would
-  # otherwise recompute inside every plane's fusion.
-  c, pred, lse = res
-  f = len(phases)
-  terms = [[] for _ in range(c.shape[1])]
-  for k, u in enumerate(_phase_planes(c, phases)):
-    i, (s, w0, w1) = k // f, phases[k % f]
-    gu = jnp.exp(u - lse) * (k - pred) * g
-    terms[1 + s + i].append(w0 * gu)
-    terms[2 + s + i].append(w1 * gu)
-  zero = jnp.zeros_like(pred)
-  return (jnp.stack([sum(t) if t else zero for t in terms], axis=1),)
-
-
-_phase_regression.defvjp(_phase_regression_fwd, _phase_regression_bwd)
-
-
 def regress_upsampled(cost: jax.Array, maxdisp: int, height: int, width: int,
                       align_corners: bool = False) -> jax.Array:
   """disparity_regression(upsample_cost(...)) without the [B, maxdisp, H, W] volume.
@@ -164,7 +118,7 @@ def regress_upsampled(cost: jax.Array, maxdisp: int, height: int, width: int,
   mw = jnp.asarray(linear_resize_matrix(cost.shape[3], width, align_corners), cost.dtype)
   c = jnp.einsum("Hh,bdhw,Ww->bdHW", mh, cost, mw)
   c = jnp.concatenate([c[:, :1], c, c[:, -1:]], axis=1)  # edge extension along disparity
-  return _phase_regression(c, phases)
+  return phase_regression(c, phases)
 
 
 def upsample_cost(cost: jax.Array, maxdisp: int, height: int, width: int,
@@ -184,38 +138,41 @@ def spp_pool(x: jax.Array, kernel: int) -> jax.Array:
   return jnp.mean(x, axis=(2, 4))
 
 
-class BasicBlock(nn.Module):
+class BasicBlock(ResolvesConvImpl, nn.Module):
   """Residual block: conv-BN-ReLU, conv-BN, add the (downsampled) input; no ReLU after."""
 
   features: int
   strides: int = 1
   dilation: int = 1
   downsample: bool = False
+  conv_impl: str | None = None  # "auto" | "lax" | "fast"; None: $SLJAX_CONV3D (sljax.kernels)
 
   @nn.compact
   def __call__(self, x: jax.Array, train: bool) -> jax.Array:
     """Applies the block to NHWC x."""
     # Reference: padding = dilation when dilated, else 1.
-    pad = self.dilation
-    out = nn.relu(ConvBN2D(self.features, 3, self.strides, pad, self.dilation, name="conv1")(
-        x, train))
-    out = ConvBN2D(self.features, 3, 1, pad, self.dilation, name="conv2")(out, train)
+    pad, impl = self.dilation, self.conv_impl
+    out = nn.relu(ConvBN2D(self.features, 3, self.strides, pad, self.dilation, impl,
+                           name="conv1")(x, train))
+    out = ConvBN2D(self.features, 3, 1, pad, self.dilation, impl, name="conv2")(out, train)
     if self.downsample:
-      x = ConvBN2D(self.features, 1, self.strides, 0, name="downsample")(x, train)
+      x = ConvBN2D(self.features, 1, self.strides, 0, conv_impl=impl, name="downsample")(x, train)
     return out + x
 
 
-class FeatureExtraction(nn.Module):
+class FeatureExtraction(ResolvesConvImpl, nn.Module):
   """Shared 2D feature extractor with SPP: [B, H, W, C] -> [B, H/4, W/4, 32]."""
 
   align_corners: bool = False
+  conv_impl: str | None = None  # "auto" | "lax" | "fast"; None: $SLJAX_CONV3D (sljax.kernels)
 
   @nn.compact
   def __call__(self, x: jax.Array, train: bool) -> jax.Array:
     """Returns the 32-channel 1/4-resolution features."""
-    x = nn.relu(ConvBN2D(32, 3, 2, 1, name="firstconv_0")(x, train))
-    x = nn.relu(ConvBN2D(32, 3, 1, 1, name="firstconv_1")(x, train))
-    x = nn.relu(ConvBN2D(32, 3, 1, 1, name="firstconv_2")(x, train))
+    impl = self.conv_impl
+    x = nn.relu(ConvBN2D(32, 3, 2, 1, conv_impl=impl, name="firstconv_0")(x, train))
+    x = nn.relu(ConvBN2D(32, 3, 1, 1, conv_impl=impl, name="firstconv_1")(x, train))
+    x = nn.relu(ConvBN2D(32, 3, 1, 1, conv_impl=impl, name="firstconv_2")(x, train))
     # (features, blocks, stride, dilation); downsample where stride or width changes.
     in_ch = 32
     raw = None
@@ -223,7 +180,7 @@ class FeatureExtraction(nn.Module):
         ((32, 3, 1, 1), (64, 16, 2, 1), (128, 3, 1, 1), (128, 3, 1, 2)), start=1):
       for bi in range(blocks):
         down = bi == 0 and (stride != 1 or in_ch != feat)
-        x = BasicBlock(feat, stride if bi == 0 else 1, dil, down,
+        x = BasicBlock(feat, stride if bi == 0 else 1, dil, down, impl,
                        name=f"layer{li}_{bi}")(x, train)
         in_ch = feat
       if li == 2:
@@ -232,48 +189,55 @@ class FeatureExtraction(nn.Module):
     h, w = skip.shape[1], skip.shape[2]
     branches = []
     for bi, k in enumerate(SPP_POOLS, start=1):
-      b = nn.relu(ConvBN2D(32, 1, 1, 0, name=f"branch{bi}")(spp_pool(skip, k), train))
+      b = nn.relu(ConvBN2D(32, 1, 1, 0, conv_impl=impl, name=f"branch{bi}")(
+          spp_pool(skip, k), train))
       branches.append(resize_linear(b, (w, h), (2, 1), self.align_corners))
     # Reference order: raw, skip, branch4, branch3, branch2, branch1.
     x = jnp.concatenate([raw, skip] + branches[::-1], axis=-1)
-    x = nn.relu(ConvBN2D(128, 3, 1, 1, name="lastconv_0")(x, train))
+    x = nn.relu(ConvBN2D(128, 3, 1, 1, conv_impl=impl, name="lastconv_0")(x, train))
     return nn.Conv(32, (1, 1), use_bias=False, kernel_init=conv_init, name="lastconv_1")(x)
 
 
-class Dres0(nn.Module):
+class Dres0(ResolvesConvImpl, nn.Module):
   """Two 3D conv-BN-ReLU: 64 -> 32 -> 32 on the cost volume."""
 
+  conv_impl: str | None = None  # "auto" | "lax" | "fast"; None: $SLJAX_CONV3D (sljax.kernels)
+
   @nn.compact
   def __call__(self, x: jax.Array, train: bool) -> jax.Array:
     """Applies the two layers."""
-    x = nn.relu(ConvBN3D(32, name="convbn_0")(x, train))
-    return nn.relu(ConvBN3D(32, name="convbn_1")(x, train))
+    x = nn.relu(ConvBN3D(32, conv_impl=self.conv_impl, name="convbn_0")(x, train))
+    return nn.relu(ConvBN3D(32, conv_impl=self.conv_impl, name="convbn_1")(x, train))
 
 
-class Dres1(nn.Module):
+class Dres1(ResolvesConvImpl, nn.Module):
   """3D conv-BN-ReLU then conv-BN (the caller adds the residual)."""
 
+  conv_impl: str | None = None  # "auto" | "lax" | "fast"; None: $SLJAX_CONV3D (sljax.kernels)
+
   @nn.compact
   def __call__(self, x: jax.Array, train: bool) -> jax.Array:
     """Applies the two layers."""
-    x = nn.relu(ConvBN3D(32, name="convbn_0")(x, train))
-    return ConvBN3D(32, name="convbn_1")(x, train)
+    x = nn.relu(ConvBN3D(32, conv_impl=self.conv_impl, name="convbn_0")(x, train))
+    return ConvBN3D(32, conv_impl=self.conv_impl, name="convbn_1")(x, train)
 
 
-class ConvTransposeBN3D(nn.Module):
+class ConvTransposeBN3D(ResolvesConvImpl, nn.Module):
   """ConvTranspose3d(k=3, stride 2, padding 1, output_padding 1, no bias) + BN: doubles D, H, W."""
 
   features: int
+  conv_impl: str | None = None  # "auto" | "lax" | "fast"; None: $SLJAX_CONV3D (sljax.kernels)
 
   @nn.compact
   def __call__(self, x: jax.Array, train: bool) -> jax.Array:
     """Applies the transposed conv then BN."""
     x = ConvTranspose3D(self.features, (3, 3, 3), strides=2, padding=1, output_padding=1,
-                        use_bias=False, kernel_init=conv_transpose_init, name="conv")(x)
+                        use_bias=False, kernel_init=conv_transpose_init, impl=self.conv_impl,
+                        name="conv")(x)
     return batch_norm("bn")(x, use_running_average=not train)
 
 
-class Hourglass(nn.Module):
+class Hourglass(ResolvesConvImpl, nn.Module):
   """The reference's 3D hourglass: returns (out, pre, post) for the next one's skip links.
 
   pre = relu(conv2(conv1(x)) + postsqu) (relu without postsqu);
@@ -281,58 +245,63 @@ class Hourglass(nn.Module):
   """
 
   inplanes: int = 32
+  conv_impl: str | None = None  # "auto" | "lax" | "fast"; None: $SLJAX_CONV3D (sljax.kernels)
 
   @nn.compact
   def __call__(self, x: jax.Array, presqu: jax.Array | None, postsqu: jax.Array | None,
                train: bool) -> tuple[jax.Array, jax.Array, jax.Array]:
     """Runs the hourglass on a 1/4-resolution volume."""
-    c2 = self.inplanes * 2
-    out = nn.relu(ConvBN3D(c2, strides=2, name="conv1")(x, train))  # 1/8
-    pre = ConvBN3D(c2, name="conv2")(out, train)
+    c2, impl = self.inplanes * 2, self.conv_impl
+    out = nn.relu(ConvBN3D(c2, strides=2, conv_impl=impl, name="conv1")(x, train))  # 1/8
+    pre = ConvBN3D(c2, conv_impl=impl, name="conv2")(out, train)
     pre = nn.relu(pre + postsqu) if postsqu is not None else nn.relu(pre)
-    out = nn.relu(ConvBN3D(c2, strides=2, name="conv3")(pre, train))  # 1/16
-    out = nn.relu(ConvBN3D(c2, name="conv4")(out, train))
-    up = ConvTransposeBN3D(c2, name="conv5")(out, train)  # 1/8
+    out = nn.relu(ConvBN3D(c2, strides=2, conv_impl=impl, name="conv3")(pre, train))  # 1/16
+    out = nn.relu(ConvBN3D(c2, conv_impl=impl, name="conv4")(out, train))
+    up = ConvTransposeBN3D(c2, impl, name="conv5")(out, train)  # 1/8
     post = nn.relu(up + (presqu if presqu is not None else pre))
-    out = ConvTransposeBN3D(self.inplanes, name="conv6")(post, train)  # 1/4
+    out = ConvTransposeBN3D(self.inplanes, impl, name="conv6")(post, train)  # 1/4
     return out, pre, post
 
 
-class Classifier(nn.Module):
+class Classifier(ResolvesConvImpl, nn.Module):
   """3D conv-BN-ReLU 32->32 then 3D conv 32->1 (no bias): one cost per disparity."""
+
+  conv_impl: str | None = None  # "auto" | "lax" | "fast"; None: $SLJAX_CONV3D (sljax.kernels)
 
   @nn.compact
   def __call__(self, x: jax.Array, train: bool) -> jax.Array:
     """Returns costs [B, D/4, H/4, W/4]."""
-    x = nn.relu(ConvBN3D(32, name="convbn_0")(x, train))
-    x = Conv3D(1, (3, 3, 3), padding=1, use_bias=False, kernel_init=conv_init, name="conv_1")(x)
+    x = nn.relu(ConvBN3D(32, conv_impl=self.conv_impl, name="convbn_0")(x, train))
+    x = Conv3D(1, (3, 3, 3), padding=1, use_bias=False, kernel_init=conv_init,
+               impl=self.conv_impl, name="conv_1")(x)
     return x[..., 0]
 
 
-def stacked_hourglass(cost: jax.Array, train: bool) -> tuple[jax.Array, jax.Array, jax.Array]:
+def stacked_hourglass(cost: jax.Array, train: bool, conv_impl: str
+                      ) -> tuple[jax.Array, jax.Array, jax.Array]:
   """dres0, dres1 and the three hourglasses; submodules are created in the calling module.
 
   Must be called inside a compact method: it names its submodules dres0..dres4 there, which
   is what makes the twin's disparity path carry exactly PSMNet's parameter names.
   """
-  cost0 = Dres0(name="dres0")(cost, train)
-  cost0 = Dres1(name="dres1")(cost0, train) + cost0
-  out1, pre1, post1 = Hourglass(name="dres2")(cost0, None, None, train)
+  cost0 = Dres0(conv_impl, name="dres0")(cost, train)
+  cost0 = Dres1(conv_impl, name="dres1")(cost0, train) + cost0
+  out1, pre1, post1 = Hourglass(conv_impl=conv_impl, name="dres2")(cost0, None, None, train)
   out1 = out1 + cost0
-  out2, _, post2 = Hourglass(name="dres3")(out1, pre1, post1, train)
+  out2, _, post2 = Hourglass(conv_impl=conv_impl, name="dres3")(out1, pre1, post1, train)
   out2 = out2 + cost0
   # The reference passes pre1 (not pre2) to the third hourglass; kept on purpose.
-  out3, _, _ = Hourglass(name="dres4")(out2, pre1, post2, train)
+  out3, _, _ = Hourglass(conv_impl=conv_impl, name="dres4")(out2, pre1, post2, train)
   out3 = out3 + cost0
   return out1, out2, out3
 
 
 def disparity_outputs(outs: tuple[jax.Array, jax.Array, jax.Array], train: bool, maxdisp: int,
-                      height: int, width: int, align_corners: bool) -> dict:
+                      height: int, width: int, align_corners: bool, conv_impl: str) -> dict:
   """Classifiers classif1..3 (cumulative costs), upsampling and regression -> output dict."""
-  cost1 = Classifier(name="classif1")(outs[0], train)
-  cost2 = Classifier(name="classif2")(outs[1], train) + cost1
-  cost3 = Classifier(name="classif3")(outs[2], train) + cost2
+  cost1 = Classifier(conv_impl, name="classif1")(outs[0], train)
+  cost2 = Classifier(conv_impl, name="classif2")(outs[1], train) + cost1
+  cost3 = Classifier(conv_impl, name="classif3")(outs[2], train) + cost2
 
   def regress(c):
     # Upsampling, softmax and regression in float32 whatever the computation dtype.
@@ -360,34 +329,37 @@ def check_pair(left: jax.Array, right: jax.Array, in_channels: int, maxdisp: int
 
 
 def extract_cost_volume(left: jax.Array, right: jax.Array, maxdisp: int,
-                        train: bool, align_corners: bool) -> jax.Array:
+                        train: bool, align_corners: bool, conv_impl: str) -> jax.Array:
   """Normalises, runs the shared `feature_extraction` on each view and builds the volume."""
-  features = FeatureExtraction(align_corners, name="feature_extraction")
+  features = FeatureExtraction(align_corners, conv_impl, name="feature_extraction")
   # Two calls (not one batched call) so BatchNorm statistics match the reference in training.
   fl = features(normalize_images(left), train)
   fr = features(normalize_images(right), train)
   return cost_volume(fl, fr, maxdisp // 4)
 
 
-class PSMNet(nn.Module):
+class PSMNet(ResolvesConvImpl, nn.Module):
   """PSMNet (stacked hourglass); apply(variables, left, right, train) -> output dict.
 
   Returns {"disparity": [B, H, W]} in evaluation and additionally {"disparities": (d1, d2, d3)}
-  in training (then pass mutable=["batch_stats"]).
+  in training (then pass mutable=["batch_stats"]). `conv_impl` chooses the convolutions
+  (`sljax.kernels`); left out, $SLJAX_CONV3D or "auto", read when the model is constructed.
   """
 
   maxdisp: int = 96
   in_channels: int = 3
   align_corners: bool = False
+  conv_impl: str | None = None  # "auto" | "lax" | "fast"; None: $SLJAX_CONV3D (sljax.kernels)
 
   @nn.compact
   def __call__(self, left: jax.Array, right: jax.Array, train: bool = False) -> dict:
     """Predicts the left-referenced disparity of a [0, 1] image pair."""
     check_pair(left, right, self.in_channels, self.maxdisp)
-    cost = extract_cost_volume(left, right, self.maxdisp, train, self.align_corners)
-    outs = stacked_hourglass(cost, train)
+    impl = self.conv_impl
+    cost = extract_cost_volume(left, right, self.maxdisp, train, self.align_corners, impl)
+    outs = stacked_hourglass(cost, train, impl)
     return disparity_outputs(outs, train, self.maxdisp, left.shape[1], left.shape[2],
-                             self.align_corners)
+                             self.align_corners, impl)
 
 
 def reference_key(path: tuple[str, ...]) -> str:

@@ -36,7 +36,7 @@ import jax
 import jax.numpy as jnp
 
 from sljax.errors import require
-from sljax.nets.conv3d import Conv3D
+from sljax.kernels import Conv3D, ResolvesConvImpl
 from sljax.nets.layers import ConvBN2D, ConvBN3D, conv_init, resize_linear
 from sljax.nets.psmnet import (check_pair, disparity_outputs, extract_cost_volume,
                                stacked_hourglass)
@@ -44,18 +44,20 @@ from sljax.nets.psmnet import (check_pair, disparity_outputs, extract_cost_volum
 SL_KEY = "sl"
 
 
-class SLPath(nn.Module):
+class SLPath(ResolvesConvImpl, nn.Module):
   """Structured-light path: own stacked hourglass + head -> [B, H, W, t] left-view logits."""
 
   t: int = 8
   align_corners: bool = False
+  conv_impl: str | None = None  # "auto" | "lax" | "fast"; None: $SLJAX_CONV3D (sljax.kernels)
 
   @nn.compact
   def __call__(self, cost: jax.Array, height: int, width: int, train: bool) -> jax.Array:
     """Maps the shared cost volume [B, D/4, H/4, W/4, 64] to pattern logits."""
-    _, _, out3 = stacked_hourglass(cost, train)
-    x = nn.relu(ConvBN3D(32, name="head_convbn")(out3, train))
-    score = Conv3D(1, (3, 3, 3), padding=1, use_bias=False, kernel_init=conv_init,
+    impl = self.conv_impl
+    _, _, out3 = stacked_hourglass(cost, train, impl)
+    x = nn.relu(ConvBN3D(32, conv_impl=impl, name="head_convbn")(out3, train))
+    score = Conv3D(1, (3, 3, 3), padding=1, use_bias=False, kernel_init=conv_init, impl=impl,
                    name="head_attention")(x)
     # Softmax over disparity in float32 whatever the computation dtype; [B, D, h, w, 1].
     weights = jax.nn.softmax(score.astype(jnp.float32), axis=1)
@@ -66,21 +68,22 @@ class SLPath(nn.Module):
     x = jnp.concatenate([feat, expected], axis=-1).astype(x.dtype)
     for i, (h, w) in enumerate(((height // 2, width // 2), (height, width)), start=1):
       x = resize_linear(x, (w, h), (2, 1), self.align_corners)
-      x = nn.relu(ConvBN2D(32, 3, 1, 1, name=f"up{i}")(x, train))
+      x = nn.relu(ConvBN2D(32, 3, 1, 1, conv_impl=impl, name=f"up{i}")(x, train))
     return nn.Conv(self.t, (1, 1), kernel_init=conv_init, name="logits")(x)
 
 
-class PSMNetMTL(nn.Module):
+class PSMNetMTL(ResolvesConvImpl, nn.Module):
   """PSMNet + structured-light path; apply(variables, left, right, train) -> output dict.
 
   Returns PSMNet's outputs ("disparity", and "disparities" in training) plus "sl_logits"
-  [B, H, W, t] (the left view's patterns, sigmoid for probabilities).
+  [B, H, W, t] (the left view's patterns, sigmoid for probabilities). `conv_impl` as PSMNet's.
   """
 
   maxdisp: int = 96
   t: int = 8
   in_channels: int = 3
   align_corners: bool = False
+  conv_impl: str | None = None  # "auto" | "lax" | "fast"; None: $SLJAX_CONV3D (sljax.kernels)
 
   @nn.compact
   def __call__(self, left: jax.Array, right: jax.Array, train: bool = False) -> dict:
@@ -88,14 +91,15 @@ class PSMNetMTL(nn.Module):
     check_pair(left, right, self.in_channels, self.maxdisp)
     require(self.t > 0, f"t (number of patterns) must be positive, got {self.t}")
     h, w = left.shape[1], left.shape[2]
-    cost = extract_cost_volume(left, right, self.maxdisp, train, self.align_corners)
-    outs = stacked_hourglass(cost, train)
-    out = disparity_outputs(outs, train, self.maxdisp, h, w, self.align_corners)
-    out["sl_logits"] = SLPath(self.t, self.align_corners, name=SL_KEY)(cost, h, w, train)
+    impl = self.conv_impl
+    cost = extract_cost_volume(left, right, self.maxdisp, train, self.align_corners, impl)
+    outs = stacked_hourglass(cost, train, impl)
+    out = disparity_outputs(outs, train, self.maxdisp, h, w, self.align_corners, impl)
+    out["sl_logits"] = SLPath(self.t, self.align_corners, impl, name=SL_KEY)(cost, h, w, train)
     return out
 
 
-class SLOnly(nn.Module):
+class SLOnly(ResolvesConvImpl, nn.Module):
   """The twin's structured-light output alone: feature extraction, cost volume and SL path.
 
   Same fields and parameter names as PSMNetMTL, so it applies to the twin's variables (the
@@ -108,14 +112,16 @@ class SLOnly(nn.Module):
   t: int = 8
   in_channels: int = 3
   align_corners: bool = False
+  conv_impl: str | None = None  # "auto" | "lax" | "fast"; None: $SLJAX_CONV3D (sljax.kernels)
 
   @nn.compact
   def __call__(self, left: jax.Array, right: jax.Array, train: bool = False) -> jax.Array:
     """Left-view pattern logits [B, H, W, t]."""
     check_pair(left, right, self.in_channels, self.maxdisp)
     h, w = left.shape[1], left.shape[2]
-    cost = extract_cost_volume(left, right, self.maxdisp, train, self.align_corners)
-    return SLPath(self.t, self.align_corners, name=SL_KEY)(cost, h, w, train)
+    impl = self.conv_impl
+    cost = extract_cost_volume(left, right, self.maxdisp, train, self.align_corners, impl)
+    return SLPath(self.t, self.align_corners, impl, name=SL_KEY)(cost, h, w, train)
 
 
 def detach_sl(variables: Mapping[str, Any]) -> dict[str, Any]:

@@ -43,18 +43,18 @@ class NetSpec:
 NETS: dict[str, NetSpec] = {spec.name: spec for spec in (
     NetSpec("psmnet", "sljax.nets.psmnet:PSMNet", parts=("left", "right", "disp"),
             tasks=("disp",), gray=False, outputs=("disparity",),
-            options=("maxdisp", "align_corners"), twin="psmnet-mtl", sec_per_sample_64=0.11),
+            options=("maxdisp", "align_corners", "conv_impl"), twin="psmnet-mtl", sec_per_sample_64=0.11),
     NetSpec("psmnet-mtl", "sljax.nets.psmnet_mtl:PSMNetMTL",
             parts=("left", "right", "disp", "sl"), tasks=("sl", "disp"), gray=False,
-            outputs=("disparity", "sl_logits"), options=("maxdisp", "t", "align_corners"),
+            outputs=("disparity", "sl_logits"), options=("maxdisp", "t", "align_corners", "conv_impl"),
             single="psmnet", sec_per_sample_64=0.18),
     NetSpec("unet-sl", "sljax.nets.unet:UNet", parts=("left", "right", "sl", "sl_right"),
             tasks=("sl",), gray=True, outputs=("sl_logits", "sl_logits_right"),
-            options=("t", "depth", "base_width"), fixed=(("head", "sl"),),
+            options=("t", "depth", "base_width", "conv_impl"), fixed=(("head", "sl"),),
             sec_per_sample_64=0.02),
     NetSpec("unet-disp", "sljax.nets.unet:UNet", parts=("left", "right", "disp"),
             tasks=("disp",), gray=True, outputs=("disparity",),
-            options=("depth", "base_width"), fixed=(("head", "disp"),),
+            options=("depth", "base_width", "conv_impl"), fixed=(("head", "disp"),),
             sec_per_sample_64=0.02),
 )}
 NAMES = tuple(NETS)

@@ -26,25 +26,27 @@ import jax
 import jax.numpy as jnp
 
 from sljax.errors import require
-from sljax.nets.layers import ConvBN2D, UpConv2x2, conv_init, max_pool_2x2
+from sljax.kernels import ResolvesConvImpl, max_pool_2x2
+from sljax.nets.layers import ConvBN2D, UpConv2x2, conv_init
 
 HEADS = ("sl", "disp")
 INPUT_ZERO = 0.5  # the [0, 1] input that the centring 2x - 1 maps to 0: the pad value at test time
 
 
-class DoubleConv(nn.Module):
+class DoubleConv(ResolvesConvImpl, nn.Module):
   """Two 3x3 conv-BN-ReLU."""
 
   features: int
+  conv_impl: str | None = None  # "auto" | "lax" | "fast"; None: $SLJAX_CONV3D (sljax.kernels)
 
   @nn.compact
   def __call__(self, x: jax.Array, train: bool) -> jax.Array:
     """Applies both layers."""
-    x = nn.relu(ConvBN2D(self.features, name="convbn_0")(x, train))
-    return nn.relu(ConvBN2D(self.features, name="convbn_1")(x, train))
+    x = nn.relu(ConvBN2D(self.features, conv_impl=self.conv_impl, name="convbn_0")(x, train))
+    return nn.relu(ConvBN2D(self.features, conv_impl=self.conv_impl, name="convbn_1")(x, train))
 
 
-class UNet(nn.Module):
+class UNet(ResolvesConvImpl, nn.Module):
   """UNet on [left; right]; apply(variables, left, right, train) -> output dict (see module doc)."""
 
   head: str = "sl"
@@ -52,6 +54,7 @@ class UNet(nn.Module):
   depth: int = 4
   base_width: int = 32
   in_channels: int = 3
+  conv_impl: str | None = None  # "auto" | "lax" | "fast"; None: $SLJAX_CONV3D (sljax.kernels)
 
   @nn.compact
   def __call__(self, left: jax.Array, right: jax.Array, train: bool = False) -> dict:
@@ -66,6 +69,7 @@ class UNet(nn.Module):
     require(left.shape[-1] == self.in_channels,
             f"the model expects {self.in_channels} channel(s) per view, got {left.shape[-1]}")
     _, h, w, _ = left.shape
+    impl = self.conv_impl
     m = 2 ** self.depth
     ph, pw = -h % m, -w % m
     x = jnp.concatenate([left, right], axis=-1)
@@ -76,15 +80,15 @@ class UNet(nn.Module):
     x = 2.0 * x - 1.0
     skips = []
     for level in range(self.depth):
-      x = DoubleConv(self.base_width * 2 ** level, name=f"down{level}")(x, train)
+      x = DoubleConv(self.base_width * 2 ** level, impl, name=f"down{level}")(x, train)
       skips.append(x)
       x = max_pool_2x2(x)  # even sizes: the input is padded to a multiple of 2^depth
-    x = DoubleConv(self.base_width * 2 ** self.depth, name="bottleneck")(x, train)
+    x = DoubleConv(self.base_width * 2 ** self.depth, impl, name="bottleneck")(x, train)
     for level in reversed(range(self.depth)):
       feat = self.base_width * 2 ** level
       x = UpConv2x2(feat, kernel_init=conv_init, name=f"upconv{level}")(x)
       x = jnp.concatenate([skips[level], x], axis=-1)
-      x = DoubleConv(feat, name=f"up{level}")(x, train)
+      x = DoubleConv(feat, impl, name=f"up{level}")(x, train)
     x = x[:, :h, :w]
     if self.head == "sl":
       z = nn.Conv(2 * self.t, (1, 1), kernel_init=conv_init, name="head")(x)

@@ -1,0 +1,71 @@
+"""What the fast paths share: plain 2D convolutions, their kernel gradient, and blocking."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import jax
+import jax.numpy as jnp
+from jax import lax
+
+DIMS_2D = ("NHWC", "HWIO", "NHWC")
+
+# Output planes are computed in blocks whose input holds about this many values (512 KiB of
+# float32, an L2 cache): XLA:CPU's 2D convolutions and, above all, their kernel gradients
+# run several times faster on such blocks than on a whole folded volume at once (measured
+# at PSMNet's shapes with benchmarks/bench_nets.py --part micro). One (batch, depth) plane
+# is the smallest block; blocks run in a loop, so the program stays small. The default of
+# every `block_values` argument.
+BLOCK_VALUES = 1 << 17
+
+
+def plain_conv2d(x: jax.Array, kernel: jax.Array, strides: Sequence[int], padding,
+                 dilation: Sequence[int] = (1, 1)) -> jax.Array:
+  """XLA's NHWC 2D convolution (the unit every fast path is made of)."""
+  return lax.conv_general_dilated(x, kernel, tuple(strides), tuple(padding),
+                                  rhs_dilation=tuple(dilation), dimension_numbers=DIMS_2D)
+
+
+def conv2d_kernel_grad(x: jax.Array, dy: jax.Array, kernel_size: Sequence[int],
+                       strides: Sequence[int], padding,
+                       dilation: Sequence[int] = (1, 1)) -> jax.Array:
+  """dL/dk of conv2d(x, k) for output gradient dy, as one plain NHWC convolution.
+
+  k[i, j, c, o] = sum_{b,y,x} x_pad[b, s*y + d*i, s*x + d*j, c] dy[b, y, x, o]: a convolution
+  of x (channels as the batch, batch as the channels) with dy dilated by s as its kernel and
+  output stride d. XLA builds the same, but written out it stays a library convolution
+  inside loops (XLA leaves its own form to a slow generic kernel there).
+  """
+  xt = jnp.transpose(x, (3, 1, 2, 0))
+  dt = jnp.transpose(dy, (1, 2, 0, 3))
+  pads = [(lo, (k - 1) * d + s * (o - 1) + 1 - size - lo) for k, s, d, o, size, (lo, _) in
+          zip(kernel_size, strides, dilation, dy.shape[1:3], x.shape[1:3], padding)]
+  g = lax.conv_general_dilated(xt, dt, tuple(dilation), pads, rhs_dilation=tuple(strides),
+                               dimension_numbers=DIMS_2D)
+  return jnp.transpose(g, (1, 2, 0, 3))
+
+
+def block_shape(n: int, count: int, plane_values: int, block_values: int) -> tuple[int, int]:
+  """(batch, plane) counts per block: whole ranges of several batch items, or plane chunks.
+
+  Both divide their totals, so that every block has the same shape.
+  """
+  per = max(1, block_values // max(1, plane_values))
+  if per >= count:
+    return max(d for d in range(1, n + 1) if n % d == 0 and d * count <= per), count
+  return 1, max(d for d in range(1, per + 1) if count % d == 0)
+
+
+def blocked(n: int, count: int, plane_values: int, block_values: int, body: Callable, init):
+  """Runs body(n0, z0, nb, tz, carry) over all blocks (a loop when there are several)."""
+  if count == 0:
+    return init
+  if not isinstance(n, int):  # a symbolic batch (jax.export): one block of everything
+    return body(0, 0, n, count, init)
+  nb, tz = block_shape(n, count, plane_values, block_values)
+  zblocks = count // tz
+  total = (n // nb) * zblocks
+  if total == 1:
+    return body(0, 0, nb, tz, init)
+  return lax.fori_loop(0, total, lambda i, c: body((i // zblocks) * nb, (i % zblocks) * tz,
+                                                   nb, tz, c), init)

@@ -1,0 +1,133 @@
+"""3D convolution by folding depth into the batch: forward and kernel gradient (no VJP here).
+
+y[:, z] = sum_a conv2d(x_padded[:, s*z + a], kernel[a]): a kd x kh x kw conv is the sum over
+its kd depth taps of 2D convs of the depth-shifted input with depth folded into the batch
+(exact; strides and any padding), computed over blocks of output planes (`block_values`).
+`sljax.kernels.conv3d` makes these a differentiable function.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+
+from sljax.kernels.blocks import blocked, conv2d_kernel_grad, plain_conv2d
+
+
+def depth_plan(depth: int, kd: int, sd: int, padding: tuple[int, int]):
+  """Output planes split into those whose kd taps all lie inside the input and the others.
+
+  Output plane z reads input planes sd*z + a - lo, a < kd. Returns (do, first, count,
+  edges): the interior planes first .. first + count - 1 read no padding (so the input
+  needs no padded copy); edges lists (z, valid taps) for the rest.
+  """
+  lo, hi = padding
+  do = (depth + lo + hi - kd) // sd + 1
+  first = min(max(0, -(-lo // sd)), do)
+  last = min((depth - kd + lo) // sd, do - 1)
+  count = max(0, last - first + 1)
+  edges = [(z, [a for a in range(kd) if 0 <= sd * z + a - lo < depth])
+           for z in range(do) if not first <= z < first + count]
+  return do, first, count, edges
+
+
+def tap_planes(x: jax.Array, n0, z0, nb: int, tz: int, kd: int, sd: int,
+               lo: int) -> list[jax.Array]:
+  """Input planes sd*z + a - lo of the interior block z0 .. z0 + tz - 1, [nb * tz, H, W, C]."""
+  if tz == 1:
+    return [lax.dynamic_slice(x, (n0, sd * z0 + a - lo, 0, 0, 0), (nb, 1) + x.shape[2:]
+                              ).reshape((nb,) + x.shape[2:]) for a in range(kd)]
+  size = (nb, sd * (tz - 1) + kd) + x.shape[2:]
+  xin = lax.dynamic_slice(x, (n0, sd * z0 - lo, 0, 0, 0), size)
+  return [lax.slice_in_dim(xin, a, a + sd * (tz - 1) + 1, sd, axis=1).reshape((nb * tz,) + size[2:])
+          for a in range(kd)]
+
+
+def fold_forward(x: jax.Array, kernel: jax.Array, strides: tuple[int, int, int],
+                 padding: tuple[tuple[int, int], ...], block_values: int) -> jax.Array:
+  """The folded 3D convolution of NDHWC x with a DHWIO kernel (explicit padding pairs)."""
+  n, depth = x.shape[:2]
+  kd, sd, lo = kernel.shape[0], strides[0], padding[0][0]
+  do, first, count, edges = depth_plan(depth, kd, sd, padding[0])
+
+  def conv(xa, a):
+    return plain_conv2d(xa, kernel[a], strides[1:], padding[1:])
+
+  out_hw = [(x.shape[2 + i] + sum(padding[1 + i]) - kernel.shape[1 + i]) // strides[1 + i] + 1
+            for i in range(2)]
+  out = jnp.zeros((n, do, *out_hw, kernel.shape[4]), x.dtype)
+  for z, taps in edges:
+    y = sum((conv(x[:, sd * z + a - lo], a) for a in taps), jnp.zeros_like(out[:, 0]))
+    out = out.at[:, z].set(y)
+
+  def body(n0, z0, nb, tz, out):
+    y = None
+    for a, xa in enumerate(tap_planes(x, n0, first + z0, nb, tz, kd, sd, lo)):
+      ya = conv(xa, a)
+      y = ya if y is None else y + ya
+    return lax.dynamic_update_slice(out, y.reshape((nb, tz) + y.shape[1:]),
+                                    (n0, first + z0, 0, 0, 0))
+
+  return blocked(n, count, int(np.prod(x.shape[2:])), block_values, body, out)
+
+
+def fold_kernel_grad(x: jax.Array, dy: jax.Array, kernel_shape: Sequence[int],
+                     strides: tuple[int, int, int], padding, block_values: int) -> jax.Array:
+  """dL/dkernel of the folded conv: per depth tap, blocked 2D kernel gradients, summed."""
+  n, depth = x.shape[:2]
+  kd, sd, lo = kernel_shape[0], strides[0], padding[0][0]
+  _, first, count, edges = depth_plan(depth, kd, sd, padding[0])
+
+  def grad(xa, dya):
+    return conv2d_kernel_grad(xa, dya, kernel_shape[1:3], strides[1:], padding[1:])
+
+  dk = [jnp.zeros(tuple(kernel_shape[1:]), dy.dtype) for _ in range(kd)]
+  for z, taps in edges:
+    for a in taps:
+      dk[a] = dk[a] + grad(x[:, sd * z + a - lo], dy[:, z])
+
+  def body(n0, z0, nb, tz, dk):
+    dyb = lax.dynamic_slice(dy, (n0, first + z0, 0, 0, 0), (nb, tz) + dy.shape[2:])
+    dyb = dyb.reshape((nb * tz,) + dy.shape[2:])
+    return tuple(g + grad(xa, dyb)
+                 for g, xa in zip(dk, tap_planes(x, n0, first + z0, nb, tz, kd, sd, lo)))
+
+  return jnp.stack(blocked(n, count, int(np.prod(x.shape[2:])), block_values, body, tuple(dk)))
+
+
+def input_grad_padding(kernel_shape, strides, padding, x_shape, y_shape):
+  """Padding of the s-dilated output gradient whose conv with the flipped kernel is dL/dx."""
+  pads = []
+  for i in range(3):
+    k, s, lo = kernel_shape[i], strides[i], padding[i][0]
+    lo_t = k - 1 - lo
+    pads.append((lo_t, x_shape[1 + i] - (y_shape[1 + i] - 1) * s - 1 - lo_t + k - 1))
+  return tuple(pads)
+
+
+def tap_products_conv3d(x: jax.Array, kernel: jax.Array, padding) -> jax.Array:
+  """Exact stride-1 3D conv for few outputs: all tap products in one matmul, then a shifted sum.
+
+  z[p, t] = x[p] . kernel[t] for the kd*kh*kw taps t (a [P, cin] x [cin, taps*cout] product),
+  y[o] = sum_t z[o + t - lo, t]. For PSMNet's 32 -> 1 classifiers z is smaller than x and
+  the whole layer, gradients included, runs several times faster than as convolutions with
+  one output channel.
+  """
+  kd, kh, kw, cin, cout = kernel.shape
+  n = x.shape[0]
+  taps = kd * kh * kw
+  z = jnp.dot(x.reshape(-1, cin), kernel.transpose(3, 0, 1, 2, 4).reshape(cin, taps * cout))
+  z = z.reshape(x.shape[:4] + (taps, cout))
+  zero = jnp.zeros((), x.dtype)
+  z = lax.pad(z, zero, ((0, 0, 0), *((lo, hi, 0) for lo, hi in padding), (0, 0, 0), (0, 0, 0)))
+  out = [z.shape[1 + i] - kernel.shape[i] + 1 for i in range(3)]
+  y = None
+  for t, (a, i, j) in enumerate(np.ndindex(kd, kh, kw)):
+    yt = lax.slice(z, (0, a, i, j, t, 0), (n, a + out[0], i + out[1], j + out[2], t + 1, cout))
+    y = yt if y is None else y + yt
+  return y.reshape((n, *out, cout))
+

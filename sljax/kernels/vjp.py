@@ -1,0 +1,24 @@
+"""The one way this package writes a custom VJP whose backward needs only the inputs."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import jax
+
+
+def vjp_saving_inputs(forward: Callable, backward: Callable,
+                      nondiff_argnums: Sequence[int] = ()) -> Callable:
+  """forward(*args) with the hand-written backward(*nondiff_args, inputs, dy) as its VJP.
+
+  The residuals are the differentiable inputs (in order), so the backward recomputes what it
+  needs from them instead of keeping the forward's intermediates alive.
+  """
+  nondiff = tuple(nondiff_argnums)
+  f = jax.custom_vjp(forward, nondiff_argnums=nondiff)
+
+  def fwd(*args):
+    return forward(*args), tuple(a for i, a in enumerate(args) if i not in nondiff)
+
+  f.defvjp(fwd, backward)
+  return f

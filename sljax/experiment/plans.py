@@ -128,7 +128,15 @@ SCALES = {s.name: s for s in (
                "wide (docs/plan-v2.md), maxdisp 32 covers the disparities (<= 0.22 x 128 = "
                "28 px); unet-sl's window is chosen on validation from 5, 9, 13, 17, 25; every "
                "budget is set on validation by the calibration rule",
-          windows=(5, 9, 13, 17, 25), test_n=500, budgets=(),
+          windows=(5, 9, 13, 17, 25), test_n=500,
+          # `sljax experiment calibrate table1-v2 runs/calib-cpu128 --scale cpu128` (seed 0,
+          # validation only, commit 342ae01, AMD EPYC family 25 model 1, 2 cores): no arm
+          # reached a plateau within its long run, so by the rule each budget is the whole run.
+          # Plateau epochs and best smoothed validation MAE: unet-sl objects 57/60, 2.648 px;
+          # unet-sl fine-tuning 107/120, 3.289 px; unet-disp objects 50/60, 0.622 px;
+          # unet-disp fine-tuning 91/120, 0.518 px.
+          budgets=((("unet-sl", "objects"), 60), (("unet-sl", "finetune"), 120),
+                   (("unet-disp", "objects"), 60), (("unet-disp", "finetune"), 120)),
           calib_epochs=(("objects", 60), ("1/16", 288), ("finetune", 120))),
     Scale("paper", size=256, t=8, maxdisp=96, objects_n=8000, tissue_n=500, epochs=120,
           small_epochs=120, finetune_epochs=40, batch_size=12, lr=1e-4, lr_drop=False,

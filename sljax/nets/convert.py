@@ -27,9 +27,15 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
 import numpy as np
 
+from sljax.data.scene import read_json_object
 from sljax.errors import SljaxError, require
+from sljax.kernels import ConvTranspose3D
+from sljax.nets.psmnet import PSMNet, reference_key
 
 CONFIG_FILE = "config.json"
 VARIABLES_FILE = "variables.npz"
@@ -76,13 +82,6 @@ def psmnet_template(in_channels: int = 3) -> tuple[dict, frozenset[tuple[str, ..
 
   Cached (tracing takes seconds); callers must not modify the returned tree.
   """
-  import flax.linen as nn
-  import jax
-  import jax.numpy as jnp
-
-  from sljax.kernels import ConvTranspose3D
-  from sljax.nets.psmnet import PSMNet
-
   transposed: set[tuple[str, ...]] = set()
 
   def record(next_fun, args, kwargs, context):
@@ -113,8 +112,6 @@ def convert_state_dict(state_dict: Mapping[str, Any]) -> dict:
   Returns {"params": ..., "batch_stats": ...} nested dicts of float32 numpy arrays for
   `build_model("psmnet", in_channels=...)`, the input channels read from the first conv.
   """
-  from sljax.nets.psmnet import reference_key
-
   sd = _strip_module(state_dict)
   first = "feature_extraction.firstconv.0.0.weight"
   require(first in sd, f"not a PSMNet state_dict: no key {first!r} (found e.g. "
@@ -204,7 +201,6 @@ def load_converted(path: str | Path) -> tuple[str, dict, dict]:
   require(is_converted(path), f"{path}: not a checkpoint (expected a training workdir with "
           f"config.json and checkpoints/, its checkpoints folder, or a converted PSMNet folder "
           f"with {CONFIG_FILE} and {VARIABLES_FILE})")
-  from sljax.data.scene import read_json_object  # pylint: disable=import-outside-toplevel
   config = read_json_object(path / CONFIG_FILE, str(path / CONFIG_FILE))
   require("model" in config,
           f"{path / CONFIG_FILE} has no 'model' entry")

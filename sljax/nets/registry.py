@@ -11,6 +11,8 @@ import dataclasses
 import importlib
 from typing import Any
 
+from sljax.errors import SljaxError
+
 TASKS = ("sl", "disp")
 
 
@@ -67,7 +69,6 @@ COMMON_OPTIONS = ("maxdisp", "t", "gray", "in_channels")
 
 def spec(name: str) -> NetSpec:
   """The table entry of a network; SljaxError listing the valid names."""
-  from sljax.errors import SljaxError  # pylint: disable=import-outside-toplevel
   if name not in NETS:
     raise SljaxError(f"unknown model {name!r}; valid models: {', '.join(NAMES)}")
   return NETS[name]

@@ -9,13 +9,15 @@ numbers are the same; only the time differs.
 
 The executables sit in a folder per CPU (its model and full ISA flag set: an executable uses
 the instructions of the CPU that compiled it, and a home directory can be shared by different
-machines) and per jax/jaxlib version, at most MAX_BYTES in all (least recently used go first).
+machines) and per jax/jaxlib version, at most MAX_BYTES in all (least recently used go first)
+where the `filelock` package is installed; without it the folder is not limited.
 `SLJAX_COMPILE_CACHE=off` turns it off, `SLJAX_COMPILE_CACHE=DIR` moves it, and a
 `JAX_COMPILATION_CACHE_DIR` the user set wins. sljax's command lines (`sljax ...`,
 `python train.py`) turn it on; code importing sljax decides for itself (`enable_compile_cache`).
 """
 
 import hashlib
+import importlib.util
 import os
 from pathlib import Path
 
@@ -57,5 +59,8 @@ def enable_compile_cache() -> Path | None:
   if folder is None:
     return None
   jax.config.update("jax_compilation_cache_dir", str(folder))
-  jax.config.update("jax_compilation_cache_max_size", MAX_BYTES)
+  if importlib.util.find_spec("filelock") is not None:
+    # jax's size limit locks the folder with filelock; without that package jax fails every
+    # read of the cache, so the folder is left to grow instead.
+    jax.config.update("jax_compilation_cache_max_size", MAX_BYTES)
   return folder

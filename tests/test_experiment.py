@@ -159,11 +159,12 @@ def test_stl_and_unc_are_paired_within_a_seed(tmp_path):
 def test_every_plan_builds_at_every_scale():
   for name in plans.PLANS:
     for scale in plans.SCALES:
-      if name in plans.V2_PLANS and not plans.SCALES[scale].budgets:  # not calibrated yet
-        with pytest.raises(SljaxError, match="no calibrated budget"):
-          plans.build_plan(name, scale, 2)
+      try:
+        plan = plans.build_plan(name, scale, 2)
+      except SljaxError as e:  # a v2 plan whose arms this scale has not calibrated yet
+        assert name in plans.V2_PLANS and "no calibrated budget" in str(e), (name, scale, e)
+        assert not plans.SCALES[scale].budgets or scale == "cpu128", (name, scale)
         continue
-      plan = plans.build_plan(name, scale, 2)
       plans.check_unique(plan)
       assert len({c.seed for c in plan.cells}) == 2
       if scale != "paper":  # (the paper scale's 8000 scenes take long to split here)

@@ -32,6 +32,7 @@ import numpy as np
 
 from common import best_time, machine, peak_gflops, record  # first: puts this checkout's sljax on the path
 from sljax import kernels as c3
+from sljax import tune
 from sljax.losses.disparity import PSMNET_OUTPUT_WEIGHTS, disparity_loss
 from sljax.nets import build_model
 
@@ -274,20 +275,22 @@ def jax_loss(out, gt, maxdisp):
   return total
 
 
-def jax_time(name, batch, size, maxdisp, repeats, train, impl=None):
-  """sljax forward (eval) or forward+backward (train) time; impl: the model's conv_impl."""
+def jax_time(name, batch, size, maxdisp, repeats, train, impl=None, kernels=tune.DEFAULT):
+  """sljax forward (eval) or forward+backward (train) time; impl: the model's conv_impl,
+  kernels: the compiler choice (sljax.tune) of the program kind."""
+  options = kernels.compiler_options("train" if train else "forward")
   model = build_model(name, maxdisp=maxdisp, conv_impl=impl)
   left, right, gt = (jnp.asarray(a) for a in inputs(batch, size, maxdisp))
   variables = jax.jit(model.init)(jax.random.PRNGKey(0), left[:1], right[:1])
   if not train:
-    f = jax.jit(lambda v, l, r: model.apply(v, l, r, train=False))
+    f = jax.jit(lambda v, l, r: model.apply(v, l, r, train=False), compiler_options=options)
     return best_time(lambda: jax.block_until_ready(f(variables, left, right)), repeats)
 
   def loss(params, l, r, g):
     out, _ = model.apply({**variables, "params": params}, l, r, train=True,
                          mutable=["batch_stats"])
     return jax_loss(out, g, maxdisp)
-  g = jax.jit(jax.grad(loss))
+  g = jax.jit(jax.grad(loss), compiler_options=options)
   return best_time(lambda: jax.block_until_ready(g(variables["params"], left, right, gt)),
                    repeats)
 
@@ -398,6 +401,10 @@ def main() -> None:
   import torch
   print(machine(torch))
   print(f"conv3d auto -> {c3.conv_impl()}; times: minimum of {args.repeats} after a warm-up")
+  # What training and inference use on this CPU (sljax tune; measured once and cached): a
+  # program kind whose choice differs from XLA's default gets a "tuned" column too.
+  kernels = tune.choice()
+  print(f"this CPU's tuned compiler choice: --ynn {kernels.name}")
   records = []
   if args.part in ("all", "micro"):
     print(f"\n3D convolution layers, {args.size}x{args.size} maxdisp {args.maxdisp} shapes: "
@@ -410,6 +417,7 @@ def main() -> None:
               "psmnet": lambda: PSM(args.maxdisp), "psmnet-mtl": lambda: PSM(args.maxdisp, 8)}
     print(f"\nModels at {args.size}x{args.size}, maxdisp {args.maxdisp}, batch {batch} "
           "(seconds; ratio = sljax / PyTorch)")
+    print("sljax s: with this CPU's tuned compiler choice (records keep XLA's default too)")
     print("| model | mode | PyTorch side | sljax s | PyTorch s | ratio |"
           + (" lax s | ratio |" if args.with_lax else ""))
     print("| --- | --- | --- | ---: | ---: | ---: |" + (" ---: | ---: |" if args.with_lax else ""))
@@ -420,12 +428,19 @@ def main() -> None:
         side, tm = "stack", stacks[name]()
       for train in (False, True):
         mode = "fwd+bwd" if train else "fwd"
+        kind = "train" if train else "forward"
         tj = jax_time(name, batch, args.size, args.maxdisp, args.repeats, train)
         tt = torch_time(torch_, tm, batch, args.size, args.maxdisp, args.repeats, train)
-        line = f"| {name} | {mode} | {side} | {tj:.2f} | {tt:.2f} | {tj / tt:.2f}x |"
         row = {"table": "models", "model": name, "mode": mode, "torch_side": side,
                "size": args.size, "maxdisp": args.maxdisp, "batch": batch,
-               "sljax_s": tj, "torch_s": tt, "ratio": tj / tt}
+               "sljax_s": tj, "torch_s": tt, "ratio": tj / tt, "ynn": "on"}
+        if kernels.compiler_options(kind) is not None:  # the tuned choice is what users get
+          tu = jax_time(name, batch, args.size, args.maxdisp, args.repeats, train,
+                        kernels=kernels)
+          row.update(sljax_default_s=tj, ratio_default=tj / tt, sljax_s=tu, ratio=tu / tt,
+                     ynn=kernels.name)
+        line = (f"| {name} | {mode} | {side} | {row['sljax_s']:.2f} | {tt:.2f} | "
+                f"{row['ratio']:.2f}x |")
         if args.with_lax and name.startswith("psmnet"):
           tl = jax_time(name, batch, args.size, args.maxdisp, max(1, args.repeats - 2), train,
                         "lax")

@@ -58,11 +58,9 @@ def time_step(config: TrainConfig, steps: int) -> float:
   """(a): steps/s of the compiled step on one fixed batch."""
   source = loop.open_source(config)
   info = loop.check_source(source, config)
-  kwargs = loop.model_kwargs(config, info.channels, info.t)
   mesh = stp.make_mesh()
-  model, tx, step, _ = loop.compiled_steps(config.net, tuple(sorted(kwargs.items())),
-                                           config.maxdisp, config.disp_loss, config.lr, None,
-                                           config.precision, mesh)
+  model, tx, step, _ = loop.compiled_steps(loop.model_config(config, info), config.disp_loss,
+                                           config.lr, None, mesh)
   state = jax.device_put(st.create_state(st.init_variables(model, 0, *config.size,
                                                            info.channels), tx),
                          stp.shardings(mesh)[0])

@@ -37,7 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import export as jex
 
-from sljax import inference
+from sljax import inference, sizes
 from sljax.corr import correlation
 from sljax.data.dataset import resize_image
 from sljax.errors import SljaxError
@@ -48,14 +48,7 @@ SEPARABLE_TOLERANCE = 1e-5
 
 def parse_size(text: str) -> tuple[int, int]:
   """'480x640' (height x width) -> (480, 640); SljaxError for anything else."""
-  parts = str(text).lower().split("x")
-  try:
-    h, w = (int(p) for p in parts)
-  except ValueError:
-    raise SljaxError(f"--size {text!r}: expected HEIGHTxWIDTH in pixels, e.g. 1024x1280") from None
-  if h <= 0 or w <= 0:
-    raise SljaxError(f"--size {text!r}: height and width must be positive")
-  return h, w
+  return sizes.parse_size(text, "--size", square=False)  # an artifact's shape is spelt out
 
 
 def sidecar_path(out: str | os.PathLike) -> Path:

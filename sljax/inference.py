@@ -64,6 +64,7 @@ from sljax.corr.uncertainty import view_uncertainty
 from sljax.data.dataset import resize_image
 from sljax.data.scene import to_gray
 from sljax.errors import SljaxError
+from sljax.sizes import as_size
 from sljax.nets import build_model, registry
 from sljax.nets.psmnet import PSMNet, normalization_zero
 from sljax.nets.psmnet_mtl import PSMNetMTL, SLOnly, detach_sl
@@ -190,15 +191,6 @@ def _resize_maps(maps: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
                    interpolation=cv2.INTER_LINEAR)
     out.append(r.reshape(hw + m.shape[2:]))
   return np.stack(out)
-
-
-def _as_size(size: Any) -> tuple[int, int] | None:
-  if size is None:
-    return None
-  if isinstance(size, (int, np.integer)):
-    return int(size), int(size)
-  h, w = (int(v) for v in size)
-  return h, w
 
 
 def _tree_diff(expected: Any, got: Any, path: str = "") -> str | None:
@@ -362,7 +354,7 @@ class Predictor:
     self.mode = mode
     self.split_twin = split_twin  # psmnet-mtl in two programs: None = when large (forward)
     self.kernels = kernels  # compiler choices (sljax.tune); its forward one applies here
-    self.train_size = _as_size(train_size)
+    self.train_size = as_size(train_size, "train_size")
     self.name = name or model_name
     self.sl_max_disp = sl_max_disp
     self.sl_window = sl_window
@@ -432,17 +424,18 @@ class Predictor:
 def make_predictor(model_name: str, model_kwargs: dict, variables: dict, train_size: Any = None,
                    mode: str = "pad", *, gray: bool | None = None, sl_max_disp: int | None = None,
                    sl_window: int | None = None, name: str | None = None,
-                   kernels: "tune.KernelChoice" = tune.DEFAULT) -> Predictor:
+                   kernels: "tune.KernelChoice" = tune.DEFAULT,
+                   conv_impl: str | None = None) -> Predictor:
   """Predictor for a model built by sljax.nets.build_model(model_name, **model_kwargs)."""
-  model = build_model(model_name, **dict(model_kwargs or {}))
+  model = build_model(model_name, **dict(model_kwargs or {}), conv_impl=conv_impl)
   return Predictor(model, variables, model_name=model_name, model_kwargs=model_kwargs,
                    train_size=train_size, mode=mode, gray=gray, sl_max_disp=sl_max_disp,
                    sl_window=sl_window, name=name, kernels=kernels)
 
 
 def load(checkpoint: str | os.PathLike, mode: str = "pad", maxdisp: int | None = None,
-         tune_kernels: bool | None = None, kernels: tune.KernelChoice | None = None
-         ) -> Predictor:
+         tune_kernels: bool | None = None, kernels: tune.KernelChoice | None = None,
+         conv_impl: str | None = None) -> Predictor:
   """Predictor from a training workdir, its checkpoints dir, or a converted PSMNet dir.
 
   maxdisp (optional) replaces the disparity range: the cost volume's depth for psmnet and
@@ -451,6 +444,7 @@ def load(checkpoint: str | os.PathLike, mode: str = "pad", maxdisp: int | None =
   tune_kernels: use this CPU's tuned compiler choice (sljax.tune; measured on first use and
   cached); None follows $SLJAX_TUNE (on unless 0), False keeps XLA's defaults. kernels, when
   given, is the choice itself (e.g. the one a run trained with) and nothing is tuned.
+  conv_impl: the convolution kernels ("auto", "lax" or "fast"; None: $SLJAX_CONV3D's default).
   """
   path = os.fspath(checkpoint)
   model_name, model_kwargs, variables, config = load_for_inference(path)
@@ -470,6 +464,6 @@ def load(checkpoint: str | os.PathLike, mode: str = "pad", maxdisp: int | None =
   predictor = make_predictor(model_name, model_kwargs, variables, train_size=config.get("size"),
                              mode=mode, gray=config.get("gray"), sl_max_disp=sl_max_disp,
                              sl_window=config.get("corr_window"), name=path,
-                             kernels=kernels or tune.choice(tune_kernels))
+                             kernels=kernels or tune.choice(tune_kernels), conv_impl=conv_impl)
   predictor.train_config = config
   return predictor

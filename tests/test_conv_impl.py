@@ -9,6 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from sljax.errors import SljaxError
 from sljax.kernels import ConvBase
 from sljax.nets import PSMNetMTL, UNet, build_model
 
@@ -145,5 +146,5 @@ def test_environment_is_only_the_default_read_when_built(monkeypatch):
 
   monkeypatch.delenv("SLJAX_CONV3D")
   assert build_model("unet-disp").conv_impl == auto.conv_impl
-  with pytest.raises(ValueError, match="auto, lax or fast"):
+  with pytest.raises(SljaxError, match="auto, lax or fast"):  # bad config: a clear error
     build_model("psmnet", conv_impl="bogus")

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from sljax.data.scene import Scene
+from sljax.nets import ModelConfig
 from sljax.train import checkpoint as ckpt
 from sljax.train import loop
 from sljax.train.config import TrainConfig, config_from_json
@@ -156,8 +157,7 @@ def test_loading_overlaps_the_steps(tiny, monkeypatch, tmp_path):
   monkeypatch.setattr(loop, "open_source", lambda config: MemorySource(40, s_per_scene))
   monkeypatch.setattr(loop, "LOADER_THREADS", 1)
   model, tx, step, evaluate = toys.tiny_steps(
-      "psmnet", (("in_channels", 3), ("maxdisp", 16)), 16, "l2", 3e-2, None, "fp32",
-      loop.stp.make_mesh())
+      ModelConfig("psmnet", in_channels=3, maxdisp=16), "l2", 3e-2, None, loop.stp.make_mesh())
 
   def slow_step(state, batch, weights):
     time.sleep(t_step)

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from sljax.losses import weighting as wt
-from sljax.nets import build_model, registry
+from sljax.nets import ModelConfig, build_model, registry
 from sljax.train import state as st
 from sljax.train import step as stp
 
@@ -75,8 +75,8 @@ def twin_runs(twin, mesh):
   """Overfits one batch with one compiled step under every strategy (the strategy is an input)."""
   model, variables = twin
   tx = st.make_optimizer(LR)
-  step = stp.make_train_step(model, net="psmnet-mtl", maxdisp=MAXDISP, disp_loss="l2", tx=tx,
-                             mesh=mesh, compiler_options=FAST)
+  step = stp.make_train_step(model, ModelConfig("psmnet-mtl", 3, MAXDISP, T), disp_loss="l2",
+                             tx=tx, mesh=mesh, compiler_options=FAST)
   batch = stp.put_batch({k: v for k, v in _batch().items() if k != "sl_right"}, mesh)
   out = {}
   history = [(0.8, 9.0), (0.5, 8.0)]  # a DWA history giving unequal weights
@@ -134,7 +134,8 @@ def test_unets_overfit_one_batch(net, mesh):
   model = build_model(net, t=T, in_channels=3, depth=2, base_width=8)
   variables = st.init_variables(model, 0, H, W, 3)
   tx = st.make_optimizer(2e-2)
-  step = stp.make_train_step(model, net=net, maxdisp=MAXDISP, disp_loss="l2", tx=tx, mesh=mesh,
+  config = ModelConfig(net, 3, MAXDISP, T, (("base_width", 8), ("depth", 2)))
+  step = stp.make_train_step(model, config, disp_loss="l2", tx=tx, mesh=mesh,
                              compiler_options=FAST)
   batch = stp.put_batch({k: v for k, v in _batch().items() if k in registry.spec(net).parts}, mesh)
   w = jnp.asarray([1.0, 0.0, 0.0] if net == "unet-sl" else [0.0, 1.0, 0.0])
@@ -147,7 +148,7 @@ def test_unets_overfit_one_batch(net, mesh):
 _SHARDED = textwrap.dedent("""
     import jax, jax.numpy as jnp, numpy as np
     assert jax.device_count() == 8, jax.devices()
-    from sljax.nets import build_model
+    from sljax.nets import ModelConfig, build_model
     from sljax.train import state as st, step as stp
     model = build_model("unet-disp", in_channels=3, depth=2, base_width=8)
     v = st.init_variables(model, 0, 32, 32, 3)
@@ -160,7 +161,7 @@ _SHARDED = textwrap.dedent("""
     res = []
     for devices in (jax.devices()[:1], jax.devices()):
       mesh = stp.make_mesh(devices)
-      step = stp.make_train_step(model, net="unet-disp", maxdisp=16, disp_loss="l2", tx=tx,
+      step = stp.make_train_step(model, ModelConfig("unet-disp", 3, 16), disp_loss="l2", tx=tx,
                                  mesh=mesh, compiler_options=st.INIT_COMPILER_OPTIONS)
       s = jax.device_put(st.create_state(jax.tree.map(jnp.copy, v), tx),
                          stp.shardings(mesh)[0])

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from sljax import cache, cli, inference, machine, tune
+from sljax.nets import ModelConfig
 from sljax.train import checkpoint as ckpt
 from sljax.train import loop
 from sljax.train import step as stp
@@ -160,8 +161,8 @@ def test_training_steps_get_the_choice_as_compiler_options(monkeypatch):
   seen = {}
   monkeypatch.setattr(stp, "make_train_step", lambda *a, **k: seen.setdefault("train", k["compiler_options"]))
   monkeypatch.setattr(stp, "make_eval_step", lambda *a, **k: seen.setdefault("eval", k["compiler_options"]))
-  loop.compiled_steps.__wrapped__("unet-disp", (("in_channels", 1),), 16, "l2", 1e-3, None,
-                                  "fp32", None, "forward-off")
+  loop.compiled_steps.__wrapped__(ModelConfig("unet-disp", 1, 16), "l2", 1e-3, None, None,
+                                  "forward-off")
   assert seen == {"train": None, "eval": tune.YNN_OFF}
 
 

@@ -37,13 +37,12 @@ class TinyTwin(nn.Module):
 
 
 @functools.lru_cache(maxsize=None)
-def tiny_steps(net, kwargs, maxdisp, disp_loss, lr, lr_drop_step, precision, mesh, ynn="on"):
+def tiny_steps(model_config, disp_loss, lr, lr_drop_step, mesh, ynn="on"):
   """Drop-in for sljax.train.loop.compiled_steps that trains TinyTwin for any PSMNet."""
-  model = TinyTwin(maxdisp=maxdisp, t=dict(kwargs).get("t", 4))
+  model = TinyTwin(maxdisp=model_config.maxdisp, t=model_config.t or 4)
   tx = train_state.make_optimizer(lr, lr_drop_step)
   opts = train_state.INIT_COMPILER_OPTIONS
-  dtype = stp.COMPUTE_DTYPES[precision]
   return (model, tx,
-          stp.make_train_step(model, net=net, maxdisp=maxdisp, disp_loss=disp_loss, tx=tx,
-                              mesh=mesh, dtype=dtype, compiler_options=opts),
-          stp.make_eval_step(model, net=net, mesh=mesh, dtype=dtype, compiler_options=opts))
+          stp.make_train_step(model, model_config, disp_loss=disp_loss, tx=tx, mesh=mesh,
+                              compiler_options=opts),
+          stp.make_eval_step(model, model_config, mesh=mesh, compiler_options=opts))

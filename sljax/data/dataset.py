@@ -16,6 +16,7 @@ import numpy as np
 
 from sljax.data.scene import Scene, load_scene, read_json_object, to_gray
 from sljax.errors import SljaxError
+from sljax.sizes import as_size
 
 BATCH_PARTS = ("left", "right", "disp", "disp_right", "sl", "sl_right", "mask")
 DEFAULT_PARTS = ("left", "right", "disp", "sl")
@@ -255,18 +256,6 @@ def take_fraction(indices: Sequence[int], fraction: str | float, seed: int = 0) 
   return sorted(pool[k] for k in order[:n])
 
 
-def _as_size(size: int | Sequence[int] | None) -> tuple[int, int] | None:
-  if size is None:
-    return None
-  if isinstance(size, (int, np.integer)):
-    h = w = int(size)
-  else:
-    h, w = (int(v) for v in size)
-  if h <= 0 or w <= 0:
-    raise SljaxError(f"size must be positive, got {size}")
-  return h, w
-
-
 def _nearest_index(n_out: int, n_in: int) -> np.ndarray:
   """Source index of each output pixel centre under nearest-neighbour resampling."""
   return np.minimum(((np.arange(n_out) + 0.5) * (n_in / n_out)).astype(np.int64), n_in - 1)
@@ -316,7 +305,7 @@ def load_batch(source, indices: Sequence[int], *, size: int | Sequence[int] | No
     raise SljaxError(f"unknown batch part(s) {bad}; choose from {list(BATCH_PARTS)}")
   if mode not in ("resize", "crop"):
     raise SljaxError(f"mode must be 'resize' or 'crop', got {mode!r}")
-  hw = _as_size(size)
+  hw = as_size(size)
   if mode == "crop" and hw is None:
     raise SljaxError("crop mode needs a size")
   if len(indices) == 0:

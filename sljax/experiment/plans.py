@@ -87,6 +87,9 @@ class Scale:
   # --ynn of every cell: "auto" tunes on first use; smoke keeps XLA's defaults ("on"), since
   # its programs run for seconds and tuning would take longer than the whole plan.
   ynn: str = "auto"
+  # --conv-impl of every cell: smoke's programs run for seconds, so compiling the fast kernels
+  # costs more than they save there (benchmarks/bench_smoke.py).
+  conv_impl: str = "auto"
 
   def budget(self, arm: str, phase: str) -> int:
     """The v2 epochs of an arm in a phase (its own calibrated budget, else the scale's "*");
@@ -106,7 +109,8 @@ SCALES = {s.name: s for s in (
           corr_window=3, unet_width=4, unet_depth=2, val_every=1, small_val_every=1,
           max_val=4, note="a few minutes on a CPU; the tests run it", windows=(3, 5), test_n=20,
           budgets=((("*", "objects"), 2), (("*", "1/16"), 2), (("*", "finetune"), 2)),
-          calib_epochs=(("objects", 3), ("1/16", 3), ("finetune", 3)), ynn="on"),
+          calib_epochs=(("objects", 3), ("1/16", 3), ("finetune", 3)), ynn="on",
+          conv_impl="lax"),
     Scale("cpu", size=64, t=6, maxdisp=16, objects_n=400, tissue_n=80, epochs=12,
           small_epochs=96, finetune_epochs=40, batch_size=4, lr=1e-3, lr_drop=True,
           corr_window=5, unet_width=16, unet_depth=4, val_every=1, small_val_every=8,
@@ -176,10 +180,10 @@ class Cell:
     """What identifies the run (plan.json): a changed spec under one name is refused. The
     evaluation sets are not part of it: a trained cell can be scored on more sets later."""
     # Not the run's identity (older plan.json lack the last two): init_from is init_cell's,
-    # tensorboard is an output only, ynn changes float rounding only and is resolved per
-    # machine (each cell's config.json keeps it).
+    # tensorboard is an output only, ynn and conv_impl change float rounding only (the fast
+    # kernels equal lax's) and are chosen per machine (each cell's config.json keeps them).
     config = {k: v for k, v in self.config.to_json().items()
-              if k not in ("init_from", "tensorboard", "ynn")}
+              if k not in ("init_from", "tensorboard", "ynn", "conv_impl")}
     return {"arm": self.arm, "factors": [list(f) for f in self.factors], "seed": self.seed,
             "config": config, "init_cell": self.init_cell}
 
@@ -216,7 +220,8 @@ def _base(scale: Scale, seed: int, epochs: int | None = None) -> TrainConfig:
       synth_size=scale.size, synth_t=scale.t, maxdisp=scale.maxdisp, synth_n=scale.objects_n,
       epochs=epochs, batch_size=scale.batch_size, lr=scale.lr, lr_drop_epoch=_drop(scale, epochs),
       corr_window=scale.corr_window, unet_width=scale.unet_width, unet_depth=scale.unet_depth,
-      val_every=scale.val_every, max_val=scale.max_val, keep=2, ynn=scale.ynn)
+      val_every=scale.val_every, max_val=scale.max_val, keep=2, ynn=scale.ynn,
+      conv_impl=scale.conv_impl)
 
 
 def _on_target(config: TrainConfig, scale: Scale, data: str | None,

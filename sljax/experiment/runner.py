@@ -38,7 +38,7 @@ from sljax.evaluate import evaluate, json_safe
 from sljax.experiment.plans import (FIXED, HELDOUT, TEST_SEED, Cell, EvalSet, Plan, check_unique,
                                     describe)
 from sljax.train import checkpoint as ckpt
-from sljax.train.config import dumps
+from sljax.train.config import config_from_json, dumps
 from sljax.train.loop import open_source, train
 
 PLAN_FILE = "plan.json"
@@ -208,11 +208,12 @@ def _eval_source(cell: Cell, evalset: EvalSet):
 
 
 def _final_predictor(out: Path, cell: Cell) -> inference.Predictor:
-  """The cell's final checkpoint (resize protocol) with the compiler choice it trained with:
-  scoring never tunes, and at the smoke scale nothing is tuned at all."""
-  ynn = ckpt.read_config(cell_dir(out, cell.name)).get("ynn", "on")
+  """The cell's final checkpoint (resize protocol) with the compiler and kernel choices it
+  trained with: scoring never tunes, and at the smoke scale nothing is tuned at all."""
+  saved = ckpt.read_config(cell_dir(out, cell.name))
   return inference.load(final_checkpoint(out, cell.name), mode="resize",
-                        kernels=tune.KernelChoice.from_name(ynn))
+                        kernels=tune.KernelChoice.from_name(saved.get("ynn", "on")),
+                        conv_impl=config_from_json(saved).model_conv_impl)
 
 
 def choose_window(out: Path, cell: Cell) -> int | None:

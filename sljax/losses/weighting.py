@@ -72,12 +72,17 @@ def weighted_loss(l_sl: jax.Array, l_disp: jax.Array,
   return weights[0] * l_sl + weights[1] * l_disp, jnp.asarray(weights)
 
 
+def uncertainty_factors(log_sigma_sl: jax.Array, log_sigma_disp: jax.Array,
+                        sl_gain: float = UNC_SL_GAIN) -> tuple[jax.Array, jax.Array]:
+  """Kendall's task factors (sl_gain / (2 sigma_sl^2), 1 / (2 sigma_disp^2)): written once."""
+  return sl_gain * 0.5 * jnp.exp(-2.0 * log_sigma_sl), 0.5 * jnp.exp(-2.0 * log_sigma_disp)
+
+
 def uncertainty_loss(l_sl: jax.Array, l_disp: jax.Array, log_sigma_sl: jax.Array,
                      log_sigma_disp: jax.Array,
                      sl_gain: float = UNC_SL_GAIN) -> tuple[jax.Array, jax.Array]:
   """(total, effective weights) of Kendall's uncertainty weighting with learnable log sigmas."""
-  w_sl = sl_gain * 0.5 * jnp.exp(-2.0 * log_sigma_sl)
-  w_disp = 0.5 * jnp.exp(-2.0 * log_sigma_disp)
+  w_sl, w_disp = uncertainty_factors(log_sigma_sl, log_sigma_disp, sl_gain)
   total = w_sl * l_sl + w_disp * l_disp + log_sigma_sl + log_sigma_disp
   return total, jnp.stack([w_sl, w_disp])
 
@@ -96,8 +101,8 @@ def combined_loss(l_sl: jax.Array, l_disp: jax.Array, weights: jax.Array,
   then leaves them unchanged). unc = 1: uncertainty_loss of (w_sl * L_sl, w_disp * L_disp).
   """
   unc = weights[2] > 0.5
-  u_sl = jnp.where(unc, UNC_SL_GAIN * 0.5 * jnp.exp(-2.0 * log_sigma_sl), 1.0)
-  u_disp = jnp.where(unc, 0.5 * jnp.exp(-2.0 * log_sigma_disp), 1.0)
+  f_sl, f_disp = uncertainty_factors(log_sigma_sl, log_sigma_disp)
+  u_sl, u_disp = jnp.where(unc, f_sl, 1.0), jnp.where(unc, f_disp, 1.0)
   eff = jnp.stack([weights[0] * u_sl, weights[1] * u_disp])
   total = eff[0] * l_sl + eff[1] * l_disp + jnp.where(unc, log_sigma_sl + log_sigma_disp, 0.0)
   return total, eff

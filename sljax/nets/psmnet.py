@@ -50,6 +50,7 @@ from sljax.errors import require
 from sljax.kernels import Conv3D, ConvTranspose3D, ResolvesConvImpl, phase_regression
 from sljax.nets.layers import (ConvBN2D, ConvBN3D, batch_norm, conv_init, conv_transpose_init,
                                linear_resize_matrix, linear_resize_phases, resize_linear)
+from sljax.nets.registry import check_maxdisp
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -324,8 +325,7 @@ def check_pair(left: jax.Array, right: jax.Array, in_channels: int, maxdisp: int
   h, w = left.shape[1], left.shape[2]
   require(h % multiple == 0 and w % multiple == 0,
           f"image size {h}x{w} must be a multiple of {multiple} (pad the input)")
-  require(maxdisp > 0 and maxdisp % 16 == 0, f"maxdisp must be a positive multiple of 16, "
-          f"got {maxdisp}")
+  check_maxdisp(maxdisp, f"maxdisp {maxdisp}")
 
 
 def extract_cost_volume(left: jax.Array, right: jax.Array, maxdisp: int,

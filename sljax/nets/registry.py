@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
+import numbers
 from typing import Any
 
 from sljax.errors import SljaxError
@@ -65,6 +66,18 @@ MODELS = tuple(name for name, spec in NETS.items() if spec.single is None)
 # Options every network accepts (ignored where they do not apply, so one configuration can
 # carry them for any network).
 COMMON_OPTIONS = ("maxdisp", "t", "gray", "in_channels")
+
+
+def check_maxdisp(maxdisp: Any, what: str) -> None:
+  """The one rule on a disparity range: a positive multiple of 16 (PSMNet's cost volume is
+  built at 1/4 resolution and its hourglasses halve it twice); SljaxError naming `what`."""
+  if not isinstance(maxdisp, numbers.Integral) or isinstance(maxdisp, bool) or maxdisp <= 0 or maxdisp % 16:
+    raise SljaxError(f"{what}: must be a positive multiple of 16")
+
+
+def model_kwargs_for(name: str) -> tuple[str, ...]:
+  """The keyword arguments build_model accepts for `name`."""
+  return COMMON_OPTIONS + spec(name).options
 
 
 def spec(name: str) -> NetSpec:

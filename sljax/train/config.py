@@ -10,6 +10,7 @@ import json
 from typing import Any
 
 from sljax.data.synthetic import DOMAINS
+from sljax import sizes
 from sljax.errors import SljaxError, require
 from sljax.losses.disparity import DISP_LOSSES
 from sljax.losses.weighting import STRATEGIES
@@ -20,19 +21,15 @@ MODELS = registry.MODELS
 PRESETS = ("auto", "paper", "quick")
 PRECISIONS = ("fp32", "bf16")
 YNN = ("auto", "on", "off", "forward-off", "train-off")
+CONV_IMPLS = ("auto", "lax", "fast")  # sljax.kernels.impl.IMPLS (kept light: no jax here)
 
 
 def parse_size(text: str) -> tuple[int, int]:
-  """'256' -> (256, 256); '96x128' -> (96, 128) (height x width)."""
+  """sizes.parse_size for argparse, which prints an ArgumentTypeError as a usage error."""
   try:
-    parts = [int(p) for p in text.lower().split("x")]
-  except ValueError:
-    raise argparse.ArgumentTypeError(f"expected N or HEIGHTxWIDTH, got {text!r}") from None
-  if len(parts) == 1:
-    parts = parts * 2
-  if len(parts) != 2:
-    raise argparse.ArgumentTypeError(f"expected N or HEIGHTxWIDTH, got {text!r}")
-  return parts[0], parts[1]
+    return sizes.parse_size(text, "size")
+  except SljaxError as e:
+    raise argparse.ArgumentTypeError(str(e)) from None
 
 
 def option(default: Any, help: str, *, parse: Any = None, choices: tuple[str, ...] | None = None,
@@ -86,6 +83,9 @@ class TrainConfig:
                     "default), on, off, forward-off (validation programs) or train-off; the "
                     "resolved value is saved in config.json, so a resume compiles the same "
                     "programs", choices=YNN)
+  conv_impl: str = option("auto", "convolution kernels: auto (sljax's exact CPU kernels on a "
+                          "CPU, XLA's elsewhere), lax or fast (sljax.kernels; equal in value "
+                          "and gradient); $SLJAX_CONV3D sets what auto means", choices=CONV_IMPLS)
   val_every: int = option(1, "epochs between validations", resumable=True)
   save_every: int = option(0, "also checkpoint every N steps (default: at each epoch end only)")
   keep: int = option(3, "checkpoints kept (the last N, plus the best by validation MAE)",
@@ -115,6 +115,11 @@ class TrainConfig:
   def spec(self) -> registry.NetSpec:
     """The trained network's entry in sljax.nets.registry.NETS."""
     return registry.spec(self.net)
+
+  @property
+  def model_conv_impl(self) -> str | None:
+    """ModelConfig's conv_impl: None for "auto", so that $SLJAX_CONV3D sets the default."""
+    return None if self.conv_impl == "auto" else self.conv_impl
 
   @property
   def use_gray(self) -> bool:
@@ -163,8 +168,7 @@ def validate(config: TrainConfig) -> None:
   require(registry.spec(config.model).twin is not None or config.strategy == "stl",
           f"--strategy {config.strategy}: weighting strategies apply to the PSMNet twin; "
           f"{config.model} trains a single task (use --strategy stl or leave it out)")
-  require(config.maxdisp > 0 and config.maxdisp % 16 == 0,
-          f"--maxdisp {config.maxdisp}: must be a positive multiple of 16")
+  registry.check_maxdisp(config.maxdisp, f"--maxdisp {config.maxdisp}")
   h, w = config.size
   require(h > 0 and w > 0 and h % 16 == 0 and w % 16 == 0,
           f"--size {h}x{w}: height and width must be positive multiples of 16")

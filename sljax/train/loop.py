@@ -20,7 +20,6 @@ runs at each fetch, and every step still gets its row in metrics.jsonl.
 
 import dataclasses
 import functools
-import math
 import os
 import sys
 import time
@@ -35,9 +34,10 @@ from tqdm import tqdm
 
 from sljax import tune
 from sljax.data import preflight
-from sljax.errors import SljaxError, require
+from sljax.errors import require
 from sljax.losses import weighting
-from sljax.nets import build_model, registry
+from sljax.nets import registry
+from sljax.nets.model_config import ModelConfig
 from sljax.train import checkpoint as ckpt
 from sljax.train import state as st
 from sljax.train import step as stp
@@ -45,7 +45,8 @@ from sljax.train.config import TrainConfig
 from sljax.train.feed import (LOADER_THREADS, PREFETCH, RowCache, batch_parts, check_source,
                               open_source, prefetch, row_caches, train_batches)
 from sljax.train.profiler import StepProfiler
-from sljax.train.setup import Setup, merge_init, model_kwargs, resolve_ynn, setup
+from sljax.train.record import Recorder, TrainingDiverged, fetch_metrics, save, write_epoch
+from sljax.train.setup import Setup, merge_init, model_config, resolve_ynn, setup
 from sljax.train.state import LoopState
 from sljax.train.validate import validate_split
 from sljax.train.workdir import (EPOCHS_FILE, METRICS_FILE, MetricWriter, default_workdir,
@@ -54,33 +55,27 @@ from sljax.train.workdir import (EPOCHS_FILE, METRICS_FILE, MetricWriter, defaul
 # Re-exported: the loop's public names predate its rooms (tests and benchmarks use them).
 __all__ = ["EPOCHS_FILE", "LOADER_THREADS", "METRICS_FILE", "PREFETCH", "LoopState", "RowCache",
            "RunResult", "TrainConfig", "TrainingDiverged", "batch_parts", "check_source",
-           "compiled_steps", "default_workdir", "merge_init", "model_kwargs", "open_source",
+           "compiled_steps", "default_workdir", "merge_init", "model_config", "open_source",
            "prefetch", "resolve_ynn", "setup", "task_weights", "train"]
-
-
-class TrainingDiverged(SljaxError):
-  """The loss became NaN or infinite."""
 
 
 # ----------------------------------------------------------------------------- compiled steps
 
 
 @functools.lru_cache(maxsize=8)
-def compiled_steps(net: str, kwargs: tuple[tuple[str, Any], ...], maxdisp: int, disp_loss: str,
-                   lr: float, lr_drop_step: int | None, precision: str,
-                   mesh, ynn: str = "on") -> tuple[Any, Any, Any, Any]:
+def compiled_steps(model_config: ModelConfig, disp_loss: str, lr: float,
+                   lr_drop_step: int | None, mesh, ynn: str = "on") -> tuple[Any, Any, Any, Any]:
   """(model, optimiser, train step, eval step), memoised so runs in one process share the
-  compiled steps (tests, notebooks, experiment grids, a resume in the same process); `ynn` is
-  the resolved --ynn (sljax.tune), the steps' XLA compiler options."""
-  model = build_model(net, **dict(kwargs))
+  compiled steps (tests, notebooks, experiment grids, a resume in the same process); the key
+  holds everything that changes a program (the model config with its kernels, and `ynn`, the
+  resolved --ynn: sljax.tune's XLA compiler options)."""
+  model = model_config.build()
   tx = st.make_optimizer(lr, lr_drop_step)
-  dtype = stp.COMPUTE_DTYPES[precision]
   choice = tune.KernelChoice.from_name(ynn)
   return (model, tx,
-          stp.make_train_step(model, net=net, maxdisp=maxdisp, disp_loss=disp_loss, tx=tx,
-                              mesh=mesh, dtype=dtype,
+          stp.make_train_step(model, model_config, disp_loss=disp_loss, tx=tx, mesh=mesh,
                               compiler_options=choice.compiler_options("train")),
-          stp.make_eval_step(model, net=net, mesh=mesh, dtype=dtype,
+          stp.make_eval_step(model, model_config, mesh=mesh,
                              compiler_options=choice.compiler_options("forward")))
 
 
@@ -113,70 +108,6 @@ def restore_checkpoint(manager, state: st.TrainState, sharding) -> tuple[st.Trai
   loop = LoopState.from_meta(meta)
   require(loop.step == int(state.step), f"{manager.directory}: checkpoint {step} is inconsistent")
   return state, loop
-
-
-# ----------------------------------------------------------------------------- logs and saves
-
-
-@dataclasses.dataclass(frozen=True)
-class Recorder:
-  """Where the loop's results go: the run's metric files, its checkpoints, the progress bar."""
-  run: Setup
-  writer: MetricWriter
-  manager: Any
-  bar: Any
-
-
-def fetch_metrics(rec: Recorder, pending: list[tuple[int, Any]],
-                  loop: LoopState) -> tuple[LoopState, dict[str, float]]:
-  """Fetches the pending steps' metrics, checks them, logs a row per step and adds their
-  losses to the epoch sums; returns the new LoopState and the last row."""
-  config, spe = rec.run.config, rec.run.steps_per_epoch
-  rows = []
-  for step, m in zip([s for s, _ in pending], jax.device_get([m for _, m in pending])):
-    m = {k: float(v) for k, v in m.items() if config.strategy == "unc" or not k.startswith("sigma")}
-    if not math.isfinite(m["loss"]):
-      rec.writer.write(METRICS_FILE, rows)
-      rec.manager.wait_until_finished()
-      good = rec.manager.latest_step()
-      raise TrainingDiverged(
-          f"non-finite loss ({m['loss']}) at step {step} (epoch {(step - 1) // spe + 1}); "
-          "stopped. " + (f"The last good checkpoint is step {good} in "
-                         f"{rec.run.workdir / ckpt.CHECKPOINT_DIR}" if good is not None
-                         else "No checkpoint was saved yet") + "; try a lower --lr")
-    rows.append({"step": step, "epoch": (step - 1) // spe + 1, **m})
-    loop = loop.add_step(m["loss_sl"], m["loss_disp"])
-  rec.writer.write(METRICS_FILE, rows)
-  ckpt.check(rec.manager)  # a failed background save ends the run now, not an epoch later
-  rec.bar.set_postfix(epoch=rows[-1]["epoch"], loss=f"{rows[-1]['loss']:.4g}", refresh=False)
-  rec.bar.update(len(rows))
-  return loop, rows[-1]
-
-
-def save(rec: Recorder, state: st.TrainState, loop: LoopState, val: float | None = None) -> None:
-  """Starts an async checkpoint of the state with the loop state as its metadata."""
-  ckpt.save(rec.manager, loop.step, state, loop.to_meta(), val)
-
-
-def write_epoch(rec: Recorder, loop: LoopState, last: dict[str, float], val: dict[str, float],
-                seconds: float, samples: int) -> None:
-  """The finished epoch's epochs.jsonl row and its line above the progress bar."""
-  config = rec.run.config
-  epoch = len(loop.history)
-  row = {"epoch": epoch, "step": loop.step, "loss_sl": loop.history[-1][0],
-         "loss_disp": loop.history[-1][1], "w_sl": last["w_sl"], "w_disp": last["w_disp"],
-         "samples_per_s": samples / max(seconds, 1e-9), "seconds": seconds}
-  row.update({k: last[k] for k in ("sigma_sl", "sigma_disp") if k in last})
-  row.update(val)
-  rec.writer.write(EPOCHS_FILE, [row])
-  needs_sl, needs_disp = config.tasks
-  text = [f"L_sl {row['loss_sl']:.4g}"] * needs_sl + [f"L_disp {row['loss_disp']:.4g}"] * needs_disp
-  if val.get("val_mae") is not None:
-    text.append(f"val MAE {val['val_mae']:.3f} px")
-  if val.get("val_sl") is not None:
-    text.append(f"val L_sl {val['val_sl']:.4f}")
-  rec.bar.write(f"epoch {epoch}/{config.epochs}: {' '.join(text)} "
-                f"({row['samples_per_s']:.1f} samples/s)")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -214,9 +145,8 @@ def train(config: TrainConfig, workdir: str | os.PathLike | None = None, *, resu
   mesh = stp.make_mesh()
   repl, _ = stp.shardings(mesh)
   drop = None if config.lr_drop_epoch is None else config.lr_drop_epoch * spe
-  model, tx, train_step, eval_step = compiled_steps(
-      config.net, tuple(sorted(run.kwargs.items())), config.maxdisp, config.disp_loss,
-      config.lr, drop, config.precision, mesh, run.config.ynn)
+  model, tx, train_step, eval_step = compiled_steps(run.model, config.disp_loss, config.lr,
+                                                    drop, mesh, run.config.ynn)
   state = create_train_state(run, model, tx)
   manager = ckpt.make_manager(workdir / ckpt.CHECKPOINT_DIR, keep=config.keep)
   loop = LoopState()

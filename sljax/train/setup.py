@@ -14,20 +14,22 @@ from flax import traverse_util
 from sljax import tune
 from sljax.data.dataset import split_indices, take_fraction
 from sljax.errors import SljaxError, require
-from sljax.nets import build_model, detach_sl, registry
+from sljax.nets import detach_sl, registry
+from sljax.nets.model_config import ModelConfig
 from sljax.train import checkpoint as ckpt
 from sljax.train.config import TrainConfig, validate
 from sljax.train.feed import DataInfo, check_source, open_source
 from sljax.train.workdir import prepare_workdir, write_config
 
 
-def model_kwargs(config: TrainConfig, channels: int, t: int | None) -> dict[str, Any]:
-  """Keyword arguments of sljax.nets.build_model for this run (the options the net takes)."""
-  values = {"maxdisp": config.maxdisp, "t": t, "depth": config.unet_depth,
-            "base_width": config.unet_width}
-  kw: dict[str, Any] = {"in_channels": channels}
-  kw.update({k: v for k, v in values.items() if k in config.spec.options})
-  return kw
+def model_config(config: TrainConfig, info: DataInfo) -> ModelConfig:
+  """The run's network, resolved and checked once: the flags' options and the data's channels
+  and patterns."""
+  options = {"depth": config.unet_depth, "base_width": config.unet_width}
+  return ModelConfig(config.net, info.channels, config.maxdisp, info.t,
+                     tuple((k, v) for k, v in options.items() if k in config.spec.options),
+                     config.model_conv_impl,
+                     config.precision)
 
 
 def load_init(path: str, config: TrainConfig) -> tuple[str, dict[str, Any]]:
@@ -75,7 +77,7 @@ class Setup:
   train_idx: tuple[int, ...]
   val_idx: tuple[int, ...]
   info: DataInfo
-  kwargs: dict[str, Any]
+  model: ModelConfig
   resume: bool
   init: tuple[str, dict[str, Any]] | None = None  # --init-from: (source net, its variables)
 
@@ -124,22 +126,23 @@ def setup(config: TrainConfig, workdir: Path, resume: bool, overwrite: bool,
   log(announce(config, preset_note, steps_per_epoch, len(train_idx), len(val_idx)))
   config = resolve_ynn(config, workdir, resume, log)  # after the checks: it may compile
   info = check_source(source, config)
-  kwargs = model_kwargs(config, info.channels, info.t)
-  config_json = dict(config.to_json(), net=config.net, model_kwargs=kwargs, t=info.t,
+  model_cfg = model_config(config, info)
+  config_json = dict(config.to_json(), net=config.net, model_kwargs=model_cfg.saved_kwargs,
+                     t=info.t,
                      gray=config.use_gray, steps_per_epoch=steps_per_epoch,
                      n_train=len(train_idx), n_val=len(val_idx))
   do_resume = prepare_workdir(workdir, config_json, resume, overwrite)
   init = None
   if config.init_from and not do_resume:
     # Shapes are compared on an abstract init, so a mismatch errors before compiling anything.
-    model = build_model(config.net, **kwargs)
+    model = model_cfg.build()
     x = jax.ShapeDtypeStruct((1, *config.size, info.channels), jnp.float32)
     abstract = jax.eval_shape(
         lambda a, b: model.init(jax.random.PRNGKey(0), a, b, train=False), x, x)
     init = load_init(config.init_from, config)
     merge_init(dict(abstract), init[1], init[0], config, config.init_from)
   write_config(workdir, config_json)
-  return Setup(config, workdir, source, tuple(train_idx), tuple(val_idx), info, kwargs,
+  return Setup(config, workdir, source, tuple(train_idx), tuple(val_idx), info, model_cfg,
                do_resume, init)
 
 

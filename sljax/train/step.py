@@ -20,11 +20,11 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 from sljax.losses.disparity import disparity_loss, masked_mae
 from sljax.losses.sl import sl_loss
 from sljax.losses.weighting import UNCERTAINTY_KEY, combined_loss
-from sljax.nets import registry
+from sljax.nets.model_config import COMPUTE_DTYPES, ModelConfig
 from sljax.train.state import TrainState, net_params
 
-# Computation dtypes of --precision; parameters, optimiser state and losses stay float32.
-COMPUTE_DTYPES = {"fp32": jnp.float32, "bf16": jnp.bfloat16}
+__all__ = ["COMPUTE_DTYPES", "apply_model", "make_eval_step", "make_mesh", "make_train_step",
+           "process_rows", "put_batch", "shardings", "task_losses"]
 
 
 def make_mesh(devices: list[jax.Device] | None = None) -> Mesh:
@@ -38,10 +38,10 @@ def shardings(mesh: Mesh) -> tuple[NamedSharding, NamedSharding]:
   return NamedSharding(mesh, P()), NamedSharding(mesh, P("data"))
 
 
-def task_losses(outputs: dict[str, jax.Array], batch: dict[str, jax.Array], net: str,
-                maxdisp: float, disp_kind: str) -> tuple[jax.Array, jax.Array]:
+def task_losses(outputs: dict[str, jax.Array], batch: dict[str, jax.Array], config: ModelConfig,
+                disp_kind: str) -> tuple[jax.Array, jax.Array]:
   """(L_sl, L_disp) in float32 of a forward pass; a task the network lacks gives 0."""
-  parts = registry.spec(net).parts
+  parts = config.spec.parts
   outputs = jax.tree.map(lambda x: x.astype(jnp.float32), outputs)
   zero = jnp.zeros((), jnp.float32)
   l_sl, l_disp = zero, zero
@@ -54,7 +54,7 @@ def task_losses(outputs: dict[str, jax.Array], batch: dict[str, jax.Array], net:
     l_sl = sl_loss(logits, targets)
   if "disp" in parts:
     preds = outputs.get("disparities") or (outputs["disparity"],)
-    l_disp = disparity_loss(preds, batch["disp"], maxdisp, disp_kind)
+    l_disp = disparity_loss(preds, batch["disp"], config.maxdisp, disp_kind)
   return l_sl, l_disp
 
 
@@ -73,21 +73,23 @@ def apply_model(model: nn.Module, params: dict[str, Any], batch_stats: dict[str,
   return model.apply(variables, left, right, train=False)
 
 
-def make_train_step(model: nn.Module, *, net: str, maxdisp: float, disp_loss: str,
-                    tx: optax.GradientTransformation, mesh: Mesh, dtype: Any = jnp.float32,
+def make_train_step(model: nn.Module, config: ModelConfig, *, disp_loss: str,
+                    tx: optax.GradientTransformation, mesh: Mesh,
                     compiler_options: dict[str, Any] | None = None
                     ) -> Callable[..., tuple[TrainState, dict[str, jax.Array]]]:
   """jit(step)(state, batch, weights) -> (new state, metrics); the state is donated.
 
-  weights = weighting.step_weights(strategy, history). Metrics: loss (total), loss_sl,
-  loss_disp, w_sl / w_disp (effective weights), sigma_sl / sigma_disp, grad_norm and the
-  training batch's MAE for disparity networks. dtype: the computation dtype (COMPUTE_DTYPES).
+  model: the module `config` describes (config.build(), or a stand-in with its outputs);
+  config gives the tasks, disparity range and computation dtype. weights =
+  weighting.step_weights(strategy, history). Metrics: loss (total), loss_sl, loss_disp,
+  w_sl / w_disp (effective weights), sigma_sl / sigma_disp, grad_norm and the training batch's
+  MAE for disparity networks.
   """
-  registry.spec(net)
+  dtype, maxdisp = config.dtype, config.maxdisp
 
   def loss_fn(params, batch_stats, batch, weights):
     outputs, updates = apply_model(model, params, batch_stats, batch, True, dtype)
-    l_sl, l_disp = task_losses(outputs, batch, net, maxdisp, disp_loss)
+    l_sl, l_disp = task_losses(outputs, batch, config, disp_loss)
     u = params[UNCERTAINTY_KEY]
     total, eff = combined_loss(l_sl, l_disp, weights, u["log_sigma_sl"], u["log_sigma_disp"])
     aux = {"loss_sl": l_sl, "loss_disp": l_disp, "sigma_sl": jnp.exp(u["log_sigma_sl"]),
@@ -112,12 +114,12 @@ def make_train_step(model: nn.Module, *, net: str, maxdisp: float, disp_loss: st
                  donate_argnums=(0,), compiler_options=compiler_options)
 
 
-def make_eval_step(model: nn.Module, *, net: str, mesh: Mesh, dtype: Any = jnp.float32,
+def make_eval_step(model: nn.Module, config: ModelConfig, *, mesh: Mesh,
                    compiler_options: dict[str, Any] | None = None
                    ) -> Callable[..., dict[str, jax.Array]]:
   """jit(eval)(params, batch_stats, batch) -> the network's evaluation-mode outputs (float32):
   'disparity' (disparity networks), 'sl_logits' (+ 'sl_logits_right') (SL networks)."""
-  keys = registry.spec(net).outputs
+  keys, dtype = config.spec.outputs, config.dtype
 
   def evaluate(params, batch_stats, batch):
     outputs = apply_model(model, params, batch_stats, batch, False, dtype)

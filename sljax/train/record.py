@@ -1,0 +1,80 @@
+"""Where a training run's results go: the step and epoch rows (metrics.jsonl, epochs.jsonl,
+TensorBoard), the progress bar and the checkpoints, and the NaN check at each fetch."""
+
+import dataclasses
+import math
+from typing import Any
+
+import jax
+
+from sljax.errors import SljaxError
+from sljax.train import checkpoint as ckpt
+from sljax.train import state as st
+from sljax.train.setup import Setup
+from sljax.train.state import LoopState
+from sljax.train.workdir import EPOCHS_FILE, METRICS_FILE, MetricWriter
+
+
+class TrainingDiverged(SljaxError):
+  """The loss became NaN or infinite."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Recorder:
+  """Where the loop's results go: the run's metric files, its checkpoints, the progress bar."""
+  run: Setup
+  writer: MetricWriter
+  manager: Any
+  bar: Any
+
+
+def fetch_metrics(rec: Recorder, pending: list[tuple[int, Any]],
+                  loop: LoopState) -> tuple[LoopState, dict[str, float]]:
+  """Fetches the pending steps' metrics, checks them, logs a row per step and adds their
+  losses to the epoch sums; returns the new LoopState and the last row."""
+  config, spe = rec.run.config, rec.run.steps_per_epoch
+  rows = []
+  for step, m in zip([s for s, _ in pending], jax.device_get([m for _, m in pending])):
+    m = {k: float(v) for k, v in m.items() if config.strategy == "unc" or not k.startswith("sigma")}
+    if not math.isfinite(m["loss"]):
+      rec.writer.write(METRICS_FILE, rows)
+      rec.manager.wait_until_finished()
+      good = rec.manager.latest_step()
+      raise TrainingDiverged(
+          f"non-finite loss ({m['loss']}) at step {step} (epoch {(step - 1) // spe + 1}); "
+          "stopped. " + (f"The last good checkpoint is step {good} in "
+                         f"{rec.run.workdir / ckpt.CHECKPOINT_DIR}" if good is not None
+                         else "No checkpoint was saved yet") + "; try a lower --lr")
+    rows.append({"step": step, "epoch": (step - 1) // spe + 1, **m})
+    loop = loop.add_step(m["loss_sl"], m["loss_disp"])
+  rec.writer.write(METRICS_FILE, rows)
+  ckpt.check(rec.manager)  # a failed background save ends the run now, not an epoch later
+  rec.bar.set_postfix(epoch=rows[-1]["epoch"], loss=f"{rows[-1]['loss']:.4g}", refresh=False)
+  rec.bar.update(len(rows))
+  return loop, rows[-1]
+
+
+def save(rec: Recorder, state: st.TrainState, loop: LoopState, val: float | None = None) -> None:
+  """Starts an async checkpoint of the state with the loop state as its metadata."""
+  ckpt.save(rec.manager, loop.step, state, loop.to_meta(), val)
+
+
+def write_epoch(rec: Recorder, loop: LoopState, last: dict[str, float], val: dict[str, float],
+                seconds: float, samples: int) -> None:
+  """The finished epoch's epochs.jsonl row and its line above the progress bar."""
+  config = rec.run.config
+  epoch = len(loop.history)
+  row = {"epoch": epoch, "step": loop.step, "loss_sl": loop.history[-1][0],
+         "loss_disp": loop.history[-1][1], "w_sl": last["w_sl"], "w_disp": last["w_disp"],
+         "samples_per_s": samples / max(seconds, 1e-9), "seconds": seconds}
+  row.update({k: last[k] for k in ("sigma_sl", "sigma_disp") if k in last})
+  row.update(val)
+  rec.writer.write(EPOCHS_FILE, [row])
+  needs_sl, needs_disp = config.tasks
+  text = [f"L_sl {row['loss_sl']:.4g}"] * needs_sl + [f"L_disp {row['loss_disp']:.4g}"] * needs_disp
+  if val.get("val_mae") is not None:
+    text.append(f"val MAE {val['val_mae']:.3f} px")
+  if val.get("val_sl") is not None:
+    text.append(f"val L_sl {val['val_sl']:.4f}")
+  rec.bar.write(f"epoch {epoch}/{config.epochs}: {' '.join(text)} "
+                f"({row['samples_per_s']:.1f} samples/s)")

@@ -47,6 +47,11 @@ def test_smoke_plan_runs_end_to_end_and_a_second_run_trains_nothing(smoke_out, c
                    .read_text())
   assert cfg["init_from"].endswith("cells/unet-sl-objects-s0/checkpoints/30")
   assert cfg["domain"] == "tissue" and cfg["synth_t"] == 5
+  # Smoke builds lax models (compiling sljax's kernels costs more than they save at 32 px), in
+  # training and in scoring alike.
+  assert cfg["conv_impl"] == "lax" and cfg["ynn"] == "on"
+  cell = next(c for c in plan.cells if c.name == "unet-sl-tissue-ft-s0")
+  assert runner._final_predictor(smoke_out, cell).model.conv_impl == "lax"
   md = (smoke_out / "report.md").read_text()
   assert "Table 1" in md and "unet-sl" in md and "figures/table1_bars.png" in md
   assert (smoke_out / "figures" / "table1_bars.png").stat().st_size > 1000

@@ -9,8 +9,9 @@ slower without them. So the choice is made per program kind: forward-only progra
 function (only float rounding differs), and the choice is an explicit argument of the programs
 that use it (`KernelChoice.compiler_options(kind)`, passed to `jax.jit`), never process state.
 The convolution kernels themselves are not tuned, because measuring them found no CPU that
-disagrees: the folded kernels train 3x faster than `lax` on Zen 3 and on Zen 5, and block sizes
-of 16 Ki to 1 Mi values are within the noise on both (README, Benchmarks). They are chosen where
+disagrees: the folded kernels train 3x faster than `lax` on Zen 3 (the main job) and were made
+because `lax` was several times slower on Zen 5, and block sizes of 16 Ki to 1 Mi values are
+within the noise on both (README, Benchmarks). They are chosen where
 the model is built (its `conv_impl`, `sljax.kernels`).
 
 How. `measure` compiles PSMNet itself (128x128, maxdisp 48, batch 1: the real mix of 2D and 3D

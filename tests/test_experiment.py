@@ -14,7 +14,7 @@ import jax
 import numpy as np
 import pytest
 
-from sljax import cli
+from sljax import cli, machine
 from sljax.data.dataset import epoch_order
 from sljax.errors import SljaxError
 from sljax.experiment import plans, report, runner
@@ -40,7 +40,9 @@ def test_smoke_plan_runs_end_to_end_and_a_second_run_trains_nothing(smoke_out, c
   for cell in plan.cells:
     wd = runner.cell_dir(smoke_out, cell.name)
     assert (wd / runner.DONE_FILE).exists() and (wd / "eval" / "heldout.json").exists()
-    final = json.loads((wd / runner.DONE_FILE).read_text())["step"]
+    done = json.loads((wd / runner.DONE_FILE).read_text())
+    final = done["step"]
+    assert done["machine"] == machine.cpu_description()  # a grid may span CPUs
     assert [p.name for p in (wd / "checkpoints").iterdir() if p.name.isdigit()] == [str(final)]
   # The tissue cells started from the objects cells' final checkpoints.
   cfg = json.loads((runner.cell_dir(smoke_out, "unet-sl-tissue-ft-s0") / "config.json")

@@ -201,3 +201,36 @@ def test_paper_sized_gain_is_exploratory_and_computed_by_hand(fake):
   assert by["cg_b", "mae"]["paper_sized_excluded"]
   assert "paper_sized" not in by["cg_b", "seg_mae"]  # the paper found no gain there
   assert "Exploratory (not a pre-registered test)" in report.write_report(out).read_text()
+
+
+def test_window_chosen_at_the_edge_is_noted(tmp_path):
+  plan = plans.build_plan("table1-v2", "smoke", 1)
+  out = tmp_path / "out"
+  runner.register(out, plan)
+  sl = [c for c in plan.cells if c.windows]
+  assert len(sl) == 2 and sl[0].windows == (3, 5)
+  for cell, chosen in zip(sl, (5, 3)):  # the largest candidate once, the smallest once
+    path = runner.cell_dir(out, cell.name) / runner.EVAL_DIR / runner.WINDOWS_FILE
+    path.parent.mkdir(parents=True)
+    path.write_text(json.dumps({"candidates": [3, 5], "chosen": chosen}))
+  assert report.window_edges(out, plan) == (1, 2)
+  text = report.write_report(out).read_text()
+  assert "the largest candidate in 1 of 2 cells" in text
+
+
+def test_training_time_per_arm_by_hand(fake):
+  out, plan = fake
+  minutes = {0: 10.0, 1: 20.0, 2: 60.0}
+  for cell in plan.cells:
+    if cell.arm in ("stl", "unc"):
+      done = {"step": 1, "train_seconds": 60 * minutes[cell.seed]}
+      if cell.seed != 2:
+        done["machine"] = "CPU A" if cell.seed == 0 else "CPU B"
+      (runner.cell_dir(out, cell.name) / runner.DONE_FILE).write_text(json.dumps(done))
+  times = report.cell_times(out, plan)
+  assert set(times) == {("stl", "1/16"), ("unc", "1/16")}
+  assert times["stl", "1/16"] == {"n": 3, "mean": pytest.approx(30.0), "min": 10.0,
+                                  "max": 60.0,
+                                  "machines": ["CPU A", "CPU B", "not recorded"]}
+  assert "| stl | 1/16 | 3 | 30.0 (10.0-60.0) | CPU A; CPU B; not recorded |" in (
+      report.write_report(out).read_text())

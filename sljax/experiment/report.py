@@ -78,6 +78,41 @@ def chosen_window(out: Path, name: str) -> int | None:
   return None if rec is None else int(rec["chosen"])
 
 
+def window_edges(out: Path, plan: Plan) -> tuple[int, int]:
+  """(cells whose window chosen on validation is the largest candidate, cells that chose one):
+  a choice at the edge of the pre-registered set says a larger window might do better."""
+  chosen = [(chosen_window(out, c.name), max(c.windows)) for c in plan.cells if c.windows]
+  chosen = [(w, top) for w, top in chosen if w is not None]
+  return sum(w == top for w, top in chosen), len(chosen)
+
+
+def cell_times(out: Path, plan: Plan) -> dict[tuple[str, str], dict[str, Any]]:
+  """Training minutes of the finished cells per (arm, factors): mean, min, max, the CPUs."""
+  groups: dict[tuple[str, str], dict[str, Any]] = {}
+  for c in plan.cells:
+    done = read_json(cell_dir(out, c.name) / DONE_FILE)
+    if done is None or done.get("train_seconds") is None:
+      continue
+    g = groups.setdefault((c.arm, ", ".join(v for _, v in c.factors)), {"minutes": [],
+                                                                         "machines": set()})
+    g["minutes"].append(done["train_seconds"] / 60)
+    g["machines"].add(done.get("machine", "not recorded"))
+  return {k: {"n": len(g["minutes"]), "mean": float(np.mean(g["minutes"])),
+              "min": min(g["minutes"]), "max": max(g["minutes"]),
+              "machines": sorted(g["machines"])} for k, g in groups.items()}
+
+
+def _time_lines(out: Path, plan: Plan) -> list[str]:
+  times = cell_times(out, plan)
+  if not times:
+    return []
+  rows = [[arm, factors, str(t["n"]), f"{t['mean']:.1f} ({t['min']:.1f}-{t['max']:.1f})",
+           "; ".join(t["machines"])] for (arm, factors), t in times.items()]
+  return ["Training time per cell (the epochs' seconds from done.json; a cell paused or "
+          "sharing its CPU counts that time too):", ""] + _md_table(
+              ["arm", "data", "cells", "minutes, mean (range)", "CPU"], rows)
+
+
 def _fmt(x: float | None, digits: int = 3) -> str:
   return "-" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.{digits}f}"
 
@@ -317,6 +352,12 @@ def _plan_markdown(out: Path, plan: Plan, agg: dict[str, Any], cl: list[dict[str
                      "-" if window is None else str(window)])
   lines += _md_table(["cell", "set", "seed"] + [h for _, h in shown]
                      + ["best val MAE", "corr window (on validation)"], rows)
+  edge, chose = window_edges(out, plan)
+  if edge:
+    lines += [f"The correlation window chosen on validation is the largest candidate in {edge} "
+              f"of {chose} cells: a larger window might do better there. The set was fixed "
+              "before the runs (docs/plan-v2.md), so this is noted, not acted on.", ""]
+  lines += _time_lines(out, plan)
   lines += [f"![{f}](figures/{f})" for f in figs] + [""]
   return lines
 

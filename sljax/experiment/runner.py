@@ -3,7 +3,7 @@
 OUT/plan.json            the plans run here and the spec of every cell (see Cell.spec)
 OUT/cells/NAME/          the cell's training workdir (config.json, checkpoints/, *.jsonl)
 OUT/cells/NAME/train.log its training output
-OUT/cells/NAME/done.json written once training finished: final step, seconds
+OUT/cells/NAME/done.json written once training finished: final step, seconds, the CPU
 OUT/cells/NAME/eval/SET.json  the final checkpoint's evaluation report on that set
 OUT/cells/NAME/eval/windows.json  v2 unet-sl: validation MAE per candidate correlation window
                          and the window chosen (the lowest; ties: the smaller)
@@ -29,7 +29,7 @@ from typing import Any
 
 from tqdm import tqdm
 
-from sljax import inference, tune
+from sljax import inference, machine, tune
 from sljax.data.dataset import FolderSource, parse_fraction, split_indices
 from sljax.data.scene import read_json_object
 from sljax.data.synthetic import SynthConfig, SyntheticSource
@@ -283,7 +283,8 @@ def train_cell(out: Path, cell: Cell, bar, weight: float) -> dict[str, Any]:
   epochs = [json.loads(l) for l in (wd / "epochs.jsonl").read_text().splitlines()]
   done = {"step": result.step, "epochs": result.epochs_done, "last_val_mae": result.last_val,
           "train_seconds": sum(r["seconds"] for r in epochs),
-          "wall_seconds_last_call": time.perf_counter() - t0}
+          "wall_seconds_last_call": time.perf_counter() - t0,
+          "machine": machine.cpu_description()}  # a grid may span machines (README: times)
   write_json(wd / DONE_FILE, done)
   return done
 

@@ -43,7 +43,7 @@ class ConvBase(nn.Module):
 
   def convolve(self, x: jax.Array, kernel: jax.Array) -> jax.Array:
     """The convolution of x with the cast kernel (no bias)."""
-    raise NotImplementedError
+    raise NotImplementedError(f"{type(self).__name__}: a ConvBase subclass defines convolve")
 
   @nn.compact
   def __call__(self, x: jax.Array) -> jax.Array:

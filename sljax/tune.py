@@ -18,7 +18,9 @@ How. `measure` compiles PSMNet itself (128x128, maxdisp 48, batch 1: the real mi
 convolutions) as a forward and as a training program, with the fusions on and off, and times
 them in interleaved rounds: about a minute on a 2-core CPU, most of it compiling. A setting
 replaces XLA's default only when it was faster in every round and by more than `MARGIN` in the
-median round (two tunings on a busy Zen 3 once disagreed when one fastest call decided). The
+median round (two tunings on a busy Zen 3 once disagreed when one fastest call decided); when
+the median says faster but a round disagrees, a fresh batch of rounds decides (up to `RETRIES`),
+since caching the default after one burst of load would keep it for good. The
 winner is kept in a JSON cache in the user's cache directory (`$SLJAX_CACHE_DIR`, else
 `$XDG_CACHE_HOME/sljax`, else `~/.cache/sljax`), keyed by the CPU kind
 (`sljax.machine.cpu_key`) and the jax and jaxlib versions: measured once per machine kind and
@@ -44,9 +46,11 @@ from sljax.nets import build_model
 ENV_TUNE = "SLJAX_TUNE"
 YNN_OFF = {"xla_cpu_experimental_ynn_fusion_type": ""}
 MARGIN = 0.05  # a setting replaces XLA's default only when it is this much faster
+RETRIES = 3  # fresh batches of rounds for a kind whose rounds disagreed
 RULE = 2  # the decision rule's version: choices cached under another rule are measured again
 
 
+KINDS = ("forward", "train")  # the program kinds a choice is made for
 NAMES = {(True, True): "on", (False, False): "off", (False, True): "forward-off",
          (True, False): "train-off"}  # (forward_ynn, train_ynn) -> the --ynn value
 
@@ -147,6 +151,8 @@ def choice(tune: bool | None = None, log: Callable[[str], None] = print) -> Kern
     log(f"tuned in {time.perf_counter() - t0:.0f} s: {describe(best)} (cached in {path})")
   except OSError as e:  # a read-only home must not stop a run: the choice holds for this process
     log(f"tuned in {time.perf_counter() - t0:.0f} s: {describe(best)} (not cached: {e})")
+  if note := undecided_note(table):
+    log(note)
   return best
 
 
@@ -190,28 +196,49 @@ def _compiled(fns, args, kind: str, ynn: bool):
 def measure(repeats: int = 5, clock: Callable[[], float] = time.perf_counter,
             timings: Callable[[str, bool], float] | None = None, size: int = 128
             ) -> tuple[KernelChoice, list[dict]]:
-  """Times each program kind with YNNPACK fusions on and off in `repeats` interleaved rounds;
-  returns the choice and the table. `timings(kind, ynn) -> seconds` replaces the measurement
-  (tests: the same value every round)."""
-  keys = [(kind, ynn) for kind in ("forward", "train") for ynn in (True, False)]
-  if timings is not None:
-    samples = {k: [timings(*k)] * repeats for k in keys}
-  else:
+  """Times each program kind with YNNPACK fusions on and off in `repeats` interleaved rounds,
+  and a kind whose rounds disagreed again (up to `RETRIES` fresh batches); returns the choice
+  and the table. `timings(kind, ynn) -> seconds` replaces one timed call (tests)."""
+  keys = [(kind, ynn) for kind in KINDS for ynn in (True, False)]
+  if timings is None:
     fns, args = workload(size=size)
     programs = {k: _compiled(fns, args, *k) for k in keys}
     for k in keys:
       jax.block_until_ready(programs[k](*args))  # warm-up
-    samples = {k: [] for k in keys}
-    for _ in range(repeats):  # interleaved, so that a burst of load hits every setting alike
-      for k in keys:
-        t0 = clock()
-        jax.block_until_ready(programs[k](*args))
-        samples[k].append(clock() - t0)
+
+    def timings(kind, ynn):
+      t0 = clock()
+      jax.block_until_ready(programs[(kind, ynn)](*args))
+      return clock() - t0
+  samples = _rounds(timings, keys, repeats)
+  batches = dict.fromkeys(KINDS, 1)
+  for _ in range(RETRIES):
+    # A burst of load that hits one setting of a round makes the rounds disagree; a fresh
+    # batch decides instead of caching XLA's default for good (a busy Zen 4 once kept
+    # fusions on in forward programs that run 1.4x faster without them).
+    again = [kind for kind in KINDS if verdict(_ratios(samples, kind)) == "undecided"]
+    if not again:
+      break
+    samples.update(_rounds(timings, [(kind, ynn) for kind in again for ynn in (True, False)],
+                           repeats))
+    for kind in again:
+      batches[kind] += 1
   best = choose(samples)
   table = [{"kind": kind, "ynn": ynn, "seconds": round(float(np.median(samples[(kind, ynn)])), 5),
-            "off_vs_on": [round(r, 3) for r in _ratios(samples, kind)]}
+            "off_vs_on": [round(r, 3) for r in _ratios(samples, kind)],
+            "batches": batches[kind], "verdict": verdict(_ratios(samples, kind))}
            for kind, ynn in keys]
   return best, table
+
+
+def _rounds(timings: Callable[[str, bool], float], keys: list[tuple[str, bool]],
+            repeats: int) -> dict[tuple[str, bool], list[float]]:
+  """`repeats` rounds over `keys`, interleaved so that a burst of load hits every setting alike."""
+  samples = {k: [] for k in keys}
+  for _ in range(repeats):
+    for k in keys:
+      samples[k].append(timings(*k))
+  return samples
 
 
 def _ratios(samples: dict[tuple[str, bool], list[float]], kind: str) -> list[float]:
@@ -219,15 +246,30 @@ def _ratios(samples: dict[tuple[str, bool], list[float]], kind: str) -> list[flo
   return [off / on for off, on in zip(samples[(kind, False)], samples[(kind, True)])]
 
 
+def verdict(ratios: list[float], margin: float = MARGIN) -> str:
+  """'off' when off was faster in every round and by more than `margin` in the median round,
+  'undecided' when the median round says off but another round disagrees, else 'on'."""
+  if float(np.median(ratios)) >= 1.0 - margin:
+    return "on"
+  return "off" if max(ratios) < 1.0 else "undecided"
+
+
 def choose(samples: dict[tuple[str, bool], list[float]],
            margin: float = MARGIN) -> KernelChoice:
-  """Per kind, fusions off only when off was faster in every round and by more than `margin`
-  in the median round: XLA's default stays unless the evidence is consistent, so the noise of
-  a shared machine does not flip the choice from one tuning to the next."""
-  def off(kind):
-    ratios = _ratios(samples, kind)
-    return max(ratios) < 1.0 and float(np.median(ratios)) < 1.0 - margin
+  """Per kind, fusions off only on the verdict 'off': XLA's default stays unless the evidence
+  is consistent, so the noise of a shared machine does not flip the choice from one tuning to
+  the next."""
+  off = lambda kind: verdict(_ratios(samples, kind), margin) == "off"
   return KernelChoice(forward_ynn=not off("forward"), train_ynn=not off("train"))
+
+
+def undecided_note(table: list[dict]) -> str:
+  """A sentence for a tuning whose rounds still disagreed after every retry, else ''."""
+  kinds = sorted({r["kind"] for r in table if r.get("verdict") == "undecided"})
+  if not kinds:
+    return ""
+  return (f"{' and '.join(kinds)}: the rounds disagreed in every batch, so XLA's default stays "
+          "(a busy machine?); run `sljax tune` on an idle machine to measure again")
 
 
 def format_table(table: list[dict], best: KernelChoice) -> str:
@@ -243,4 +285,9 @@ def format_table(table: list[dict], best: KernelChoice) -> str:
     spread = f"{min(ratios):.2f}-{max(ratios):.2f}" if ratios and not r["ynn"] else ""
     lines.append(f"| {r['kind']} | {'on' if r['ynn'] else 'off'} | {r['seconds'] * 1e3:.1f} | "
                  f"{r['seconds'] / ref[r['kind']]:.2f}x{mark} | {spread} |")
+  for kind in KINDS:
+    n = max((r.get("batches", 1) for r in table if r["kind"] == kind), default=1)
+    if n > 1:
+      lines.append(f"\n{kind}: the first rounds disagreed, measured again ({n} batches; the "
+                   "table shows the last)")
   return "\n".join(lines)

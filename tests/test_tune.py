@@ -64,6 +64,59 @@ def test_a_round_that_disagrees_keeps_the_default():
   assert tune.choose(small).train_ynn
 
 
+def test_verdict_by_hand():
+  assert tune.verdict([0.6, 0.7, 0.62, 0.65, 0.9]) == "off"
+  assert tune.verdict([0.6, 0.7, 1.05, 0.65, 0.6]) == "undecided"  # median 0.65, one round 1.05
+  assert tune.verdict([0.99, 0.9, 0.97, 0.96, 0.98]) == "on"  # median 0.97: within 5%
+  assert tune.verdict([0.7, 1.2, 1.1, 1.3, 0.6]) == "on"      # median 1.1
+
+
+def scripted(batches_of_forward_off):
+  """A fake measurement whose forward-off calls follow a script (one list per batch of 5
+  rounds); every other program takes 1.0 s. Returns (timings, calls made per program)."""
+  script = [t for batch in batches_of_forward_off for t in batch]
+  calls = {}
+  def timings(kind, ynn):
+    calls[(kind, ynn)] = calls.get((kind, ynn), 0) + 1
+    if (kind, ynn) == ("forward", False):
+      return script[calls[(kind, ynn)] - 1]
+    return 1.0
+  return timings, calls
+
+
+def test_rounds_that_disagree_are_measured_again():
+  burst = [0.7, 0.7, 1.05, 0.7, 0.66]  # a burst of load in the third round
+  timings, calls = scripted([burst, [0.7, 0.71, 0.69, 0.72, 0.7]])
+  best, table = tune.measure(timings=timings)
+  assert best.name == "forward-off"
+  # Only the undecided kind is measured again, on and off alike; training is decided at once.
+  assert calls == {("forward", True): 10, ("forward", False): 10,
+                   ("train", True): 5, ("train", False): 5}
+  rows = {(r["kind"], r["ynn"]): r for r in table}
+  assert rows[("forward", False)]["batches"] == 2 and rows[("train", False)]["batches"] == 1
+  assert rows[("forward", False)]["off_vs_on"] == [0.7, 0.71, 0.69, 0.72, 0.7]  # the last batch
+  assert rows[("forward", False)]["verdict"] == "off" and tune.undecided_note(table) == ""
+  assert "forward: the first rounds disagreed, measured again (2 batches" in \
+      tune.format_table(table, best)
+
+
+def test_rounds_that_keep_disagreeing_keep_the_default_and_say_so(tmp_path, monkeypatch):
+  burst = [0.7, 0.7, 1.05, 0.7, 0.66]
+  timings, calls = scripted([burst] * (1 + tune.RETRIES))
+  best, table = tune.measure(timings=timings)
+  assert best == tune.DEFAULT
+  assert calls[("forward", False)] == 5 * (1 + tune.RETRIES)
+  note = tune.undecided_note(table)
+  assert note.startswith("forward: the rounds disagreed") and "sljax tune" in note
+  # The training run's first use prints it, so a user knows the cached default was not chosen.
+  monkeypatch.setenv(cache.ENV_DIR, str(tmp_path))
+  monkeypatch.setenv(tune.ENV_TUNE, "1")
+  monkeypatch.setattr(tune, "measure", lambda: (best, table))
+  lines = []
+  assert tune.choice(log=lines.append) == tune.DEFAULT
+  assert lines[-1] == note
+
+
 def test_format_table_marks_the_choice():
   best, table = tune.measure(timings=fake({("forward", False): 0.5}))
   text = tune.format_table(table, best)

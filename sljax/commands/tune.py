@@ -36,12 +36,16 @@ def run(args: argparse.Namespace) -> int:
     best = tune.KernelChoice(**entry["choice"])
     print(f"measured {entry['time']} in {entry['seconds']} s\n\n{tune.format_table(entry['table'], best)}"
           f"\n\nchoice: {tune.describe(best)}")
+    if note := tune.undecided_note(entry["table"]):
+      print(note)
     return 0
   t0 = time.perf_counter()
   best, table = tune.measure(repeats=args.repeats)
   seconds = time.perf_counter() - t0
   print(f"measured in {seconds:.0f} s\n\n{tune.format_table(table, best)}\n\n"
         f"choice: {tune.describe(best)}")
+  if note := tune.undecided_note(table):
+    print(note)
   try:
     tune.write_cache(key, best, table, seconds)
   except OSError as e:

@@ -218,19 +218,27 @@ def test_window_chosen_at_the_edge_is_noted(tmp_path):
   assert "the largest candidate in 1 of 2 cells" in text
 
 
-def test_training_time_per_arm_by_hand(fake):
+def test_training_time_per_arm_and_cpu_by_hand(fake):
   out, plan = fake
   minutes = {0: 10.0, 1: 20.0, 2: 60.0}
   for cell in plan.cells:
     if cell.arm in ("stl", "unc"):
       done = {"step": 1, "train_seconds": 60 * minutes[cell.seed]}
       if cell.seed != 2:
-        done["machine"] = "CPU A" if cell.seed == 0 else "CPU B"
+        done["machine"] = "CPU A"
       (runner.cell_dir(out, cell.name) / runner.DONE_FILE).write_text(json.dumps(done))
+      ynn = {0: "on", 1: "forward-off"}.get(cell.seed)
+      if ynn:
+        (runner.cell_dir(out, cell.name) / "config.json").write_text(json.dumps({"ynn": ynn}))
   times = report.cell_times(out, plan)
-  assert set(times) == {("stl", "1/16"), ("unc", "1/16")}
-  assert times["stl", "1/16"] == {"n": 3, "mean": pytest.approx(30.0), "min": 10.0,
-                                  "max": 60.0,
-                                  "machines": ["CPU A", "CPU B", "not recorded"]}
-  assert "| stl | 1/16 | 3 | 30.0 (10.0-60.0) | CPU A; CPU B; not recorded |" in (
-      report.write_report(out).read_text())
+  assert set(times) == {("stl", "1/16", "CPU A"), ("stl", "1/16", "not recorded"),
+                        ("unc", "1/16", "CPU A"), ("unc", "1/16", "not recorded")}
+  # Seeds 0 and 1 (10 and 20 min) on CPU A: mean 15; seed 2 (60 min) apart, not averaged in.
+  assert times["stl", "1/16", "CPU A"] == {"n": 2, "mean": pytest.approx(15.0), "min": 10.0,
+                                           "max": 20.0, "ynn": ["forward-off", "on"]}
+  assert times["stl", "1/16", "not recorded"] == {"n": 1, "mean": pytest.approx(60.0),
+                                                  "min": 60.0, "max": 60.0,
+                                                  "ynn": ["not recorded"]}
+  text = report.write_report(out).read_text()
+  assert "| stl | 1/16 | 2 | 15.0 (10.0-20.0) | CPU A | forward-off, on |" in text
+  assert "| stl | 1/16 | 1 | 60.0 (60.0-60.0) | not recorded | not recorded |" in text

@@ -86,31 +86,35 @@ def window_edges(out: Path, plan: Plan) -> tuple[int, int]:
   return sum(w == top for w, top in chosen), len(chosen)
 
 
-def cell_times(out: Path, plan: Plan) -> dict[tuple[str, str], dict[str, Any]]:
-  """Training minutes of the finished cells per (arm, factors): mean, min, max, the CPUs."""
-  groups: dict[tuple[str, str], dict[str, Any]] = {}
+def cell_times(out: Path, plan: Plan) -> dict[tuple[str, str, str], dict[str, Any]]:
+  """Training minutes of the finished cells per (arm, factors, CPU): mean, min, max and the XLA
+  settings (config.json's `ynn`) they ran with. Kept apart per CPU, since a mean over two CPUs
+  times neither."""
+  groups: dict[tuple[str, str, str], dict[str, Any]] = {}
   for c in plan.cells:
     done = read_json(cell_dir(out, c.name) / DONE_FILE)
     if done is None or done.get("train_seconds") is None:
       continue
-    g = groups.setdefault((c.arm, ", ".join(v for _, v in c.factors)), {"minutes": [],
-                                                                         "machines": set()})
+    key = (c.arm, ", ".join(v for _, v in c.factors), done.get("machine", "not recorded"))
+    g = groups.setdefault(key, {"minutes": [], "ynn": set()})
     g["minutes"].append(done["train_seconds"] / 60)
-    g["machines"].add(done.get("machine", "not recorded"))
+    config = read_json(cell_dir(out, c.name) / "config.json") or {}
+    g["ynn"].add(str(config.get("ynn", "not recorded")))
   return {k: {"n": len(g["minutes"]), "mean": float(np.mean(g["minutes"])),
               "min": min(g["minutes"]), "max": max(g["minutes"]),
-              "machines": sorted(g["machines"])} for k, g in groups.items()}
+              "ynn": sorted(g["ynn"])} for k, g in groups.items()}
 
 
 def _time_lines(out: Path, plan: Plan) -> list[str]:
   times = cell_times(out, plan)
   if not times:
     return []
-  rows = [[arm, factors, str(t["n"]), f"{t['mean']:.1f} ({t['min']:.1f}-{t['max']:.1f})",
-           "; ".join(t["machines"])] for (arm, factors), t in times.items()]
-  return ["Training time per cell (the epochs' seconds from done.json; a cell paused or "
-          "sharing its CPU counts that time too):", ""] + _md_table(
-              ["arm", "data", "cells", "minutes, mean (range)", "CPU"], rows)
+  rows = [[arm, factors, str(t["n"]), f"{t['mean']:.1f} ({t['min']:.1f}-{t['max']:.1f})", cpu,
+           ", ".join(t["ynn"])] for (arm, factors, cpu), t in times.items()]
+  return ["Training time per cell and CPU (the epochs' seconds from done.json; a cell paused or "
+          "sharing its CPU counts that time too; XLA: the YNNPACK setting tuned for that CPU, "
+          "config.json's `ynn`):", ""] + _md_table(
+              ["arm", "data", "cells", "minutes, mean (range)", "CPU", "XLA"], rows)
 
 
 def _fmt(x: float | None, digits: int = 3) -> str:

@@ -202,8 +202,9 @@ def torch_models():
   return torch, PSM, UNet
 
 
-def reference_psmnet(directory: str, maxdisp: int):
-  """JiaRenChang/PSMNet's stackhourglass model, imported from a local copy."""
+def reference_psmnet(directory: str, maxdisp: int, keep_cuda: bool = False):
+  """JiaRenChang/PSMNet's stackhourglass model, imported from a local copy (on the CPU its
+  `.cuda()` calls are made no-ops; keep_cuda keeps them, for a GPU)."""
   import torch
   path = Path(directory).expanduser()
   if not (path / "models" / "stackhourglass.py").is_file():
@@ -211,7 +212,8 @@ def reference_psmnet(directory: str, maxdisp: int):
                      "checkout of JiaRenChang/PSMNet")
   import warnings
   warnings.filterwarnings("ignore", message=".*upsample.*")  # deprecated, used by the reference
-  torch.Tensor.cuda = lambda self, *a, **k: self  # the reference moves its buffers by hand
+  if not keep_cuda:
+    torch.Tensor.cuda = lambda self, *a, **k: self  # the reference moves its buffers by hand
   sys.path.insert(0, str(path))
   from models.stackhourglass import PSMNet
   return PSMNet(maxdisp)

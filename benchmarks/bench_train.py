@@ -106,28 +106,31 @@ def main() -> None:
   args = p.parse_args()
   config = config_for(args)
   n_train = len(split_indices(loop.open_source(config), config.test_fraction, config.seed)[0])
+  print(f"{machine()}")
+  print(f"preset {config.preset}: {config.net}/{config.strategy}, {config.size[0]}x"
+        f"{config.size[1]}, maxdisp {config.maxdisp}, batch {config.batch_size}, "
+        f"{config.precision}, {args.steps} steps per epoch\n")
+  print("| what | steps/s | samples/s | ratio to (a) |")
+  print("| --- | --- | --- | --- |", flush=True)
   rows = []
-  a = time_step(config, args.steps)
-  rows.append(("(a) compiled step, fixed batch", a))
+
+  def add(name, sps):  # printed as measured: a run cut short still shows its rows
+    rows.append((name, sps))
+    print(f"| {name} | {sps:.3f} | {sps * config.batch_size:.2f} | {sps / rows[0][1]:.3f} |",
+          flush=True)
+  add("(a) compiled step, fixed batch", time_step(config, args.steps))
   with tempfile.TemporaryDirectory() as tmp:
     tmp = Path(tmp)
-    rows.append(("(b) loop, synthetic on the fly",
-                 time_loop(subset(config, n_train, args.steps), tmp / "b")))
+    add("(b) loop, synthetic on the fly",
+        time_loop(subset(config, n_train, args.steps), tmp / "b"))
     n_folder = int(np.ceil(args.steps * config.batch_size / 0.8 / 10) * 10) + 10
     folder = write_folder(tmp / "scenes", n_folder, args.folder_size)
     folder_cfg = dataclasses.replace(config, data=str(folder))
     n_folder_train = len(split_indices(loop.open_source(folder_cfg), config.test_fraction,
                                        config.seed)[0])
-    rows.append((f"(c) loop, folder of {args.folder_size}x{args.folder_size} PNG scenes",
-                 time_loop(subset(folder_cfg, n_folder_train, args.steps), tmp / "c")))
-  print(f"\n{machine()}")
-  print(f"preset {config.preset}: {config.net}/{config.strategy}, {config.size[0]}x"
-        f"{config.size[1]}, maxdisp {config.maxdisp}, batch {config.batch_size}, "
-        f"{config.precision}, {args.steps} steps per epoch\n")
-  print("| what | steps/s | samples/s | ratio to (a) |")
-  print("| --- | --- | --- | --- |")
-  for name, sps in rows:
-    print(f"| {name} | {sps:.3f} | {sps * config.batch_size:.2f} | {sps / a:.3f} |")
+    add(f"(c) loop, folder of {args.folder_size}x{args.folder_size} PNG scenes",
+        time_loop(subset(folder_cfg, n_folder_train, args.steps), tmp / "c"))
+  a = rows[0][1]
   record("bench_train", [{"what": name, "steps_per_s": sps,
                           "samples_per_s": sps * config.batch_size, "ratio_to_a": sps / a}
                          for name, sps in rows],

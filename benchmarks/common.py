@@ -1,5 +1,6 @@
 """What every benchmark shares: where it ran, best-of timing, fresh child processes, and the
-per-CPU record of every result (`benchmarks/results/<cpu>.jsonl`, one JSON line a run)."""
+per-CPU (or per-accelerator) record of every result (`benchmarks/results/<cpu>.jsonl`,
+`<backend>-<device kind>.jsonl` off the CPU; one JSON line a run)."""
 
 from __future__ import annotations
 
@@ -88,7 +89,17 @@ def git_commit() -> str:
   return head + ("+dirty" if dirty else "")
 
 
-def record(benchmark: str, rows: list[dict], torch_module=None, **extra) -> Path:
+def records_key(cpu: dict, backend: str, device_kind: str) -> str:
+  """The records file's name: the CPU kind on the CPU, else the accelerator's kind (a GPU's
+  numbers do not belong to the host CPU it happened to sit beside)."""
+  if backend == "cpu":
+    return cpu_key(cpu)
+  slug = "".join(c if c.isalnum() else "-" for c in f"{backend} {device_kind}".lower())
+  return "-".join(filter(None, slug.split("-")))
+
+
+def record(benchmark: str, rows: list[dict], torch_module=None, quiet: bool = False,
+           **extra) -> Path:
   """Appends one run's rows, with the machine, versions, commit, command line and the load
   average (the machines are shared: a high load marks a contended run) to the CPU's records file;
   returns its path. SLJAX_BENCH_RESULTS moves the folder."""
@@ -104,8 +115,9 @@ def record(benchmark: str, rows: list[dict], torch_module=None, **extra) -> Path
            "versions": versions, "commit": git_commit(),
            "loadavg_1min": round(os.getloadavg()[0], 2), "rows": rows, **extra}
   RESULTS.mkdir(parents=True, exist_ok=True)
-  path = RESULTS / f"{cpu_key(cpu)}.jsonl"
+  path = RESULTS / f"{records_key(cpu, jax.default_backend(), jax.devices()[0].device_kind)}.jsonl"
   with open(path, "a", encoding="utf-8") as f:
     f.write(json.dumps(entry) + "\n")
-  print(f"\nrecorded in {os.path.relpath(path)}")
+  if not quiet:
+    print(f"\nrecorded in {os.path.relpath(path)}")
   return path

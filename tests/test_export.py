@@ -106,7 +106,7 @@ def test_export_cli_and_bad_inputs(tmp_path, capsys, unet_disp_vars):
   assert "wrote" in capsys.readouterr().out
   info = json.loads((tmp_path / "art" / "unet.json").read_text())
   assert info["load"][1].startswith("exp = jax.export.deserialize")
-  assert info["model"] == "unet-disp" and info["platforms"] == ["cpu"]
+  assert info["model"] == "unet-disp" and info["platforms"] == ["cpu", "cuda"]
 
   def one_error(argv, match):
     assert cli.main(argv) == 2

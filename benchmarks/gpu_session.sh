@@ -2,13 +2,14 @@
 # The plan for a session lent a GPU (the device tool: 30 min of device time, 10 min a call),
 # written and dry-run on a CPU beforehand so the GPU's minutes go to measuring. Three calls:
 #
-#   check: which tests pass on the GPU, at XLA's default float32 (TF32 allowed) and at
-#          'highest' (the reference test).
+#   check: which tests pass on the GPU at 'highest' (the suite's setting, tests/conftest.py),
+#          and the bitwise tests (exact resume, two programs) with XLA's deterministic GPU
+#          operations. First run (2026-11-25, H100): docs/testing.md "On a GPU".
 #   speed: bench_gpu: PSMNet's GPU forward against the CPU's, PSMNet's and unet-sl's speed beside
 #          PyTorch on the same GPU (the reference PSMNet when .ref/PSMNet is carried), peak memory.
 #   train: the real training step and loop (bench_train, paper preset, the twin, fp32 and
-#          bf16: is the data pipeline hidden behind a GPU step?) and the main job,
-#          `python train.py --strategy epr --preset paper`, for two and a half minutes.
+#          bf16: is the data pipeline hidden behind a GPU step?). The main job at the paper
+#          preset was timed on 2026-11-25 (README, Benchmarks).
 #
 # From the device tool (the machine's image has jax with CUDA, flax, optax, orbax, OpenCV and
 # a CUDA torch; nothing is installed, sljax runs from the checkout):
@@ -35,17 +36,23 @@ log "part $part ${dry:+(dry run)}"
   2>&1 | tee -a "$OUT/session.log"
 
 if [ "$part" = check ]; then
+  # In parallel: run one by one these files took over 6 minutes on an H100 (compiling).
+  xd=""; $PY -c "import xdist" 2>/dev/null && xd="-n 6"
+  export XLA_PYTHON_CLIENT_PREALLOCATE=false  # six processes share the GPU's memory
   tests="tests/test_reference_psmnet.py tests/test_psmnet.py tests/test_psmnet_mtl.py
          tests/test_unet.py tests/test_correlation.py tests/test_losses.py tests/test_weighting.py
-         tests/test_step.py tests/test_inference.py tests/test_loop.py"
-  [ -n "$dry" ] && tests="tests/test_correlation.py tests/test_losses.py"
-  log "tests at XLA's default precision"
-  timeout 360 $PY -m pytest -q -p no:cacheprovider -o addopts="-ra" $tests > "$OUT/tests-default.log" 2>&1
-  ran; tail -15 "$OUT/tests-default.log" | tee -a "$OUT/session.log"
-  log "the reference test at 'highest' precision (TF32 off)"
-  JAX_DEFAULT_MATMUL_PRECISION=highest timeout 150 $PY -m pytest -q -p no:cacheprovider \
-    -o addopts="-ra" tests/test_reference_psmnet.py > "$OUT/tests-highest.log" 2>&1
-  ran; tail -5 "$OUT/tests-highest.log" | tee -a "$OUT/session.log"
+         tests/test_step.py tests/test_inference.py tests/test_loop.py tests/test_export.py"
+  bitwise="tests/test_loop.py::test_exact_resume_after_kill_mid_epoch_and_during_a_save
+           tests/test_inference.py::test_twin_in_two_programs_equals_one"
+  [ -n "$dry" ] && tests="tests/test_correlation.py tests/test_losses.py" && bitwise="tests/test_losses.py"
+  log "tests at 'highest' precision (tests/conftest.py), $xd"
+  timeout 300 $PY -m pytest $xd -q -p no:cacheprovider -o addopts="-ra" --tb=line $tests \
+    > "$OUT/tests-highest.log" 2>&1
+  ran; grep -E "^(FAILED|ERROR)|passed|failed" "$OUT/tests-highest.log" | tail -25 | tee -a "$OUT/session.log"
+  log "the bitwise tests (exact resume, two programs) with XLA's deterministic GPU operations"
+  XLA_FLAGS="${XLA_FLAGS:-} --xla_gpu_deterministic_ops=true" timeout 240 $PY -m pytest $xd -q \
+    -p no:cacheprovider -o addopts="-ra" --tb=line $bitwise > "$OUT/tests-deterministic.log" 2>&1
+  ran; grep -E "^(FAILED|ERROR)|passed|failed" "$OUT/tests-deterministic.log" | tail -10 | tee -a "$OUT/session.log"
 elif [ "$part" = speed ]; then
   ref=""; [ -d .ref/PSMNet ] && ref="--reference .ref/PSMNet"
   args="--batch 4 --models psmnet,unet-sl"; [ -n "$dry" ] && args="--size 64 --maxdisp 32 --batch 1 --repeats 1 --models psmnet"
@@ -55,18 +62,12 @@ elif [ "$part" = speed ]; then
 elif [ "$part" = train ]; then
   args="--preset paper --steps 20 --epochs 2"
   [ -n "$dry" ] && args="--preset quick --steps 2 --epochs 2"
-  for net in psmnet-mtl; do  # PSMNet's own step: bench_gpu's fwd+bwd
-    for precision in fp32 bf16; do
-      log "bench_train $args --net $net --precision $precision"
-      timeout 180 $PY benchmarks/bench_train.py $args --net $net --precision $precision \
-        > "$OUT/bench_train-$net-$precision.log" 2>&1
-      ran; tail -8 "$OUT/bench_train-$net-$precision.log" | tee -a "$OUT/session.log"
-    done
+  for precision in fp32 bf16; do  # the twin's step compiled for about 2 min on an H100
+    log "bench_train $args --net psmnet-mtl --precision $precision"
+    timeout 280 $PY benchmarks/bench_train.py $args --net psmnet-mtl --precision $precision \
+      > "$OUT/bench_train-psmnet-mtl-$precision.log" 2>&1
+    ran; grep -v cuda_timer "$OUT/bench_train-psmnet-mtl-$precision.log" | tail -8 | tee -a "$OUT/session.log"
   done
-  run="--preset paper --epochs 1"; [ -n "$dry" ] && run="--preset quick --epochs 1"
-  log "python train.py --strategy epr $run (stopped after 150 s: time per step from its log)"
-  timeout 150 $PY train.py --strategy epr $run --workdir /tmp/gpu-epr > "$OUT/train-epr.log" 2>&1
-  ran; tr '\r' '\n' < "$OUT/train-epr.log" | tail -5 | tee -a "$OUT/session.log"
 else
   echo "usage: gpu_session.sh check|speed|train [dry]" >&2; exit 2
 fi

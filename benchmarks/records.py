@@ -45,6 +45,16 @@ def headlines(entry: dict) -> list[tuple[str, str]]:
                   f"{r['later_call_s']:.1f} s, {r['peak_rss_gib']:.1f} GiB{ref}"))
     elif b == "bench_synthetic":
       out.append((f"renderer {entry.get('size')}px {r['path']}", f"{r['cpu_ms_per_scene']:.0f} ms CPU"))
+    elif b == "bench_gpu" and r.get("table") == "agreement":
+      out.append((f"{r['model']} forward vs CPU, {r['size']}px, {r['precision']} precision",
+                  f"max {r['max_px']:.2g} px, mean {r['mean_px']:.2g} px, "
+                  f"{r['over_1e-3_pct']:.2f}% of pixels over 1e-3 px"))
+    elif b == "bench_gpu" and r.get("table") == "models":
+      ms = lambda k: f"{r[k] * 1e3:.1f} ms" if r.get(k) else "-"
+      torch = (f"; torch ({r.get('torch_side')}) fp32 {ms('torch_fp32_s')}, TF32 "
+               f"{ms('torch_tf32_s')}" if r.get("torch_fp32_s") else "")
+      out.append((f"{r['model']} {r['mode']}, {r['size']}px b{r['batch']} (ms a call)",
+                  f"default {ms('sljax_default_s')}, highest {ms('sljax_highest_s')}{torch}"))
     elif b == "main_job":
       out.append((r["what"], r["value"]))
   return out
@@ -56,7 +66,9 @@ def table(records: dict[str, list[dict]], every: bool = False) -> str:
   for key, entries in records.items():
     if not entries:
       continue
-    lines += [f"\n**{cpu_description(entries[-1]['cpu'])}** (`{key}`)\n",
+    where = (entries[-1]["machine"] if entries[-1].get("backend", "cpu") != "cpu"
+             else cpu_description(entries[-1]["cpu"]))  # an accelerator's file: the whole machine
+    lines += [f"\n**{where}** (`{key}`)\n",
               "| figure | value | when | commit | load | source |", "| --- | --- | --- | --- | --- | --- |"]
     latest: dict[str, tuple[str, dict]] = {}
     for e in entries:

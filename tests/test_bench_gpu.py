@@ -29,3 +29,27 @@ def test_records_of_an_accelerator_are_named_by_it(monkeypatch):
   assert common.records_key(CPU, "cpu", "cpu") == "amd-epyc-f25-m17-avx512"
   assert common.records_key(CPU, "gpu", "NVIDIA H100 80GB HBM3") == "gpu-nvidia-h100-80gb-hbm3"
   assert common.records_key(CPU, "cuda", "NVIDIA H200") == "cuda-nvidia-h200"
+
+
+def test_records_table_of_an_accelerator_by_hand():
+  import records  # noqa: E402  (benchmarks/ is on the path above)
+  entry = {"time": "2026-11-25T00:42:06+00:00", "benchmark": "bench_gpu", "cpu": CPU,
+           "backend": "gpu", "machine": "Xeon; 1 x NVIDIA H100 80GB HBM3 (gpu)", "commit": "c0ffee",
+           "loadavg_1min": 4.0,
+           "rows": [{"table": "agreement", "model": "psmnet", "size": 256, "maxdisp": 96,
+                     "precision": "default", "max_px": 23.1, "mean_px": 0.0252,
+                     "over_1e-3_pct": 18.014},
+                    {"table": "models", "model": "psmnet", "mode": "fwd", "size": 256,
+                     "batch": 4, "sljax_default_s": 0.0127, "sljax_highest_s": 0.0281,
+                     "torch_fp32_s": 0.046, "torch_tf32_s": 0.0412, "torch_side": "reference"},
+                    {"table": "models", "model": "unet-sl", "mode": "fwd", "size": 256,
+                     "batch": 4, "sljax_default_s": 0.0019, "sljax_highest_s": 0.0046}]}
+  assert records.headlines(entry) == [
+      ("psmnet forward vs CPU, 256px, default precision",
+       "max 23 px, mean 0.025 px, 18.01% of pixels over 1e-3 px"),
+      ("psmnet fwd, 256px b4 (ms a call)",
+       "default 12.7 ms, highest 28.1 ms; torch (reference) fp32 46.0 ms, TF32 41.2 ms"),
+      ("unet-sl fwd, 256px b4 (ms a call)", "default 1.9 ms, highest 4.6 ms")]
+  text = records.table({"gpu-nvidia-h100-80gb-hbm3": [entry]})
+  assert "**Xeon; 1 x NVIDIA H100 80GB HBM3 (gpu)** (`gpu-nvidia-h100-80gb-hbm3`)" in text
+  assert "| 2026-11-25 | c0ffee | 4.0 | measured |" in text

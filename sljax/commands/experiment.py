@@ -1,12 +1,12 @@
-"""`sljax experiment run PLAN OUT` / `sljax experiment report OUT`: the paper's experiments."""
+"""`sljax experiment run PLAN OUT` / `report OUT` / `status OUT`: the paper's experiments."""
 
 import argparse
 
-from sljax.experiment import calibrate as cal, plans, report as rep, runner
+from sljax.experiment import calibrate as cal, plans, report as rep, runner, status as st
 
 
 def register(subparsers) -> None:
-  """Adds the `experiment` subcommand and its run / report / plans actions."""
+  """Adds the `experiment` subcommand and its run / report / status / calibrate / plans actions."""
   p = subparsers.add_parser(
       "experiment",
       description="Runs a plan (a grid of training runs: model and strategy, training fraction, "
@@ -40,6 +40,16 @@ def register(subparsers) -> None:
                                    "are listed as missing).")
   rep.add_argument("out", metavar="OUT", help="experiment folder")
   rep.set_defaults(func=report)
+  s = sub.add_parser("status", help="finished, training and waiting cells, times, time left",
+                     description="Where the plans run under OUT stand (safe beside a running "
+                                 "grid): cells finished, trained but not scored, training "
+                                 "(with their epoch) and waiting; minutes a cell by arm; the "
+                                 "CPUs they ran on; training time left, estimated from "
+                                 "finished cells of the same arm.")
+  s.add_argument("out", metavar="OUT", help="experiment folder")
+  s.add_argument("--seeds", type=int, default=None,
+                 help="the grid's target seed count (default: the seeds run so far)")
+  s.set_defaults(func=status)
   c = sub.add_parser(
       "calibrate", help="set a v2 plan's budgets: long runs on validation, the plateau rule",
       description="Trains each arm and phase of a v2 plan once (seed 0, fixed learning rate, "
@@ -83,6 +93,12 @@ def report(args: argparse.Namespace) -> int:
   """Writes the report and prints where."""
   path = rep.write_report(args.out)
   print(f"wrote {path} (+ report.json, figures/)")
+  return 0
+
+
+def status(args: argparse.Namespace) -> int:
+  """Prints where the grid stands."""
+  print(st.grid_status(args.out, args.seeds))
   return 0
 
 

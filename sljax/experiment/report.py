@@ -27,13 +27,12 @@ from typing import Any
 import numpy as np
 from matplotlib.figure import Figure
 
-from sljax.errors import require
 from sljax.evaluate import json_safe
 from sljax.experiment import stats
 from sljax.experiment.claims import ALPHA, PAPER, POWER, claims
-from sljax.experiment.plans import FIXED, HELDOUT, PLANS, TEST_SEED, Plan, build_plan
+from sljax.experiment.plans import FIXED, HELDOUT, PLANS, TEST_SEED, Plan
 from sljax.experiment.runner import (DONE_FILE, EVAL_DIR, PLAN_FILE, WINDOWS_FILE, cell_dir,
-                                     curve, read_json)
+                                     curve, read_json, registered_plans)
 from sljax.train.config import dumps
 
 # (key, header) of the metrics every table shows; lower is better except HIGHER_BETTER.
@@ -402,9 +401,8 @@ def _rank_table(plan: Plan, agg: dict[str, Any]) -> list[str]:
 def write_report(out: str | Path) -> Path:
   """Writes OUT/report.md, OUT/report.json and OUT/figures/; returns the report.md path."""
   out = Path(out)
+  registered = {plan.name: plan for plan in registered_plans(out)}
   record = read_json(out / PLAN_FILE)
-  require(record is not None, f"{out}: no {PLAN_FILE} (not an experiment folder; run "
-          "`sljax experiment run PLAN OUT` first)")
   lines = ["# Experiment report", "",
            "Every cell is scored with its final checkpoint, through sljax's one metrics "
            "function: v1 plans on the cell's held-out split (which training also validated "
@@ -417,12 +415,10 @@ def write_report(out: str | Path) -> Path:
            "2x the scene's farthest ground truth (sljax.metrics), the capped share shown. Any "
            "statement that a gain of a given size is excluded is exploratory.", ""]
   data: dict[str, Any] = {}
-  for name in PLANS:
-    if name not in record["plans"]:
+  for name in PLANS:  # in the paper's order
+    if name not in registered:
       continue
-    args = record["plans"][name]
-    plan = build_plan(name, args["scale"], args["seeds"], args.get("data"),
-                      tuple(args.get("eval_data", ())))
+    plan, args = registered[name], record["plans"][name]
     agg = aggregate(out, plan)
     cl = claims(plan, agg)
     figs = _figures(plan, agg, out / "figures")

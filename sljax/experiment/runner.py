@@ -35,8 +35,8 @@ from sljax.data.scene import read_json_object
 from sljax.data.synthetic import SynthConfig, SyntheticSource
 from sljax.errors import SljaxError, require
 from sljax.evaluate import evaluate, json_safe
-from sljax.experiment.plans import (FIXED, HELDOUT, TEST_SEED, Cell, EvalSet, Plan, check_unique,
-                                    describe)
+from sljax.experiment.plans import (FIXED, HELDOUT, TEST_SEED, Cell, EvalSet, Plan, build_plan,
+                                    check_unique, describe)
 from sljax.train import checkpoint as ckpt
 from sljax.train.config import config_from_json, dumps
 from sljax.train.loop import open_source, train
@@ -99,6 +99,17 @@ def register(out: Path, plan: Plan) -> dict[str, Any]:
   record["cells"].update({c.name: c.spec() for c in plan.cells})
   write_json(out / PLAN_FILE, record)
   return record
+
+
+def registered_plans(out: Path, seeds: int | None = None) -> list[Plan]:
+  """The plans recorded in OUT/plan.json, rebuilt (with `seeds` seeds where given, e.g. a
+  grid's target while it runs seed by seed); SljaxError when OUT is not an experiment folder."""
+  record = read_json(out / PLAN_FILE)
+  require(record is not None, f"{out}: no {PLAN_FILE} (not an experiment folder; run "
+          "`sljax experiment run PLAN OUT` first)")
+  return [build_plan(name, args["scale"], seeds or args["seeds"], args.get("data"),
+                     tuple(args.get("eval_data", ())))
+          for name, args in record["plans"].items()]
 
 
 def _first_difference(old: Any, new: Any, path: str = "") -> str:

@@ -1,0 +1,128 @@
+"""Where a grid stands: which cells are finished, training or waiting, how long the finished
+ones took, and about how long the rest will take.
+
+Reads only what the runner writes (plan.json, each cell's done.json, eval/ and epochs.jsonl),
+so it can be run beside a grid that is training. Estimates come from finished cells of the
+same arm and factors, preferring those finished on this CPU kind (a mean over two CPUs times
+neither); a group with no finished cell has no estimate and is counted as such.
+"""
+
+import dataclasses
+import json
+from pathlib import Path
+
+from sljax import machine
+from sljax.experiment.plans import Cell, Plan
+from sljax.experiment.runner import DONE_FILE, EVAL_DIR, cell_dir, read_json, registered_plans
+
+DONE, SCORING, TRAINING, WAITING = "finished", "trained, not scored", "training", "waiting"
+
+
+@dataclasses.dataclass(frozen=True)
+class CellState:
+  """One cell's progress as its files show it."""
+  cell: Cell
+  state: str
+  epoch: int = 0             # last epoch logged (training cells)
+  seconds: float | None = None  # training seconds (finished cells)
+  machine: str | None = None    # the CPU it finished on
+
+  @property
+  def group(self) -> tuple:
+    """What cells are compared by for estimates: the arm and the other factors."""
+    return (self.cell.arm,) + tuple(v for _, v in self.cell.factors)
+
+
+def last_epoch(workdir: Path) -> int:
+  """The last epoch in the workdir's epochs.jsonl (0 when none)."""
+  path = workdir / "epochs.jsonl"
+  if not path.exists():
+    return 0
+  lines = [line for line in path.read_text(encoding="utf-8").splitlines() if line.strip()]
+  try:
+    return int(json.loads(lines[-1])["epoch"]) if lines else 0
+  except (ValueError, KeyError):  # a line being written right now
+    return max(0, len(lines) - 1)
+
+
+def cell_state(out: Path, cell: Cell) -> CellState:
+  """The state of one cell under OUT."""
+  wd = cell_dir(out, cell.name)
+  done = read_json(wd / DONE_FILE)
+  if done is None:
+    epoch = last_epoch(wd)
+    return CellState(cell, TRAINING if epoch or (wd / "checkpoints").exists() else WAITING,
+                     epoch=epoch)
+  scored = all((wd / EVAL_DIR / f"{e.name}.json").exists() for e in cell.evals)
+  return CellState(cell, DONE if scored else SCORING, epoch=cell.config.epochs,
+                   seconds=float(done["train_seconds"]), machine=done.get("machine"))
+
+
+def plan_status(out: Path, plan: Plan) -> list[CellState]:
+  """Every cell's state, in the plan's order."""
+  return [cell_state(out, cell) for cell in plan.cells]
+
+
+def seconds_left(states: list[CellState], here: str) -> tuple[float, int]:
+  """(estimated training seconds left, unfinished cells with no estimate). A group's estimate
+  is the mean of its finished cells on this CPU (`here`), else on any CPU; a training cell
+  counts the share of its epochs still to run."""
+  left, unknown = 0.0, 0
+  for s in states:
+    if s.state in (DONE, SCORING):
+      continue
+    same = [f.seconds for f in states if f.group == s.group and f.seconds is not None]
+    local = [f.seconds for f in states
+             if f.group == s.group and f.seconds is not None and f.machine == here]
+    times = local or same
+    if not times:
+      unknown += 1
+      continue
+    left += sum(times) / len(times) * (1 - s.epoch / s.cell.config.epochs)
+  return left, unknown
+
+
+def format_status(plan: Plan, states: list[CellState], here: str) -> str:
+  """The plan's lines: counts, cells in progress, a table per group, what is left."""
+  count = {k: sum(s.state == k for s in states) for k in (DONE, SCORING, TRAINING, WAITING)}
+  seeds = f"seeds {plan.seeds[0]}-{plan.seeds[-1]}" if len(plan.seeds) > 1 else f"seed {plan.seeds[0]}"
+  lines = [f"{plan.name} (scale {plan.scale.name}, {seeds}): "
+           + ", ".join(f"{n} {k}" for k, n in count.items() if n) + f" of {len(states)} cells"]
+  lines += [f"  training: {s.cell.name}, epoch {s.epoch} of {s.cell.config.epochs}"
+            for s in states if s.state == TRAINING]
+  lines += ["", "| arm | factors | finished | seeds finished | minutes a cell on this CPU, "
+            "mean (range) | elsewhere, range |", "| --- | --- | --- | --- | --- | --- |"]
+  groups: dict[tuple, list[CellState]] = {}
+  for s in states:
+    groups.setdefault(s.group, []).append(s)
+  span = lambda t: f"{min(t):.1f}-{max(t):.1f}" if t else "-"
+  for group, members in groups.items():
+    here_min = [s.seconds / 60 for s in members if s.seconds is not None and s.machine == here]
+    other = [s.seconds / 60 for s in members if s.seconds is not None and s.machine != here]
+    seeds_done = ", ".join(str(s.cell.seed) for s in members if s.state == DONE) or "-"
+    mean = f"{sum(here_min) / len(here_min):.1f} ({span(here_min)})" if here_min else "-"
+    lines.append(f"| {group[0]} | {', '.join(group[1:]) or '-'} | "
+                 f"{sum(s.state == DONE for s in members)} of {len(members)} | {seeds_done} | "
+                 f"{mean} | {span(other)} |")
+  cpus: dict[str, int] = {}
+  for s in states:
+    if s.seconds is not None:
+      key = s.machine or "CPU not recorded"
+      cpus[key] = cpus.get(key, 0) + 1
+  if cpus:
+    lines += ["", f"This CPU: {here}. Cells trained on: "
+              + "; ".join(f"{m} ({n})" for m, n in cpus.items())]
+  left, unknown = seconds_left(states, here)
+  if count[TRAINING] + count[WAITING]:
+    when = f"{left / 3600:.1f} h" if left >= 3600 else f"{left / 60:.0f} min"
+    lines.append(f"Training left: about {when} at this CPU's pace where known"
+                 + (f"; {unknown} cell(s) of groups with no finished cell not counted"
+                    if unknown else "") + " (scoring adds minutes a cell)")
+  return "\n".join(lines)
+
+
+def grid_status(out: str | Path, seeds: int | None = None) -> str:
+  """The status of every plan run under OUT (with `seeds` seeds where given)."""
+  out, here = Path(out), machine.cpu_description()
+  return "\n\n".join(format_status(plan, plan_status(out, plan), here)
+                     for plan in registered_plans(out, seeds))

@@ -1,0 +1,78 @@
+"""`sljax experiment status`: cell states read off the runner's files, minutes per arm, and the
+time left, checked on a hand-made experiment folder against hand-computed estimates."""
+
+import json
+
+import pytest
+
+from sljax import cli
+from sljax.experiment import plans, runner, status
+
+X, Y = "CPU X", "CPU Y"
+
+
+def _done(out, name, seconds, machine, scored=True, evals=("heldout",)):
+  wd = runner.cell_dir(out, name)
+  (wd / runner.EVAL_DIR).mkdir(parents=True)
+  runner.write_json(wd / runner.DONE_FILE, {"step": 4, "train_seconds": seconds,
+                                            "machine": machine})
+  if scored:
+    for e in evals:
+      runner.write_json(wd / runner.EVAL_DIR / f"{e}.json", {"pooled": {}})
+
+
+def _training(out, name, epoch):
+  wd = runner.cell_dir(out, name)
+  wd.mkdir(parents=True)
+  lines = [json.dumps({"epoch": k, "loss": 1.0}) for k in range(1, epoch + 1)]
+  (wd / "epochs.jsonl").write_text("\n".join(lines) + "\n{\"epoch\": ", encoding="utf-8")
+
+
+@pytest.fixture
+def grid(tmp_path):
+  """table2 at the smoke scale (2 epochs a cell), 3 seeds, in every state."""
+  out = tmp_path / "grid"
+  runner.register(out, plans.build_plan("table2", "smoke", 2))  # the target is passed later
+  _done(out, "psmnet-stl-objects-s0", 600.0, X)
+  _done(out, "psmnet-stl-objects-s1", 1200.0, Y)
+  _training(out, "psmnet-stl-objects-s2", 1)          # half its 2 epochs
+  _done(out, "psmnet-unc-objects-s0", 300.0, X, scored=False)
+  return out
+
+
+def test_states_and_time_left_by_hand(grid):
+  plan = plans.build_plan("table2", "smoke", 3)
+  states = {s.cell.name: s for s in status.plan_status(grid, plan)}
+  assert states["psmnet-stl-objects-s0"].state == status.DONE
+  assert states["psmnet-stl-objects-s2"].state == status.TRAINING
+  assert states["psmnet-stl-objects-s2"].epoch == 1   # the half-written line is not an epoch
+  assert states["psmnet-unc-objects-s0"].state == status.SCORING
+  assert states["psmnet-cg_a-objects-s0"].state == status.WAITING
+  all_states = list(states.values())
+  # stl/all on CPU X: its own mean (600 s) for s2's remaining half; other groups: unc/all's
+  # 300 s for its 3 cells (s0 is trained), every other group has no finished cell.
+  left, unknown = status.seconds_left(all_states, X)
+  assert left == pytest.approx(600 * 0.5 + 300 * 2)
+  assert unknown == 30 - 4 - 2  # 30 cells; 4 with files; unc s1, s2 estimated
+  # On a third CPU: every finished stl cell counts, mean (600 + 1200) / 2.
+  left_z, _ = status.seconds_left(all_states, "CPU Z")
+  assert left_z == pytest.approx(900 * 0.5 + 300 * 2)
+
+
+def test_the_table_and_the_command(grid, capsys, monkeypatch):
+  monkeypatch.setattr(status.machine, "cpu_description", lambda: X)
+  assert cli.main(["experiment", "status", str(grid), "--seeds", "3"]) == 0
+  text = capsys.readouterr().out
+  assert text.startswith("table2 (scale smoke, seeds 0-2): 2 finished, 1 trained, not scored, "
+                         "1 training, 26 waiting of 30 cells")
+  assert "  training: psmnet-stl-objects-s2, epoch 1 of 2" in text
+  assert "| stl | all | 2 of 3 | 0, 1 | 10.0 (10.0-10.0) | 20.0-20.0 |" in text
+  assert "| unc | all | 0 of 3 | - | 5.0 (5.0-5.0) | - |" in text
+  assert "Cells trained on: CPU X (2); CPU Y (1)" in text
+  assert "Training left: about 15 min at this CPU's pace" in text and "24 cell(s) of groups with no finished cell" in text
+
+
+def test_not_an_experiment_folder_is_one_line(tmp_path, capsys):
+  assert cli.main(["experiment", "status", str(tmp_path)]) == 2
+  err = capsys.readouterr().err.strip().splitlines()
+  assert len(err) == 1 and "no plan.json" in err[0] and str(tmp_path) in err[0]

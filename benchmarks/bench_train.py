@@ -16,6 +16,7 @@ compiles, and validation are left out). Prints where it ran (CPU, devices, versi
 import argparse
 import dataclasses
 import json
+import os
 import tempfile
 import time
 from pathlib import Path
@@ -114,10 +115,15 @@ def main() -> None:
   print("| --- | --- | --- | --- |", flush=True)
   rows = []
 
-  def add(name, sps):  # printed as measured: a run cut short still shows its rows
+  def add(name, sps):  # printed and recorded as measured: a run cut short keeps its rows
     rows.append((name, sps))
     print(f"| {name} | {sps:.3f} | {sps * config.batch_size:.2f} | {sps / rows[0][1]:.3f} |",
           flush=True)
+    return record("bench_train", [{"what": name, "steps_per_s": sps,
+                                   "samples_per_s": sps * config.batch_size,
+                                   "ratio_to_a": sps / rows[0][1]}],
+                  quiet=True, preset=config.preset, net=config.net, batch=config.batch_size,
+                  precision=config.precision)
   add("(a) compiled step, fixed batch", time_step(config, args.steps))
   with tempfile.TemporaryDirectory() as tmp:
     tmp = Path(tmp)
@@ -128,14 +134,9 @@ def main() -> None:
     folder_cfg = dataclasses.replace(config, data=str(folder))
     n_folder_train = len(split_indices(loop.open_source(folder_cfg), config.test_fraction,
                                        config.seed)[0])
-    add(f"(c) loop, folder of {args.folder_size}x{args.folder_size} PNG scenes",
-        time_loop(subset(folder_cfg, n_folder_train, args.steps), tmp / "c"))
-  a = rows[0][1]
-  record("bench_train", [{"what": name, "steps_per_s": sps,
-                          "samples_per_s": sps * config.batch_size, "ratio_to_a": sps / a}
-                         for name, sps in rows],
-         preset=config.preset, net=config.net, batch=config.batch_size,
-         precision=config.precision)
+    path = add(f"(c) loop, folder of {args.folder_size}x{args.folder_size} PNG scenes",
+               time_loop(subset(folder_cfg, n_folder_train, args.steps), tmp / "c"))
+  print(f"\nrecorded in {os.path.relpath(path)}")
 
 
 if __name__ == "__main__":

@@ -30,6 +30,7 @@ ENV_DIR = "SLJAX_CACHE_DIR"
 ENV_COMPILE = "SLJAX_COMPILE_CACHE"
 OFF = ("0", "off", "false", "no")
 MAX_BYTES = 2 * 2**30
+CACHE_SUFFIX, ATIME_SUFFIX = "-cache", "-atime"  # jax's LRU cache's file names (lru_cache.py)
 
 
 def user_cache_dir() -> Path:
@@ -62,5 +63,28 @@ def enable_compile_cache() -> Path | None:
   if importlib.util.find_spec("filelock") is not None:
     # jax's size limit locks the folder with filelock; without that package jax fails every
     # read of the cache, so the folder is left to grow instead.
+    add_missing_atimes(folder)
     jax.config.update("jax_compilation_cache_max_size", MAX_BYTES)
   return folder
+
+
+def add_missing_atimes(folder: Path) -> int:
+  """Gives every entry of a compilation-cache folder the access-time file that jax's size limit
+  needs; returns how many were added.
+
+  Entries written without the limit (before `filelock` was installed, which torch, for one,
+  brings) have none, and with the limit on jax reads every entry's access time before each
+  write: one missing file failed every later write ("Error writing persistent compilation cache
+  entry ... -atime: FileNotFoundError", seen in a user's cache). The entry's modification time
+  stands in for its last use."""
+  import filelock
+  if not folder.is_dir():
+    return 0
+  added = 0
+  with filelock.FileLock(folder / ".lockfile", timeout=10):  # jax's own lock of the folder
+    for entry in folder.glob(f"*{CACHE_SUFFIX}"):
+      atime = folder / (entry.name[:-len(CACHE_SUFFIX)] + ATIME_SUFFIX)
+      if not atime.exists():
+        atime.write_bytes(entry.stat().st_mtime_ns.to_bytes(8, "little"))
+        added += 1
+  return added

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import jax
 import jaxlib
+import pytest
 
 from sljax import cache, machine
 
@@ -67,3 +68,23 @@ def test_second_process_loads_the_program_and_gets_the_same_numbers(tmp_path):
   assert second["y"] == first["y"]
   off = _child(dict(env, SLJAX_COMPILE_CACHE="off"))
   assert off["folder"] == "None" and off["hits"] == 0 and off["y"] == first["y"]
+
+
+def test_entries_written_without_the_size_limit_do_not_break_later_writes(tmp_path):
+  """A cache folder filled while `filelock` was missing (no size limit, so no access-time
+  files), then used with the limit on: jax's own LRU cache fails every write until the
+  missing access times are added."""
+  from jax._src.lru_cache import LRUCache  # the class jax's persistent cache uses
+  unlimited = LRUCache(str(tmp_path), max_size=-1)
+  unlimited.put("old", b"x" * 100)
+  assert sorted(p.name for p in tmp_path.iterdir()) == ["old-cache"]
+  limited = LRUCache(str(tmp_path), max_size=2**20)
+  with pytest.raises(FileNotFoundError, match="old-atime"):
+    limited.put("new", b"y" * 100)
+  mtime = (tmp_path / "old-cache").stat().st_mtime_ns
+  assert cache.add_missing_atimes(tmp_path) == 1
+  assert int.from_bytes((tmp_path / "old-atime").read_bytes(), "little") == mtime
+  assert cache.add_missing_atimes(tmp_path) == 0  # idempotent
+  limited.put("new", b"y" * 100)
+  assert limited.get("new") == b"y" * 100 and limited.get("old") == b"x" * 100
+  assert cache.add_missing_atimes(tmp_path / "absent") == 0

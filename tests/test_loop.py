@@ -298,3 +298,45 @@ def test_lr_drop_schedule_by_hand():
     params = optax.apply_updates(params, updates)
     moves.append(-float(updates["w"]))
   np.testing.assert_allclose(moves, [1e-2] * 3 + [1e-3] * 3, rtol=1e-4)  # float32 Adam
+
+
+class _Bar:
+  """A progress bar that records what the loop shows on it."""
+
+  def __init__(self):
+    self.events = []
+
+  def update(self, n):
+    self.events.append(("update", n))
+
+  def set_postfix(self, refresh=False, **kw):
+    self.events.append(("postfix", kw))
+
+  def write(self, line):
+    self.events.append(("write", line))
+
+
+def test_the_bar_says_it_is_compiling_then_how_long_the_first_step_took(monkeypatch, tmp_path):
+  model, tx, step, evaluate = toys.tiny_steps(
+      ModelConfig("psmnet", in_channels=3, maxdisp=16), "l2", 3e-2, None, loop.stp.make_mesh())
+  calls = []
+
+  def first_slow(state, batch, weights):  # the first call stands for XLA compiling
+    calls.append(1)
+    if len(calls) == 1:
+      time.sleep(1.2)
+    return step(state, batch, weights)
+
+  monkeypatch.setattr(loop, "compiled_steps", lambda *a: (model, tx, first_slow, evaluate))
+  monkeypatch.setattr(loop, "open_source", lambda config: MemorySource(12, 0.0))
+  bar = _Bar()
+  loop.train(_config("stl", epochs=1, max_val=2), tmp_path / "run", log=lambda line: None,
+             progress=bar)
+  postfix = [kw for kind, kw in bar.events if kind == "postfix"]
+  assert postfix[0] == {"status": "compiling the training step"}
+  kinds = [kind for kind, _ in bar.events]
+  assert kinds[:2] == ["postfix", "postfix"] and "update" in kinds  # both before any step counts
+  first = postfix[1]["status"]
+  assert first.startswith("first step (compiling, or loading from the compile cache) ")
+  assert 1 <= int(first.split()[-2]) <= 5 and first.endswith(" s")
+  assert all("epoch" in kw for kw in postfix[2:]) and len(postfix) > 3  # then the loss lines

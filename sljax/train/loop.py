@@ -170,9 +170,16 @@ def train(config: TrainConfig, workdir: str | os.PathLike | None = None, *, resu
   weights = jnp.asarray(task_weights(config, loop.history))
   pending, last, clock = [], {}, (time.perf_counter(), loop.step)
   try:
-    for step in range(loop.step + 1, stop_at + 1):
+    first = loop.step + 1
+    for step in range(first, stop_at + 1):
       profiler.before(step)
+      if step == first:  # the bar would sit at 0 while XLA compiles (77 s on an H100)
+        bar.set_postfix(status="compiling the training step", refresh=True)
+        t_first = time.perf_counter()
       state, metrics = train_step(state, next(batches), weights)
+      if step == first:
+        bar.set_postfix(status=f"first step (compiling, or loading from the compile cache) "
+                               f"{time.perf_counter() - t_first:.0f} s", refresh=True)
       profiler.after(step, state)
       pending.append((step, metrics))
       epoch_end = step % spe == 0

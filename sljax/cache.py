@@ -19,6 +19,7 @@ where the `filelock` package is installed; without it the folder is not limited.
 import hashlib
 import importlib.util
 import os
+import sys
 from pathlib import Path
 
 import jax
@@ -63,7 +64,11 @@ def enable_compile_cache() -> Path | None:
   if importlib.util.find_spec("filelock") is not None:
     # jax's size limit locks the folder with filelock; without that package jax fails every
     # read of the cache, so the folder is left to grow instead.
-    add_missing_atimes(folder)
+    try:
+      add_missing_atimes(folder)
+    except Exception as e:  # noqa: BLE001  a read-only or busy folder: jax then only warns
+      print(f"sljax: compile cache {folder}: could not add access times ({type(e).__name__}); "
+            "writes to it may fail with warnings", file=sys.stderr)
     jax.config.update("jax_compilation_cache_max_size", MAX_BYTES)
   return folder
 

@@ -18,8 +18,10 @@ the trained variables baked in as constants:
 The artifact takes float32 BxHxWxC views in [0, 1] with the model's channel count (the
 conversions the predictor does on the host, from uint8 / uint16 and between gray and RGB, are
 the caller's) and returns a dict of float32 arrays. It is lowered for CPU and CUDA GPUs
-(`PLATFORMS`) wherever it is made, so an artifact written on a GPU machine runs on a laptop and
-the reverse (one made for the maker's platform alone failed there, seen on an H100). Loading it
+(`PLATFORMS`, and for the maker's platform where that is another) wherever it is made, so an
+artifact written on a GPU machine runs on a laptop and the reverse (one made for the maker's
+platform alone failed there, seen on an H100). On an NVIDIA GPU it runs at XLA's default
+precision, which lets convolutions use TF32 (README, Benchmarks). Loading it
 needs only jax (and numpy for the data):
 
   exp = jax.export.deserialize(open("model.jax", "rb").read())
@@ -167,7 +169,8 @@ def export_model(predictor, size: tuple[int, int]):
   spec = jax.ShapeDtypeStruct(jex.symbolic_shape(f"b, {h}, {w}, {c}"), np.float32)
   f = inference_function(predictor, size)
   try:
-    return jex.export(jax.jit(f), platforms=PLATFORMS)(spec, spec)
+    here = jex.default_export_platform()  # ROCm or TPU: the maker's platform too
+    return jex.export(jax.jit(f), platforms=tuple(dict.fromkeys(PLATFORMS + (here,))))(spec, spec)
   except SljaxError:
     raise
   except Exception as e:  # a model that cannot take this size: one line, not a JAX traceback

@@ -6,7 +6,7 @@ touched), and float32 matrix products and convolutions at full float32 precision
 The tests check the arithmetic against float64 and naive references at float32 tolerances. On a
 CPU 'highest' is what XLA computes anyway (bitwise the same outputs); on an NVIDIA GPU XLA's
 default lets convolutions and products use TF32 (a 10-bit mantissa), which fails those
-tolerances by design: 12 tests did on an H100 (docs/testing.md, "On a GPU"). How far TF32 moves the
+tolerances by design: 13 tests did on an H100 (docs/testing.md, "On a GPU"). How far TF32 moves the
 networks is measured by benchmarks/bench_gpu.py, not asserted here.
 SLJAX_TEST_PRECISION=default runs the suite at XLA's default instead."""
 

@@ -338,5 +338,5 @@ def test_the_bar_says_it_is_compiling_then_how_long_the_first_step_took(monkeypa
   assert kinds[:2] == ["postfix", "postfix"] and "update" in kinds  # both before any step counts
   first = postfix[1]["status"]
   assert first.startswith("first step (compiling, or loading from the compile cache) ")
-  assert 1 <= int(first.split()[-2]) <= 5 and first.endswith(" s")
+  assert int(first.split()[-2]) >= 1 and first.endswith(" s")  # the 1.2 s stand-in at least
   assert all("epoch" in kw for kw in postfix[2:]) and len(postfix) > 3  # then the loss lines

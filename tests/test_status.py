@@ -69,10 +69,34 @@ def test_the_table_and_the_command(grid, capsys, monkeypatch):
   assert "| stl | all | 2 of 3 | 0, 1 | 10.0 (10.0-10.0) | 20.0-20.0 |" in text
   assert "| unc | all | 0 of 3 | - | 5.0 (5.0-5.0) | - |" in text
   assert "Cells trained on: CPU X (2); CPU Y (1)" in text
-  assert "Training left: about 15 min at this CPU's pace" in text and "24 cell(s) of groups with no finished cell" in text
+  assert "Training left: about 15 min, at this CPU's pace" in text
+  assert "24 cell(s) of arms with no finished cell not counted" in text
 
 
 def test_not_an_experiment_folder_is_one_line(tmp_path, capsys):
   assert cli.main(["experiment", "status", str(tmp_path)]) == 2
   err = capsys.readouterr().err.strip().splitlines()
   assert len(err) == 1 and "no plan.json" in err[0] and str(tmp_path) in err[0]
+
+
+def test_edge_cases_of_the_files(grid):
+  plan = plans.build_plan("table2", "smoke", 2)
+  wd = runner.cell_dir(grid, "psmnet-cg_a-objects-s0")
+  (wd / "checkpoints").mkdir(parents=True)            # started, no epoch logged yet
+  (wd / "epochs.jsonl").write_text("", encoding="utf-8")
+  s = status.cell_state(grid, plan.cells[1])
+  assert (s.cell.name, s.state, s.epoch) == ("psmnet-cg_a-objects-s0", status.TRAINING, 0)
+  (wd / "epochs.jsonl").write_text("null\n", encoding="utf-8")  # not an object: not an epoch
+  assert status.cell_state(grid, plan.cells[1]).epoch == 0
+  _done(grid, "psmnet-cg_b-objects-s0", None, X)      # done.json without its seconds
+  s = status.cell_state(grid, plan.cells[2])
+  assert s.state == status.DONE and s.seconds is None
+  assert "| cg_b | all | 1 of 2 | 0 | - | - |" in status.grid_status(grid)
+
+
+def test_fewer_seeds_than_were_run_keep_every_cell(grid, capsys):
+  runner.register(grid, plans.build_plan("table2", "smoke", 3))
+  assert len(runner.registered_plans(grid, 1)[0].cells) == 30  # never shrinks the plan
+  assert len(runner.registered_plans(grid, 4)[0].cells) == 40
+  assert cli.main(["experiment", "status", str(grid), "--seeds", "0"]) == 2
+  assert "--seeds 0: at least 1" in capsys.readouterr().err

@@ -102,12 +102,14 @@ def register(out: Path, plan: Plan) -> dict[str, Any]:
 
 
 def registered_plans(out: Path, seeds: int | None = None) -> list[Plan]:
-  """The plans recorded in OUT/plan.json, rebuilt (with `seeds` seeds where given, e.g. a
-  grid's target while it runs seed by seed); SljaxError when OUT is not an experiment folder."""
+  """The plans recorded in OUT/plan.json, rebuilt (with `seeds` seeds where more than were run,
+  e.g. a grid's target while it runs seed by seed); SljaxError when OUT is not an experiment
+  folder."""
   record = read_json(out / PLAN_FILE)
   require(record is not None, f"{out}: no {PLAN_FILE} (not an experiment folder; run "
           "`sljax experiment run PLAN OUT` first)")
-  return [build_plan(name, args["scale"], seeds or args["seeds"], args.get("data"),
+  require(seeds is None or seeds >= 1, f"--seeds {seeds}: at least 1")
+  return [build_plan(name, args["scale"], max(seeds or 0, args["seeds"]), args.get("data"),
                      tuple(args.get("eval_data", ())))
           for name, args in record["plans"].items()]
 

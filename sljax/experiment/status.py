@@ -14,6 +14,8 @@ from pathlib import Path
 from sljax import machine
 from sljax.experiment.plans import Cell, Plan
 from sljax.experiment.runner import DONE_FILE, EVAL_DIR, cell_dir, read_json, registered_plans
+from sljax.train.checkpoint import CHECKPOINT_DIR
+from sljax.train.workdir import EPOCHS_FILE
 
 DONE, SCORING, TRAINING, WAITING = "finished", "trained, not scored", "training", "waiting"
 
@@ -35,13 +37,13 @@ class CellState:
 
 def last_epoch(workdir: Path) -> int:
   """The last epoch in the workdir's epochs.jsonl (0 when none)."""
-  path = workdir / "epochs.jsonl"
+  path = workdir / EPOCHS_FILE
   if not path.exists():
     return 0
   lines = [line for line in path.read_text(encoding="utf-8").splitlines() if line.strip()]
   try:
     return int(json.loads(lines[-1])["epoch"]) if lines else 0
-  except (ValueError, KeyError):  # a line being written right now
+  except (ValueError, KeyError, TypeError):  # a line being written right now
     return max(0, len(lines) - 1)
 
 
@@ -51,11 +53,13 @@ def cell_state(out: Path, cell: Cell) -> CellState:
   done = read_json(wd / DONE_FILE)
   if done is None:
     epoch = last_epoch(wd)
-    return CellState(cell, TRAINING if epoch or (wd / "checkpoints").exists() else WAITING,
+    return CellState(cell, TRAINING if epoch or (wd / CHECKPOINT_DIR).exists() else WAITING,
                      epoch=epoch)
   scored = all((wd / EVAL_DIR / f"{e.name}.json").exists() for e in cell.evals)
+  seconds = done.get("train_seconds")
   return CellState(cell, DONE if scored else SCORING, epoch=cell.config.epochs,
-                   seconds=float(done["train_seconds"]), machine=done.get("machine"))
+                   seconds=None if seconds is None else float(seconds),
+                   machine=done.get("machine"))
 
 
 def plan_status(out: Path, plan: Plan) -> list[CellState]:
@@ -85,7 +89,8 @@ def seconds_left(states: list[CellState], here: str) -> tuple[float, int]:
 def format_status(plan: Plan, states: list[CellState], here: str) -> str:
   """The plan's lines: counts, cells in progress, a table per group, what is left."""
   count = {k: sum(s.state == k for s in states) for k in (DONE, SCORING, TRAINING, WAITING)}
-  seeds = f"seeds {plan.seeds[0]}-{plan.seeds[-1]}" if len(plan.seeds) > 1 else f"seed {plan.seeds[0]}"
+  seeds = (f"seeds {plan.seeds[0]}-{plan.seeds[-1]}" if len(plan.seeds) > 1
+           else f"seed {plan.seeds[0]}")
   lines = [f"{plan.name} (scale {plan.scale.name}, {seeds}): "
            + ", ".join(f"{n} {k}" for k, n in count.items() if n) + f" of {len(states)} cells"]
   lines += [f"  training: {s.cell.name}, epoch {s.epoch} of {s.cell.config.epochs}"
@@ -115,9 +120,10 @@ def format_status(plan: Plan, states: list[CellState], here: str) -> str:
   left, unknown = seconds_left(states, here)
   if count[TRAINING] + count[WAITING]:
     when = f"{left / 3600:.1f} h" if left >= 3600 else f"{left / 60:.0f} min"
-    lines.append(f"Training left: about {when} at this CPU's pace where known"
-                 + (f"; {unknown} cell(s) of groups with no finished cell not counted"
-                    if unknown else "") + " (scoring adds minutes a cell)")
+    lines.append(f"Training left: about {when}, at this CPU's pace where it finished cells of "
+                 "the arm, else at other CPUs'"
+                 + (f"; {unknown} cell(s) of arms with no finished cell not counted"
+                    if unknown else "") + "; scoring adds minutes a cell")
   return "\n".join(lines)
 
 

@@ -31,8 +31,8 @@ from sljax.evaluate import json_safe
 from sljax.experiment import stats
 from sljax.experiment.claims import ALPHA, PAPER, POWER, claims
 from sljax.experiment.plans import FIXED, HELDOUT, PLANS, TEST_SEED, Plan
-from sljax.experiment.runner import (DONE_FILE, EVAL_DIR, PLAN_FILE, WINDOWS_FILE, cell_dir,
-                                     curve, read_json, registered_plans)
+from sljax.experiment.runner import (DONE_FILE, EVAL_DIR, WINDOWS_FILE, cell_dir,
+                                     curve, plan_args, read_json, registered_plans)
 from sljax.train.config import dumps
 
 # (key, header) of the metrics every table shows; lower is better except HIGHER_BETTER.
@@ -402,7 +402,6 @@ def write_report(out: str | Path) -> Path:
   """Writes OUT/report.md, OUT/report.json and OUT/figures/; returns the report.md path."""
   out = Path(out)
   registered = {plan.name: plan for plan in registered_plans(out)}
-  record = read_json(out / PLAN_FILE)
   lines = ["# Experiment report", "",
            "Every cell is scored with its final checkpoint, through sljax's one metrics "
            "function: v1 plans on the cell's held-out split (which training also validated "
@@ -418,7 +417,7 @@ def write_report(out: str | Path) -> Path:
   for name in PLANS:  # in the paper's order
     if name not in registered:
       continue
-    plan, args = registered[name], record["plans"][name]
+    plan, args = registered[name], plan_args(registered[name])
     agg = aggregate(out, plan)
     cl = claims(plan, agg)
     figs = _figures(plan, agg, out / "figures")

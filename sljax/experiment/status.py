@@ -71,18 +71,20 @@ def seconds_left(states: list[CellState], here: str) -> tuple[float, int]:
   """(estimated training seconds left, unfinished cells with no estimate). A group's estimate
   is the mean of its finished cells on this CPU (`here`), else on any CPU; a training cell
   counts the share of its epochs still to run."""
+  timed = [s for s in states if s.seconds is not None]
+  mean: dict[tuple, float] = {}
+  for group in {s.group for s in timed}:
+    times = ([s.seconds for s in timed if s.group == group and s.machine == here]
+             or [s.seconds for s in timed if s.group == group])
+    mean[group] = sum(times) / len(times)
   left, unknown = 0.0, 0
   for s in states:
     if s.state in (DONE, SCORING):
       continue
-    same = [f.seconds for f in states if f.group == s.group and f.seconds is not None]
-    local = [f.seconds for f in states
-             if f.group == s.group and f.seconds is not None and f.machine == here]
-    times = local or same
-    if not times:
+    if s.group not in mean:
       unknown += 1
       continue
-    left += sum(times) / len(times) * (1 - s.epoch / s.cell.config.epochs)
+    left += mean[s.group] * (1 - s.epoch / s.cell.config.epochs)
   return left, unknown
 
 

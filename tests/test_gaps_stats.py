@@ -78,3 +78,14 @@ def test_mean_ci_of_two_values():
   assert ci["n"] == 2 and ci["mean"] == 2.0 and ci["sd"] == pytest.approx(math.sqrt(2.0))
   assert (ci["lo"], ci["hi"]) == (pytest.approx(2.0 - 12.706205, abs=1e-5),
                                   pytest.approx(2.0 + 12.706205, abs=1e-5))
+
+
+def test_paired_test_with_a_nan_difference_has_no_p():
+  """A NaN value makes the mean and SD NaN; the test is then undefined (p NaN), not a certain
+  rejection: the zero-SD branch once took the NaN SD for 0 and returned t = inf, p = 0.0."""
+  res = stats.paired_test([1.0, math.nan, 2.0], [1.5, 2.0, 2.5])
+  assert math.isnan(res["mean"])
+  assert math.isnan(res["p"])
+  assert math.isnan(res["t"])
+  adjusted = stats.holm([res["p"], 0.02])  # left out of the family, not counted as a rejection
+  assert math.isnan(adjusted[0]) and adjusted[1] == pytest.approx(0.02)

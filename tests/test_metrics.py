@@ -100,10 +100,12 @@ def test_depth_is_capped_at_twice_the_scenes_farthest_truth():
   # Pooled: the cap is per scene (its own farthest truth), the share over all pixels.
   acc = metrics.DisparityAccumulator()
   acc.add(pred, gt, calib=calib)
-  acc.add(np.array([[10.0]]), np.array([[10.0]]), calib=calib)
+  # A near scene (truth 20 px = 250 mm: cap 500 mm) with a prediction near 0 px: capped at its
+  # own 500 (error 250), not at the first scene's 2000 (error 1750).
+  acc.add(np.array([[1e-9]]), np.array([[20.0]]), calib=calib)
   pooled = acc.result()
-  assert pooled["depth_capped"] == pytest.approx(40.0)
-  assert pooled["depth_mae_mm"] == pytest.approx(np.sum(errors) / 5, rel=1e-6)
+  assert pooled["depth_capped"] == pytest.approx(60.0)
+  assert pooled["depth_mae_mm"] == pytest.approx((np.sum(errors) + 250.0) / 5, rel=1e-6)
   # Without a capped pixel nothing changes.
   assert metrics.disparity_metrics(gt, gt, calib=calib)["depth_capped"] == 0.0
 

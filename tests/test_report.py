@@ -140,6 +140,23 @@ def test_a_claim_that_holds_unadjusted_can_fail_after_holm():
   assert tissue["verdict"] == "not shown (Holm-adjusted p >= 0.05)"
 
 
+def test_a_partial_table_says_its_holm_family_is_interim(tmp_path):
+  """Holm leaves claims without results out of m, so a report on part of a table must say its
+  adjusted p are interim; the complete table names its whole family."""
+  plan = plans.build_plan("table2-v2", "smoke", 3)
+  out = tmp_path / "out"
+  runner.register(out, plan)
+  for cell in plan.cells:
+    if cell.arm in ("stl", "cg_a"):  # 2 of the family's 8 claims can be tested
+      _write_eval(out, cell, "test-objects", STL[cell.seed] + OFFSETS[cell.arm][cell.seed])
+  md = report.write_report(out).read_text()
+  assert "Holm-adjusted p over its 2 claims with results (the family has 8: until all" in md
+  for cell in plan.cells:
+    _write_eval(out, cell, "test-objects", STL[cell.seed] + OFFSETS[cell.arm][cell.seed])
+  md = report.write_report(out).read_text()
+  assert "Holm-adjusted p over its 8 claims; verdicts" in md and "interim" not in md
+
+
 def test_pairing_is_by_seed_not_by_position(fake):
   """Pairing arm seed 0 with baseline seed 1 would change the spread of the differences: the
   aggregate must give the hand-computed by-seed SD, whatever the order of the plan's cells."""

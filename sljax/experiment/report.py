@@ -272,6 +272,16 @@ def _figures(plan: Plan, agg: dict[str, Any], fig_dir: Path) -> list[str]:
 # ----------------------------------------------------------------------------- markdown
 
 
+def _family(cl: list[dict[str, Any]]) -> str:
+  """The Holm family's size as used: claims without results yet are left out of m, so an
+  incomplete table's adjusted p are interim (smaller than the complete family's can be)."""
+  tested = sum(1 for c in cl if math.isfinite(c.get("difference", {}).get("p", math.nan)))
+  if tested == len(cl):
+    return f"{len(cl)} claims"
+  return (f"{tested} claims with results (the family has {len(cl)}: until all have results "
+          "these adjusted p are interim and smaller than the complete family's can be)")
+
+
 def _plan_markdown(out: Path, plan: Plan, agg: dict[str, Any], cl: list[dict[str, Any]],
                    figs: list[str]) -> list[str]:
   sc = plan.scale
@@ -282,7 +292,7 @@ def _plan_markdown(out: Path, plan: Plan, agg: dict[str, Any], cl: list[dict[str
            f"trained." + (f" Data: `{plan.data}`." if plan.data else ""), ""]
   if cl:
     lines += ["### The paper's claims at this scale", "",
-              f"One family: Holm-adjusted p over its {len(cl)} claims; verdicts on the adjusted "
+              f"One family: Holm-adjusted p over its {_family(cl)}; verdicts on the adjusted "
               f"p at {ALPHA:g}. Difference: the claimed better arm minus the other (< 0 "
               "supports the claim), mean over seeds with its unadjusted 95% interval. "
               f"Detectable: the smallest true difference the paired t-test had {POWER:.0%} "

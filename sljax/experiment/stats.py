@@ -106,7 +106,7 @@ def paired_test(a: Sequence[float], b: Sequence[float],
   out = mean_ci(d, confidence)
   out["wins"], out["losses"] = int(np.sum(d < 0)), int(np.sum(d > 0))
   out["t"], out["p"] = math.nan, math.nan
-  if d.size >= 2:
+  if d.size >= 2 and np.isfinite(d).all():  # a NaN SD must not read as "no spread" (p = 0)
     if out["sd"] > 0:
       out["t"] = out["mean"] / (out["sd"] / math.sqrt(d.size))
       out["p"] = 2.0 * (1.0 - t_cdf(abs(out["t"]), d.size - 1))

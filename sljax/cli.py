@@ -10,7 +10,7 @@ import importlib
 import os
 import sys
 
-from sljax.errors import SljaxError
+from sljax.errors import SljaxError, describe_os_error
 from sljax.quiet import quiet_libraries
 
 # subcommand -> (module in sljax.commands, one line for `sljax --help`)
@@ -71,6 +71,9 @@ def main(argv: list[str] | None = None) -> int:
   except KeyboardInterrupt:
     print(f"sljax {args.command}: interrupted", file=sys.stderr)
     return 130
+  except OSError as e:  # a full or read-only disk, a file where a folder must be
+    print(f"sljax {args.command}: error: {describe_os_error(e)}", file=sys.stderr)
+    return 2
   return int(result or 0)
 
 

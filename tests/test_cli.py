@@ -32,3 +32,23 @@ def test_each_subcommand_has_help(name, capsys):
 def test_console_script_module_runs():
   r = subprocess.run([sys.executable, "-m", "sljax.cli", "--help"], capture_output=True, text=True)
   assert r.returncode == 0 and "COMMAND" in r.stdout
+
+
+def test_a_failed_file_operation_is_one_line_naming_the_path(tmp_path, capsys):
+  """An OSError reaching the command line (here a file where the OUT folder must be; the same
+  path serves read-only and full disks) prints the path and the reason, exit 2, no traceback."""
+  blocker = tmp_path / "f"
+  blocker.write_text("hi")
+  assert cli.main(["experiment", "run", "table2", str(blocker), "--scale", "smoke",
+                   "--no-progress"]) == 2
+  err = capsys.readouterr().err
+  assert err.startswith("sljax experiment: error: ") and str(blocker) in err
+  assert "Traceback" not in err and len(err.strip().splitlines()) == 1
+  assert blocker.read_text() == "hi"
+
+
+def test_describe_os_error_names_both_paths():
+  from sljax.errors import describe_os_error
+  e = OSError(28, "No space left on device", "/disk/a.tmp", None, "/disk/a")
+  assert describe_os_error(e) == "/disk/a.tmp -> /disk/a: No space left on device"
+  assert describe_os_error(OSError("bare")) == "bare"

@@ -9,7 +9,7 @@ from pathlib import Path
 import jax
 
 from sljax.cache import enable_compile_cache
-from sljax.errors import SljaxError
+from sljax.errors import SljaxError, describe_os_error
 from sljax.quiet import quiet_libraries
 from sljax.train import checkpoint as ckpt
 from sljax.train.config import FIELDS, PRESETS, TrainConfig, config_from_json, preset_config
@@ -114,6 +114,9 @@ def run(args: argparse.Namespace, prog: str = "train.py") -> int:
   except KeyboardInterrupt:
     print(f"{prog}: interrupted (continue with --resume)", file=sys.stderr)
     return 130
+  except OSError as e:  # a full or read-only disk, a file where a folder must be
+    print(f"{prog}: error: {describe_os_error(e)}", file=sys.stderr)
+    return 2
   best = "n/a" if result.best_val is None else f"{result.best_val:.4f}"
   last = "n/a" if result.last_val is None else f"{result.last_val:.4f}"
   print(f"done: step {result.step}, {result.epochs_done} epochs; val MAE last {last}, best "

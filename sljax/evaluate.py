@@ -19,6 +19,7 @@ patterns (sljax.corr), as in the paper.
 """
 
 import csv
+import io
 import json
 import math
 import os
@@ -28,7 +29,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from sljax import metrics
+from sljax import files, metrics
 from sljax.corr.uncertainty import pattern_uncertainty
 from sljax.data import scared
 from sljax.data.pfm import read_pfm, write_pfm
@@ -356,13 +357,15 @@ def write_report(report: dict[str, Any], out_dir: str | os.PathLike) -> None:
   """Writes metrics.json, metrics.md and per_scene.csv into out_dir."""
   out_dir = Path(out_dir)
   out_dir.mkdir(parents=True, exist_ok=True)
-  (out_dir / "metrics.json").write_text(
-      json.dumps(json_safe(report), indent=2, allow_nan=False) + "\n", encoding="utf-8")
-  (out_dir / "metrics.md").write_text(markdown_report(report), encoding="utf-8")
+  # Each file whole or not at all: --overwrite onto a full disk keeps the earlier one.
+  files.write_text(out_dir / "metrics.json",
+                   json.dumps(json_safe(report), indent=2, allow_nan=False) + "\n")
+  files.write_text(out_dir / "metrics.md", markdown_report(report))
   columns, rows = csv_rows(report)
-  with open(out_dir / "per_scene.csv", "w", newline="", encoding="utf-8") as f:
-    w = csv.DictWriter(f, fieldnames=columns, restval="")
-    w.writeheader()
-    for row in rows:
-      w.writerow({k: ("" if v is None or (isinstance(v, float) and not math.isfinite(v)) else v)
-                  for k, v in row.items()})
+  text = io.StringIO()
+  w = csv.DictWriter(text, fieldnames=columns, restval="")
+  w.writeheader()
+  for row in rows:
+    w.writerow({k: ("" if v is None or (isinstance(v, float) and not math.isfinite(v)) else v)
+                for k, v in row.items()})
+  files.write_text(out_dir / "per_scene.csv", text.getvalue())

@@ -41,7 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import export as jex
 
-from sljax import inference, sizes
+from sljax import files, inference, sizes
 from sljax.corr import correlation
 from sljax.data.dataset import resize_image
 from sljax.errors import SljaxError
@@ -229,8 +229,11 @@ def write_export(predictor, size: tuple[int, int], out: str | os.PathLike, sourc
     if p.is_dir():
       raise SljaxError(f"{p}: is a folder; OUT names the file to write")
   exported = export_model(predictor, size)
+  info = json.dumps(sidecar(predictor, exported, size, source), indent=2) + "\n"
   out.parent.mkdir(parents=True, exist_ok=True)
-  out.write_bytes(exported.serialize())
-  side.write_text(json.dumps(sidecar(predictor, exported, size, source), indent=2) + "\n",
-                  encoding="utf-8")
+  # Both to temporary files first: a full disk leaves the earlier pair, never a truncated
+  # artifact or a new artifact beside the old sidecar.
+  with files.replacing(out, side) as (out_tmp, side_tmp):
+    out_tmp.write_bytes(exported.serialize())
+    side_tmp.write_text(info, encoding="utf-8")
   return out, side

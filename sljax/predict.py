@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from sljax import geometry, inference
+from sljax import files, geometry, inference
 from sljax.baselines import SGBMConfig, SGBMPredictor
 from sljax.data.calib import Calib, read_calib
 from sljax.data.dataset import find_scenes
@@ -185,12 +185,13 @@ def write_outputs(folder: Path, pair: Pair, left: np.ndarray, out: dict[str, np.
     depth = geometry.depth_mm(disp, pair.calib, max_depth)
     write_pfm(folder / "depth_mm.pfm", depth)
     png = geometry.depth_png16(depth)
-    if not cv2.imwrite(os.fspath(folder / "depth_mm.png"), png):
-      raise SljaxError(f"{folder / 'depth_mm.png'}: could not write image")
+    with files.replacing(folder / "depth_mm.png") as (tmp,):
+      if not cv2.imwrite(os.fspath(tmp), png):
+        raise SljaxError(f"{folder / 'depth_mm.png'}: could not write image")
     xyz, rgb = geometry.point_cloud(disp, pair.calib, left, max_depth)
-    geometry.write_ply(folder / "cloud.ply", xyz, rgb,
-                       comment=f"sljax predict {label}: x y z in mm, left camera frame "
-                               "(x right, y down, z forward)")
+    with files.replacing(folder / "cloud.ply") as (tmp,):
+      geometry.write_ply(tmp, xyz, rgb, comment=f"sljax predict {label}: x y z in mm, left "
+                                                "camera frame (x right, y down, z forward)")
     summary.update(points=len(xyz),
                    png_zero_but_known=int((np.isfinite(depth) & (png == 0)).sum()))
   return summary

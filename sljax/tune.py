@@ -265,7 +265,8 @@ def choose(samples: dict[tuple[str, bool], list[float]],
 
 def undecided_note(table: list[dict]) -> str:
   """A sentence for a tuning whose rounds still disagreed after every retry, else ''."""
-  kinds = sorted({r["kind"] for r in table if r.get("verdict") == "undecided"})
+  kinds = sorted({str(r.get("kind")) for r in table
+                  if isinstance(r, dict) and r.get("verdict") == "undecided"})
   if not kinds:
     return ""
   return (f"{' and '.join(kinds)}: the rounds disagreed in every batch, so XLA's default stays "
@@ -274,20 +275,28 @@ def undecided_note(table: list[dict]) -> str:
 
 def format_table(table: list[dict], best: KernelChoice) -> str:
   """The measurements as a Markdown table: each program's median time relative to the chosen
-  setting, and with the fusions off the per-round off/on ratios' range."""
+  setting, and with the fusions off the per-round off/on ratios' range. Rows that are no
+  measurement (an entry written by hand: {"note": ...}) are shown as their note."""
   chosen = {"forward": best.forward_ynn, "train": best.train_ynn}
-  ref = {r["kind"]: r["seconds"] for r in table if r["ynn"] == chosen[r["kind"]]}
+  rows = [r for r in table if isinstance(r, dict) and r.get("kind") in chosen
+          and {"ynn", "seconds"} <= r.keys()]
+  notes = [f"note: {r.get('note', r) if isinstance(r, dict) else r}" for r in table
+           if not any(r is m for m in rows)]
+  if not rows:
+    return "\n".join(notes) or "no measurements recorded"
+  ref = {r["kind"]: r["seconds"] for r in rows if r["ynn"] == chosen[r["kind"]]}
   lines = ["| program (PSMNet) | YNNPACK fusions | ms | vs chosen | off/on by round |",
            "| --- | --- | ---: | ---: | --- |"]
-  for r in table:
+  for r in rows:
     mark = " (chosen)" if r["ynn"] == chosen[r["kind"]] else ""
     ratios = r.get("off_vs_on") or []
     spread = f"{min(ratios):.2f}-{max(ratios):.2f}" if ratios and not r["ynn"] else ""
+    vs = f"{r['seconds'] / ref[r['kind']]:.2f}x" if r["kind"] in ref else "-"
     lines.append(f"| {r['kind']} | {'on' if r['ynn'] else 'off'} | {r['seconds'] * 1e3:.1f} | "
-                 f"{r['seconds'] / ref[r['kind']]:.2f}x{mark} | {spread} |")
+                 f"{vs}{mark} | {spread} |")
   for kind in KINDS:
-    n = max((r.get("batches", 1) for r in table if r["kind"] == kind), default=1)
+    n = max((r.get("batches", 1) for r in rows if r["kind"] == kind), default=1)
     if n > 1:
       lines.append(f"\n{kind}: the first rounds disagreed, measured again ({n} batches; the "
                    "table shows the last)")
-  return "\n".join(lines)
+  return "\n".join(lines + (["", *notes] if notes else []))

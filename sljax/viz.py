@@ -1,11 +1,16 @@
 """Pictures: panels of images and colour-mapped maps with scale bars, saved as PNG."""
 
 import dataclasses
+import functools
 import os
+from pathlib import Path
 
 import matplotlib
 import numpy as np
 from matplotlib.figure import Figure
+
+from sljax import files
+from sljax.errors import SljaxError
 
 
 @dataclasses.dataclass(frozen=True)
@@ -19,9 +24,26 @@ class Panel:
   label: str = ""  # unit written beside the scale bar, e.g. "px"
 
 
+@functools.cache
+def figure_formats() -> tuple[str, ...]:
+  """File name extensions a figure can be saved as (matplotlib's canvas picks the format by it)."""
+  return tuple(sorted(Figure().canvas.get_supported_filetypes()))
+
+
+def check_figure_path(path: str | os.PathLike, option: str = "--out") -> Path:
+  """path, or SljaxError when its extension is no picture format (checked before any work)."""
+  path = Path(path)
+  suffix = path.suffix.lower().lstrip(".")
+  if suffix not in figure_formats():
+    what = f"'.{suffix}'" if suffix else "no extension"
+    raise SljaxError(f"{option} {path}: {what} is not a picture format; use .png, .pdf, .svg or "
+                     f".jpg (any of {', '.join('.' + f for f in figure_formats())})")
+  return path
+
+
 def save_panels(path: str | os.PathLike, panels: list[Panel], ncols: int = 4,
                 title: str | None = None, tile_inches: float = 3.0) -> None:
-  """Writes a grid of panels to a PNG; non-finite map values are drawn grey."""
+  """Writes a grid of panels to a picture (PNG, PDF, ... by path's extension); non-finite map values are drawn grey."""
   ncols = max(1, min(ncols, len(panels)))
   nrows = -(-len(panels) // ncols)
   fig = Figure(figsize=(tile_inches * ncols * 1.15, tile_inches * nrows))
@@ -49,5 +71,7 @@ def save_panels(path: str | os.PathLike, panels: list[Panel], ncols: int = 4,
   if title:
     fig.suptitle(title)
   fig.tight_layout()
-  os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-  fig.savefig(path, dpi=100)
+  path = check_figure_path(path, "picture")
+  os.makedirs(path.absolute().parent, exist_ok=True)
+  with files.replacing(path) as (tmp,):  # whole or not at all
+    fig.savefig(tmp, dpi=100)

@@ -181,3 +181,37 @@ def test_bad_inputs(tmp_path, monkeypatch, capsys):
     convert.read_state_dict(ckpt)
   with pytest.raises(SljaxError, match="not a checkpoint.*converted PSMNet"):
     convert.load_converted(tmp_path)
+
+
+@pytest.mark.parametrize("content, why", [
+    (b"conv.weight 1 2 3\n", "not a zip archive"),  # numpy: "pickled (object) data" ValueError
+    (b"", "empty file (0 bytes)"),
+    (b"PK\x03\x04 half an archive", "damaged or truncated: BadZipFile"),
+])
+def test_unreadable_npz_is_one_line_error(tmp_path, capsys, content, why):
+  fake = tmp_path / "fake.npz"
+  fake.write_bytes(content)
+  assert cli.main(["convert-psmnet", str(fake), str(tmp_path / "out")]) == 2
+  err = capsys.readouterr().err.strip().splitlines()
+  assert len(err) == 1 and err[0].startswith(
+      f"sljax convert-psmnet: error: {fake}: not an .npz archive of a PyTorch state_dict "
+      f"({why}"), err
+  assert not (tmp_path / "out").exists()
+
+
+def test_failed_save_keeps_the_earlier_conversion(tmp_path, monkeypatch):
+  """A full disk while writing variables.npz (--overwrite): the earlier config.json and
+  variables.npz stay byte for byte and no temporary file remains."""
+  import errno
+  out = convert.save_converted(tmp_path / "conv", {"params": {"w": np.ones(3)}}, {"maxdisp": 16})
+  before = {p.name: p.read_bytes() for p in out.iterdir()}
+
+  def full(path, **arrays):
+    with open(path, "wb") as f:
+      f.write(b"PK\x03\x04 half")
+    raise OSError(errno.ENOSPC, "No space left on device", str(path))
+  monkeypatch.setattr(np, "savez", full)
+  with pytest.raises(OSError) as info:
+    convert.save_converted(out, {"params": {"w": np.zeros(3)}}, {"maxdisp": 32}, overwrite=True)
+  assert info.value.filename == str(out / "variables.npz")
+  assert {p.name: p.read_bytes() for p in out.iterdir()} == before

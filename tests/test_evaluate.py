@@ -215,3 +215,30 @@ def test_evaluate_checkpoint_from_cli(tmp_path, capsys):
                  str(tmp_path / "o2")])
   err = capsys.readouterr().err
   assert rc == 2 and "bad" in err and "do not match" in err
+
+
+def test_full_disk_keeps_the_earlier_report_file(sgbm_run, tmp_path, monkeypatch):
+  """A disk that fills while writing per_scene.csv (--overwrite): the earlier per_scene.csv
+  stays byte for byte, no temporary file remains, the error names the file."""
+  import errno
+  from pathlib import Path
+  from sljax import evaluate as ev
+  report = json.loads((sgbm_run / "metrics.json").read_text())
+  out = tmp_path / "r"
+  ev.write_report(report, out)
+  before = {p.name: p.read_bytes() for p in out.iterdir()}
+  assert sorted(before) == ["metrics.json", "metrics.md", "per_scene.csv"]
+  real = Path.write_bytes
+
+  def full(path, data):
+    if path.suffix != ".csv":
+      return real(path, data)
+    real(path, data[:len(data) // 2])
+    raise OSError(errno.ENOSPC, "No space left on device", str(path))
+  monkeypatch.setattr(Path, "write_bytes", full)
+  report["model"] = "another"
+  with pytest.raises(OSError) as info:
+    ev.write_report(report, out)
+  assert info.value.filename == str(out / "per_scene.csv")
+  after = {p.name: p.read_bytes() for p in out.iterdir()}
+  assert sorted(after) == sorted(before) and after["per_scene.csv"] == before["per_scene.csv"]

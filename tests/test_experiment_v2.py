@@ -152,6 +152,17 @@ def test_calibration_plan():
     plans.calibration_plan("table1", "cpu128")
 
 
+@pytest.mark.parametrize("plan", ["table1-v2", "table2-v2", "table3-v2"])
+def test_calibrate_at_a_scale_without_calibration_epochs(plan, capsys):
+  """The paper scale has no calibration epochs: one line naming the scales that have them (was
+  a KeyError '1/16' / 'objects'), exit 2, nothing written."""
+  from sljax import cli
+  assert cli.main(["experiment", "calibrate", plan, "/nonexistent/cal", "--scale", "paper"]) == 2
+  err = capsys.readouterr().err.strip().splitlines()
+  assert err == [f"sljax experiment: error: calibrate --scale paper: the scale has no "
+                 f"calibration epochs for plan {plan}; calibrate it at smoke, cpu or cpu128"]
+
+
 def test_a_chosen_window_is_kept_and_a_changed_window_set_refused(tmp_path):
   cell = plans.build_plan("table1-v2", "smoke", 1).cells[0]
   assert cell.arm == "unet-sl" and cell.windows == (3, 5)

@@ -1,6 +1,7 @@
 """sljax export: the artifact runs in a process that imports only jax and numpy, and agrees with
 sljax.inference on the same pairs; the sidecar; bad input."""
 
+import errno
 import json
 import os
 import subprocess
@@ -127,3 +128,26 @@ def test_export_cli_and_bad_inputs(tmp_path, capsys, unet_disp_vars):
   assert not (tmp_path / "b.jax").exists()
   with pytest.raises(SljaxError, match="HEIGHTxWIDTH"):
     export.parse_size("1x2x3")
+
+
+@pytest.mark.parametrize("fail", ["artifact", "sidecar"])
+def test_full_disk_keeps_the_earlier_export(tmp_path, unet_disp_vars, monkeypatch, fail):
+  """--overwrite onto a disk that fills part-way: the earlier artifact and its sidecar stay
+  byte for byte, no temporary file remains, and the error names the file being written."""
+  pred = inference.make_predictor("unet-disp", UNET_KW, unet_disp_vars, mode="pad")
+  out, side = export.write_export(pred, (8, 8), tmp_path / "model.jax", "first")
+  before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+  assert sorted(before) == ["model.jax", "model.json"]
+  exported = export.export_model(pred, (8, 8))
+  monkeypatch.setattr(export, "export_model", lambda *args: exported)  # no second tracing
+
+  def half_then_full(self, data, *args, **kwargs):
+    with open(self, "w" if isinstance(data, str) else "wb") as f:
+      f.write(data[:len(data) // 2])
+    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(self))
+  method = "write_bytes" if fail == "artifact" else "write_text"
+  monkeypatch.setattr(type(tmp_path), method, half_then_full)
+  with pytest.raises(OSError) as info:
+    export.write_export(pred, (8, 8), out, "second", overwrite=True)
+  assert info.value.filename == str(out if fail == "artifact" else side)
+  assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before

@@ -55,3 +55,22 @@ def test_workdir_without_epochs_is_an_error(tmp_path, capsys):
   rc = cli.main(["plot-runs", str(tmp_path / "empty"), "--out", str(tmp_path / "x.png")])
   err = capsys.readouterr().err
   assert rc == 2 and "empty" in err and "epochs.jsonl" in err
+
+
+def test_existing_outputs_need_overwrite(tmp_path, capsys):
+  """The PNG and its .md are replaced only with --overwrite, and refused before any reading."""
+  a = _workdir(tmp_path, "a", {"model": "psmnet", "strategy": "stl"}, [2.0, 1.0])
+  png, md = tmp_path / "c.png", tmp_path / "c.md"
+  for existing in (png, md):
+    png.unlink(missing_ok=True)
+    md.unlink(missing_ok=True)
+    existing.write_bytes(b"earlier")
+    for workdir in (a, tmp_path / "nope"):  # refused before the workdirs are read
+      assert cli.main(["plot-runs", str(workdir), "--out", str(png)]) == 2
+      err = capsys.readouterr().err.strip().splitlines()
+      assert err == [f"sljax plot-runs: error: {existing}: exists (pass --overwrite to replace "
+                     "it)"]
+    assert existing.read_bytes() == b"earlier" and sorted(tmp_path.iterdir()) == [a, existing]
+  assert cli.main(["plot-runs", str(a), "--out", str(png), "--overwrite"]) == 0
+  assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and "psmnet/stl" in md.read_text()
+  assert sorted(p.name for p in tmp_path.iterdir()) == ["a", "c.md", "c.png"]

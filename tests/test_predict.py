@@ -258,3 +258,36 @@ def test_find_pairs_rejects_scene_without_right_view(tmp_path):
   (scene / "im1.png").unlink()
   with pytest.raises(SljaxError, match="im1.png: missing"):
     predict.find_pairs([str(tmp_path / "d")])
+
+
+@pytest.mark.parametrize("victim", ["cloud.ply", "disparity.pfm", "depth_mm.png"])
+def test_full_disk_keeps_the_earlier_file(tmp_path, capsys, monkeypatch, victim):
+  """--overwrite onto a disk that fills while writing one file: one line naming that file,
+  exit 2; the earlier file stays byte for byte and no temporary file remains."""
+  import errno
+  scene = _scene(tmp_path / "data" / "s1")
+  out = tmp_path / "out"
+  argv = ["predict", "sgbm", str(scene / "im0.png"), str(scene / "im1.png"), "--out", str(out),
+          "--maxdisp", "16"]
+  assert cli.main(argv) == 0
+  before = {p.name: p.read_bytes() for p in out.iterdir()}
+
+  def full(path, *args, **kwargs):
+    with open(path, "wb") as f:
+      f.write(b"half")
+    raise OSError(errno.ENOSPC, "No space left on device", str(path))
+  if victim == "cloud.ply":
+    monkeypatch.setattr(geometry, "write_ply", full)
+  elif victim == "disparity.pfm":
+    from pathlib import Path
+    real = Path.write_bytes  # what write_pfm's temporary file is written with
+    monkeypatch.setattr(Path, "write_bytes", lambda path, data: (
+        full if "disparity" in path.name and path.suffix == ".pfm" else real)(path, data))
+  else:
+    monkeypatch.setattr(predict.cv2, "imwrite", lambda path, img: full(path))
+  capsys.readouterr()
+  assert cli.main(argv + ["--overwrite"]) == 2
+  err = capsys.readouterr().err.strip().splitlines()
+  assert err == [f"sljax predict: error: {out / victim}: No space left on device"]
+  after = {p.name: p.read_bytes() for p in out.iterdir()}
+  assert set(after) == set(before) and after[victim] == before[victim]

@@ -95,6 +95,8 @@ def test_pfm_check(tmp_path):
     ("truncate", "s3/im0.png", "truncated"),
     ("truncate", "s5/sl1/002.png", "truncated"),
     ("truncate", "s2/disp0.pfm", "truncated"),
+    ("empty", "s1/im1.png", "empty file (0 bytes)"),  # cv2.imdecode asserted on it
+    ("garbage", "s0/sl0/001.png", "not a readable image"),
     ("delete", "s6/disp0.pfm", "missing"),
     ("resize", "s1/im1.png", "differs from im0.png"),
     ("patterns", "s4", "holds 3 patterns"),
@@ -110,6 +112,8 @@ def test_bad_file_is_named(tmp_path, damage, where, problem):
     path.write_bytes(path.read_bytes()[:-20])
   elif damage == "delete":
     path.unlink()
+  elif damage in ("empty", "garbage"):
+    path.write_bytes(b"" if damage == "empty" else b"not an image")
   elif damage == "resize":
     cv2.imwrite(str(path), np.zeros((H, W + 16, 3), np.uint8))
   elif damage == "patterns":

@@ -288,3 +288,28 @@ def test_evaluate_scores_keyframes_in_the_original_frame(keyframe, tmp_path):
   md = (tmp_path / "eval" / "metrics.md").read_text()
   assert "SCARED (scared_toolkit rules, original frame)" in md
   assert "scared_depth_mae_mm" in (tmp_path / "eval" / "per_scene.csv").read_text()
+
+
+@pytest.mark.parametrize("damage, why", [
+    ("garbage", "not readable as an OpenCV FileStorage YAML with the matrices M1 D1 M2 D2 R T "
+                "(damaged or half-written? OpenCV: "),  # was SystemError from cv2.FileStorage
+    ("empty", "empty file (0 bytes); expected an OpenCV FileStorage YAML"),  # SystemError
+    ("half", "lacks the matrices R T (absent, cut off"),  # cv2.error (-215) !dt.empty()
+    ("scalar", "lacks the matrix M1 (absent, cut off or not an !!opencv-matrix"),  # cv2.error
+])
+def test_damaged_calibration_is_one_line_error(keyframe, tmp_path, capsys, damage, why):
+  kf, _, _ = keyframe
+  broken = tmp_path / "kf"
+  broken.mkdir()
+  for p in kf.iterdir():
+    (broken / p.name).write_bytes(p.read_bytes())
+  yaml = broken / "endoscope_calibration.yaml"
+  good = yaml.read_text()
+  yaml.write_text({"garbage": "garbage {{{ : :\n", "empty": "",
+                   "half": good[:good.index("dt:", good.index("R: "))],  # R cut off
+                   "scalar": good.replace("M1: !!opencv-matrix", "M1: 3\nM0: !!opencv-matrix")
+                   }[damage])
+  assert cli.main(["import-scared", str(broken), str(tmp_path / "o")]) == 2
+  err = capsys.readouterr().err.strip().splitlines()
+  assert len(err) == 1 and err[0].startswith(f"sljax import-scared: error: {yaml}: {why}"), err
+  assert not (tmp_path / "o").exists()

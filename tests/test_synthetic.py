@@ -280,7 +280,8 @@ def test_make_data_and_show(tmp_path, objects, capsys):
   assert png.stat().st_size > 10000
   png2 = tmp_path / "scene.png"
   assert cli.main(["show", str(scene_dir), "--out", str(png2)]) == 0 and png2.exists()
-  assert cli.main(["show", str(out), "--out", str(png), "--index", "5"]) == 2
+  assert cli.main(["show", str(out), "--out", str(png), "--index", "5", "--overwrite"]) == 2
+  assert "out of range" in capsys.readouterr().err
 
 
 # ----------------------------------------------------------------------------------------------

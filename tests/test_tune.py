@@ -258,3 +258,22 @@ def test_cli_show_prints_the_cached_table(cache_dir, capsys):
   out = capsys.readouterr().out
   assert "in 42.0 s" in out and "(chosen)" in out and "--ynn forward-off" in out
   assert Path(str(tune.cache_path())).name in out
+
+
+def test_cli_show_a_hand_written_entry_shows_its_note(cache_dir, capsys):
+  """An entry whose table holds a note, not measurements (was KeyError 'ynn')."""
+  note = "set by hand to the setting of every earlier cell, not measured"
+  tune.write_cache(tune.cache_key(), tune.KernelChoice(True, True), [{"note": note}], 0.0)
+  assert cli.main(["tune", "--show"]) == 0
+  out = capsys.readouterr().out
+  assert f"in 0.0 s\n\nnote: {note}\n\nchoice: " in out
+  # A measured table with a note row keeps its table and adds the note.
+  best, table = tune.measure(timings=fake({("forward", False): 0.5}))
+  text = tune.format_table(table + [{"note": "checked by hand"}], best)
+  assert text.startswith(tune.format_table(table, best)) and text.endswith("\n\nnote: checked "
+                                                                            "by hand")
+  path = tune.cache_path()
+  path.write_text(json.dumps({tune.cache_key(): {"choice": "on", "table": []}}))
+  assert cli.main(["tune", "--show"]) == 2
+  err = capsys.readouterr().err.strip().splitlines()
+  assert len(err) == 1 and "has no readable choice; run `sljax tune`" in err[0]

@@ -129,3 +129,60 @@ def test_cli_bad_option_is_one_line_error(tmp_path, capsys, flag, value):
   assert cli.main(argv) == 2
   err = capsys.readouterr().err
   assert flag in err and len(err.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("content, why", [
+    (b"", "empty file (0 bytes)"),  # numpy: EOFError
+    ("npy", "a single .npy array"),  # numpy: an ndarray, then a TypeError
+    (b"p_left p_right\n1 2 3\n", "not a zip archive"),  # numpy: "pickled data" ValueError
+    ("truncated", "damaged or truncated: BadZipFile"),
+])
+def test_cli_unreadable_prediction_file_is_one_line_error(tmp_path, capsys, content, why):
+  pred, scene = _scene_and_pred(tmp_path, True)
+  bad = tmp_path / "bad.npz"
+  if content == "npy":
+    np.save(bad.with_suffix(".npy"), np.zeros((12, 24, 8)))
+    bad = bad.with_suffix(".npy")
+  elif content == "truncated":
+    bad.write_bytes(pred.read_bytes()[:len(pred.read_bytes()) // 2])
+  else:
+    bad.write_bytes(content)
+  argv = ["uncertainty", "--pred", str(bad), "--gt", str(scene), "--out", str(tmp_path / "o")]
+  assert cli.main(argv) == 2
+  err = capsys.readouterr().err.strip().splitlines()
+  assert len(err) == 1 and err[0].startswith(
+      f"sljax uncertainty: error: {bad}: not an .npz archive of predictions ({why}"), err
+  assert not (tmp_path / "o").exists()
+
+
+def test_cli_existing_outputs_need_overwrite(tmp_path, capsys):
+  """metrics.json and the pictures in an existing --out are replaced only with --overwrite;
+  the refusal comes before the predictions are read."""
+  pred, scene = _scene_and_pred(tmp_path, True)
+  out = tmp_path / "out"
+  out.mkdir()
+  (out / "notes.txt").write_text("mine")
+  argv = ["uncertainty", "--pred", str(pred), "--gt", str(scene), "--out", str(out)]
+  assert cli.main(argv) == 0  # a folder holding other files is fine
+  capsys.readouterr()
+  before = {p.name: p.read_bytes() for p in out.iterdir()}
+  assert sorted(before) == ["metrics.json", "notes.txt", "uncertainty_hist.png",
+                            "uncertainty_maps.png"]
+  for name in ("metrics.json", "uncertainty_hist.png", "uncertainty_maps.png"):
+    keep = {name: before[name], "notes.txt": b"mine"}
+    for p in out.iterdir():
+      if p.name not in keep:
+        p.unlink()
+    (out / name).write_bytes(before[name])
+    bad_pred = ["--pred", str(tmp_path / "missing.npz")]
+    for args in (argv, argv[:1] + bad_pred + argv[3:]):  # refused before reading --pred
+      assert cli.main(args) == 2
+      err = capsys.readouterr().err.strip().splitlines()
+      assert err == [f"sljax uncertainty: error: {out / name}: exists (pass --overwrite to "
+                     "replace it)"]
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == keep
+  assert cli.main(argv + ["--overwrite"]) == 0
+  assert sorted(p.name for p in out.iterdir()) == sorted(before)
+  (tmp_path / "file").write_text("x")
+  assert cli.main(argv[:5] + ["--out", str(tmp_path / "file")]) == 2
+  assert "exists and is not a folder" in capsys.readouterr().err

@@ -10,6 +10,7 @@ from typing import Any
 from matplotlib.figure import Figure
 from matplotlib.ticker import MaxNLocator
 
+from sljax import files
 from sljax.data.scene import read_json_object
 from sljax.errors import SljaxError
 from sljax.nets.registry import NETS
@@ -31,6 +32,7 @@ def register(subparsers) -> None:
   p.add_argument("--out", required=True, help="PNG to write; the table goes to the same name .md")
   p.add_argument("--title", default="Validation MAE", help="figure title")
   p.add_argument("--log", action="store_true", help="logarithmic MAE axis")
+  p.add_argument("--overwrite", action="store_true", help="replace an existing PNG and .md")
   p.set_defaults(func=run)
 
 
@@ -119,11 +121,16 @@ def plot(runs: list[dict[str, Any]], out: str | os.PathLike, title: str = "Valid
   ax.legend()
   fig.tight_layout()
   Path(out).parent.mkdir(parents=True, exist_ok=True)
-  fig.savefig(out, dpi=120)
+  with files.replacing(out) as (tmp,):  # whole or not at all
+    fig.savefig(tmp, dpi=120)
 
 
 def run(args) -> int:
   """Reads the runs, writes the PNG and the table, prints the table."""
+  out = Path(args.out)
+  if out.suffix.lower() != ".png":
+    raise SljaxError(f"--out {out}: expected a .png file name")
+  files.refuse_existing([out, out.with_suffix(".md")], args.overwrite)
   runs = [read_run(w) for w in args.workdirs]
   labels = [r["label"] for r in runs]
   for r in runs:  # several runs of one configuration: tell them apart by folder name
@@ -131,12 +138,9 @@ def run(args) -> int:
       r["label"] = f"{r['label']} ({Path(r['workdir']).name})"
   if not any(_finite(rec.get("val_mae")) for r in runs for rec in r["records"]):
     raise SljaxError("no run has a 'val_mae' in its epochs.jsonl: nothing to plot")
-  out = Path(args.out)
-  if out.suffix.lower() != ".png":
-    raise SljaxError(f"--out {out}: expected a .png file name")
   plot(runs, out, args.title, args.log)
   table = summary_table(runs)
-  out.with_suffix(".md").write_text(table, encoding="utf-8")
+  files.write_text(out.with_suffix(".md"), table)
   print(table, end="")
   print(f"wrote {out} and {out.with_suffix('.md')}")
   return 0

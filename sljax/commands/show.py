@@ -7,6 +7,7 @@ import numpy as np
 
 from sljax.data.dataset import find_scenes
 from sljax.data.scene import load_scene, present_parts
+from sljax import files, viz
 from sljax.errors import require
 from sljax.viz import Panel, save_panels
 
@@ -18,8 +19,10 @@ def register(subparsers) -> None:
       description="Draws both views, the disparity (colour map with scale bar), a few projected "
       "patterns and the mask of a scene folder, or of scene --index of a dataset.")
   p.add_argument("path", metavar="SCENE_OR_DATASET", help="a scene folder or a dataset folder")
-  p.add_argument("--out", required=True, help="output PNG")
+  p.add_argument("--out", required=True,
+                 help="picture to write: .png, or .pdf, .svg, .jpg, ... by its extension")
   p.add_argument("--index", type=int, default=0, help="scene of a dataset to show (default 0)")
+  p.add_argument("--overwrite", action="store_true", help="replace an existing --out")
   p.set_defaults(func=run)
 
 
@@ -33,6 +36,7 @@ def _pattern_panels(sl, side: str):
 
 def run(args: argparse.Namespace) -> int:
   """Loads the scene and writes the picture."""
+  files.refuse_existing([viz.check_figure_path(args.out)], args.overwrite)  # before any reading
   path = Path(args.path)
   require(path.is_dir(), f"{path}: no such scene or dataset folder")
   if (path / "im0.png").exists():

@@ -6,7 +6,7 @@ import argparse
 import time
 
 from sljax import machine, tune
-from sljax.errors import require
+from sljax.errors import SljaxError, require
 
 
 def register(subparsers) -> None:
@@ -33,10 +33,15 @@ def run(args: argparse.Namespace) -> int:
   if args.show:
     entry = tune.read_cache().get(key)
     require(entry is not None, f"{path}: no choice cached for {key}; run `sljax tune`")
-    best = tune.KernelChoice(**entry["choice"])
-    print(f"measured {entry['time']} in {entry['seconds']} s\n\n{tune.format_table(entry['table'], best)}"
-          f"\n\nchoice: {tune.describe(best)}")
-    if note := tune.undecided_note(entry["table"]):
+    try:
+      best = tune.KernelChoice(**entry["choice"])
+    except (KeyError, TypeError, AttributeError):  # an entry edited by hand or by another version
+      raise SljaxError(f"{path}: the entry for {key} has no readable choice; run `sljax tune` "
+                       "to measure again") from None
+    table = entry.get("table") if isinstance(entry.get("table"), list) else []
+    print(f"measured {entry.get('time', '?')} in {entry.get('seconds', '?')} s\n\n"
+          f"{tune.format_table(table, best)}\n\nchoice: {tune.describe(best)}")
+    if note := tune.undecided_note(table):
       print(note)
     return 0
   t0 = time.perf_counter()

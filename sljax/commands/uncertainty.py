@@ -6,9 +6,10 @@ from pathlib import Path
 
 import numpy as np
 
+from sljax import files
 from sljax.corr import correlation, uncertainty
 from sljax.data.scene import load_scene
-from sljax.errors import SljaxError, require
+from sljax.errors import require
 
 HIST_PNG = "uncertainty_hist.png"
 MAPS_PNG = "uncertainty_maps.png"
@@ -32,6 +33,8 @@ def register(subparsers) -> None:
   p.add_argument("--gt", required=True, metavar="SCENE",
                  help="ground-truth scene folder holding disp0.pfm (and mask0.png, if any)")
   p.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
+  p.add_argument("--overwrite", action="store_true",
+                 help=f"replace {METRICS_JSON} and the pictures in an existing --out")
   p.add_argument("--max-disp", type=int, default=None,
                  help="correlation search range u when disparity is computed "
                  "(default 25%% of width)")
@@ -44,11 +47,7 @@ def register(subparsers) -> None:
 def _load_pred(path: Path) -> dict:
   """Reads and checks the prediction .npz."""
   require(path.is_file(), f"{path}: prediction file not found")
-  try:
-    with np.load(path, allow_pickle=False) as z:
-      arrays = {k: np.asarray(z[k]) for k in z.files}
-  except (OSError, ValueError) as e:
-    raise SljaxError(f"{path}: not a readable .npz ({e})") from None
+  arrays = files.read_npz(path, "predictions")
   for key in ("p_left", "p_right"):
     require(key in arrays, f"{path}: array '{key}' missing (found {sorted(arrays)})")
     require(arrays[key].ndim == 3, f"{path}: '{key}' must be HxWxt, got shape {arrays[key].shape}")
@@ -67,6 +66,9 @@ def run(args) -> int:
           f"--window must be a positive odd number, got {args.window}")
   require(args.max_disp is None or args.max_disp >= 0,
           f"--max-disp must be >= 0, got {args.max_disp}")
+  out = Path(args.out)
+  require(not out.exists() or out.is_dir(), f"--out {out}: exists and is not a folder")
+  files.refuse_existing([out / n for n in (METRICS_JSON, HIST_PNG, MAPS_PNG)], args.overwrite)
   pred = _load_pred(Path(args.pred))
   parts = {"disp", "mask"} if args.mask else {"disp"}
   scene = load_scene(args.gt, parts=parts)
@@ -94,9 +96,9 @@ def run(args) -> int:
 
   stats = uncertainty.analyse_uncertainty(u_both, error, valid)
   stats_left = uncertainty.analyse_uncertainty(u_left, error, valid)
-  out = Path(args.out)
   os.makedirs(out, exist_ok=True)
-  uncertainty.plot_uncertainty_histogram(out / HIST_PNG, u_both, error, valid)
+  with files.replacing(out / HIST_PNG) as (tmp,):  # whole or not at all
+    uncertainty.plot_uncertainty_histogram(tmp, u_both, error, valid)
   uncertainty.plot_uncertainty_maps(out / MAPS_PNG, np.where(valid, error, np.nan), u_left, u_right)
   metrics = {
       "pearson": stats["pearson"], "spearman": stats["spearman"], "n": stats["n"],
@@ -108,7 +110,7 @@ def run(args) -> int:
   # Undefined correlations (constant input) are written as null, which strict JSON readers accept.
   metrics = {k: (None if isinstance(v, float) and not np.isfinite(v) else v)
              for k, v in metrics.items()}
-  (out / METRICS_JSON).write_text(json.dumps(metrics, indent=2) + "\n", encoding="utf-8")
+  files.write_text(out / METRICS_JSON, json.dumps(metrics, indent=2) + "\n")
   print(f"pearson {stats['pearson']:.4f}  spearman {stats['spearman']:.4f}  n {stats['n']}  "
         f"mae {metrics['mae']:.3f} px  -> {out}")
   return 0

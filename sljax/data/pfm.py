@@ -10,6 +10,7 @@ import re
 
 import numpy as np
 
+from sljax import files
 from sljax.errors import SljaxError
 
 _HEADER = re.compile(rb"\A(P[fF])\s+(\d+)\s+(\d+)\s+([-+0-9.eE]+)\s")
@@ -65,5 +66,4 @@ def write_pfm(path: str | os.PathLike, array: np.ndarray) -> None:
   height, width = a.shape[:2]
   header = magic + b"\n" + f"{width} {height}\n-1\n".encode("ascii")
   body = np.ascontiguousarray(a[::-1], dtype="<f4").tobytes()
-  with open(path, "wb") as f:
-    f.write(header + body)
+  files.write_bytes(path, header + body)  # whole or not at all (a full disk, --overwrite)

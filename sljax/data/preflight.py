@@ -92,9 +92,14 @@ def png_check(data: bytes) -> tuple[int, int, int]:
 def image_check(path: Path) -> tuple[int, int, int]:
   """(width, height, bit depth) of an image file the loader can read; ValueError otherwise."""
   data = path.read_bytes()
+  if not data:  # cv2.imdecode asserts on an empty buffer (a cv2.error, not None)
+    raise ValueError("empty file (0 bytes)")
   if data[:8] == PNG_SIGNATURE:
     return png_check(data)
-  img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+  try:
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+  except cv2.error:
+    img = None
   if img is None:
     raise ValueError("not a readable image")
   return img.shape[1], img.shape[0], 8 * img.dtype.itemsize

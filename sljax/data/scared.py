@@ -24,6 +24,7 @@ smooth and leaves no holes to fill.
 """
 
 import os
+import re
 from pathlib import Path
 
 import cv2
@@ -41,27 +42,49 @@ ORIGINAL_DEPTH = "depth0_orig.pfm"  # ground-truth depth of the original left vi
 MIN_COVERAGE = 0.1  # scared_toolkit: frames with less known ground truth are not scored
 
 
+CALIB_KEYS = ("M1", "D1", "M2", "D2", "R", "T")
+
+
+def _calib_matrix(fs, key: str) -> np.ndarray | None:
+  """Matrix key of an open FileStorage as float64, or None when absent or not a whole
+  !!opencv-matrix (OpenCV asserts, a cv2.error, on a scalar or a cut-off entry)."""
+  try:
+    if not fs.root().isMap():
+      return None
+    node = fs.getNode(key)
+    m = None if node.empty() or not node.isMap() else node.mat()
+  except cv2.error:
+    return None
+  return None if m is None else np.asarray(m, dtype=np.float64)
+
+
 def read_scared_calibration(path: str | os.PathLike) -> dict[str, np.ndarray]:
   """Reads M1 D1 M2 D2 R T (float64) from an OpenCV FileStorage YAML."""
   path = os.fspath(path)
   if not os.path.exists(path):
     raise SljaxError(f"{path}: missing")
+  needs = f"an OpenCV FileStorage YAML with the matrices {' '.join(CALIB_KEYS)}"
+  if os.path.getsize(path) == 0:  # OpenCV asserts on it (a SystemError from the binding)
+    raise SljaxError(f"{path}: empty file (0 bytes); expected {needs}")
   try:
     fs = cv2.FileStorage(path, cv2.FILE_STORAGE_READ)
-  except cv2.error as e:
-    raise SljaxError(f"{path}: not an OpenCV FileStorage file ({e.err})") from None
+  except (cv2.error, SystemError) as e:  # the binding wraps parse errors in a SystemError
+    cause = e if isinstance(e, cv2.error) else e.__context__
+    where = re.search(r"in function '(.+)'", str(cause))  # OpenCV's line number and reason
+    detail = f" OpenCV: {where.group(1)}" if where else ""
+    raise SljaxError(f"{path}: not readable as {needs} (damaged or half-written?{detail})"
+                     ) from None
   if not fs.isOpened():
     raise SljaxError(f"{path}: cannot open as OpenCV FileStorage")
-  out = {}
   try:
-    for key in ("M1", "D1", "M2", "D2", "R", "T"):
-      node = fs.getNode(key)
-      m = None if node.empty() else node.mat()
-      if m is None:
-        raise SljaxError(f"{path}: lacks the matrix {key}")
-      out[key] = np.asarray(m, dtype=np.float64)
+    out = {key: _calib_matrix(fs, key) for key in CALIB_KEYS}
   finally:
     fs.release()
+  missing = [k for k, m in out.items() if m is None]
+  if missing:
+    raise SljaxError(f"{path}: lacks the {'matrix' if len(missing) == 1 else 'matrices'} "
+                     f"{' '.join(missing)} (absent, cut off or not an !!opencv-matrix; "
+                     f"expected {needs})")
   expect = {"M1": 9, "M2": 9, "R": 9, "T": 3}
   for key, size in expect.items():
     if out[key].size != size:

@@ -374,6 +374,13 @@ def build_plan(name: str, scale: str = "cpu", seeds: int = 3, data: str | None =
   return Plan(name, sc, tuple(range(seeds)), tuple(cells), baseline, data, tuple(eval_data))
 
 
+def _calib_phases(name: str, sc: Scale) -> set[str]:
+  """The budget phases (PHASES) whose epochs a v2 plan's cells ask for."""
+  asked: set[str] = set()
+  _v2_cells(name, sc, 0, (), lambda arm, phase: asked.add(phase) or 1)
+  return asked
+
+
 def calibration_plan(name: str, scale: str) -> Plan:
   """The long runs that set a v2 plan's budgets (docs/plan-v2.md): one cell per arm and phase of
   the plan, seed 0, at the scale's calibration epochs, fixed learning rate, every validation
@@ -381,6 +388,10 @@ def calibration_plan(name: str, scale: str) -> Plan:
   require(name in V2_PLANS, f"calibrate: {name!r} is not a v2 plan; choose from "
           f"{', '.join(V2_PLANS)}")
   _check_args(name, scale, 1, None, ())
+  able = [s.name for s in SCALES.values()
+          if _calib_phases(name, s) <= set(dict(s.calib_epochs))]
+  require(scale in able, f"calibrate --scale {scale}: the scale has no calibration epochs for "
+          f"plan {name}; calibrate it at {', '.join(able[:-1])} or {able[-1]}")
   sc = SCALES[scale]
   long_epochs = dict(sc.calib_epochs)
   cells = [dataclasses.replace(

@@ -32,6 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from sljax import files
 from sljax.data.scene import read_json_object
 from sljax.errors import SljaxError, require
 from sljax.kernels import ConvTranspose3D
@@ -153,8 +154,7 @@ def read_state_dict(path: str | Path) -> dict[str, np.ndarray]:
   path = Path(path)
   require(path.is_file(), f"checkpoint {path} does not exist")
   if path.suffix == ".npz":
-    with np.load(path) as z:
-      return {k: z[k] for k in z.files}
+    return files.read_npz(path, "a PyTorch state_dict")
   try:
     import torch
   except ImportError as e:
@@ -173,18 +173,20 @@ def save_converted(out: str | Path, variables: Mapping, model_kwargs: Mapping[st
                    overwrite: bool = False, source: str | None = None) -> Path:
   """Writes OUT/config.json and OUT/variables.npz; refuses to overwrite unless asked."""
   out = Path(out)
-  files = [out / CONFIG_FILE, out / VARIABLES_FILE]
-  existing = [str(f) for f in files if f.exists()]
+  targets = [out / CONFIG_FILE, out / VARIABLES_FILE]
+  existing = [str(f) for f in targets if f.exists()]
   require(overwrite or not existing,
           f"{', '.join(existing)} already exist(s); pass --overwrite to replace")
   require(not out.exists() or out.is_dir(), f"{out} exists and is not a directory")
   out.mkdir(parents=True, exist_ok=True)
   flat = {"/".join(p): np.asarray(v, np.float32) for p, v in _flatten(variables).items()}
-  np.savez(out / VARIABLES_FILE, **flat)
   config = {"model": "psmnet", "model_kwargs": dict(model_kwargs), "format": FORMAT}
   if source is not None:
     config["source"] = source
-  (out / CONFIG_FILE).write_text(json.dumps(config, indent=2) + "\n")
+  # Both whole or neither: a full disk keeps an earlier conversion (--overwrite) intact.
+  with files.replacing(*targets) as (config_tmp, variables_tmp):
+    np.savez(variables_tmp, **flat)
+    config_tmp.write_text(json.dumps(config, indent=2) + "\n")
   return out
 
 

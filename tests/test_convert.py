@@ -215,3 +215,19 @@ def test_failed_save_keeps_the_earlier_conversion(tmp_path, monkeypatch):
     convert.save_converted(out, {"params": {"w": np.zeros(3)}}, {"maxdisp": 32}, overwrite=True)
   assert info.value.filename == str(out / "variables.npz")
   assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+
+def test_invalid_config_json_is_named(tmp_path, capsys):
+  """A workdir (or converted folder) whose config.json is not JSON: the JSON error, not 'not a
+  checkpoint'."""
+  for kind in ("workdir", "converted"):
+    model = tmp_path / kind
+    (model / ("checkpoints" if kind == "workdir" else "")).mkdir(parents=True, exist_ok=True)
+    if kind == "converted":
+      np.savez(model / "variables.npz", w=np.zeros(1))
+    (model / "config.json").write_text("{not json")
+    assert cli.main(["export", str(model), str(tmp_path / "a.jax"), "--size", "8x8"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{model / 'config.json'}: not valid JSON (" in err[0], err
+  with pytest.raises(SljaxError, match="not valid JSON"):  # predict and evaluate load so too
+    convert.load_converted(tmp_path / "converted")

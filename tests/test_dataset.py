@@ -55,6 +55,22 @@ def test_empty_dataset(tmp_path):
     find_scenes(tmp_path / "missing_root")
 
 
+def test_data_that_is_a_file_says_so(tmp_path, capsys):
+  """--data naming a file: 'is a file', not 'does not exist'."""
+  from sljax import cli
+  f = tmp_path / "data.txt"
+  f.write_text("x")
+  with pytest.raises(SljaxError) as info:
+    find_scenes(f)
+  assert str(info.value) == f"{f}: is a file, not a dataset folder"
+  with pytest.raises(SljaxError) as info:
+    find_scenes(tmp_path / "nope")
+  assert str(info.value) == f"{tmp_path / 'nope'}: dataset folder does not exist"
+  assert cli.main(["experiment", "run", "table1", str(tmp_path / "o"), "--data", str(f)]) == 2
+  assert capsys.readouterr().err.strip().endswith(f"{f}: is a file, not a dataset folder")
+  assert not (tmp_path / "o").exists()
+
+
 def test_folder_source(src):
   assert len(src) == N
   k = int(src.name(3)[-2:])

@@ -44,8 +44,9 @@ class Source(Protocol):
 def find_scenes(root: str | os.PathLike) -> list[Path]:
   """Every folder at or below root that holds im0.png, sorted by relative path."""
   root = Path(root)
-  if not root.is_dir():
-    raise SljaxError(f"{root}: dataset folder does not exist")
+  if not root.is_dir():  # a file named by mistake is not "missing"
+    raise SljaxError(f"{root}: " + ("is a file, not a dataset folder" if root.exists()
+                                    else "dataset folder does not exist"))
   found = []
   for dirpath, dirnames, filenames in os.walk(root):
     dirnames[:] = sorted(d for d in dirnames if not d.startswith("."))

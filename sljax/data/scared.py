@@ -165,7 +165,8 @@ def import_scared(keyframe_dir: str | os.PathLike, out_dir: str | os.PathLike,
   kf = Path(keyframe_dir)
   out = Path(out_dir)
   if not kf.is_dir():
-    raise SljaxError(f"{kf}: keyframe folder does not exist")
+    raise SljaxError(f"{kf}: " + ("is a file, not a keyframe folder" if kf.exists()
+                                  else "keyframe folder does not exist"))
   left, right = _read_view(kf / LEFT), _read_view(kf / RIGHT)
   h, w = left.shape[:2]
   if right.shape[:2] != (h, w):

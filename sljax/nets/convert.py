@@ -199,13 +199,15 @@ def is_converted(path: str | Path) -> bool:
 def load_converted(path: str | Path) -> tuple[str, dict, dict]:
   """Reads a converted directory -> (model_name, model_kwargs, variables as numpy arrays)."""
   path = Path(path)
+  cfg = path / CONFIG_FILE
+  if cfg.is_file() and (is_converted(path) or (path / "checkpoints").is_dir()):
+    config = read_json_object(cfg, str(cfg))  # a damaged config.json says so, not "not a ..."
   # Also reached for any folder given where a checkpoint is expected, so name every kind.
   require(is_converted(path), f"{path}: not a checkpoint (expected a training workdir with "
           f"config.json and checkpoints/, its checkpoints folder, or a converted PSMNet folder "
           f"with {CONFIG_FILE} and {VARIABLES_FILE})")
-  config = read_json_object(path / CONFIG_FILE, str(path / CONFIG_FILE))
   require("model" in config,
           f"{path / CONFIG_FILE} has no 'model' entry")
-  with np.load(path / VARIABLES_FILE) as z:
-    flat = {tuple(k.split("/")): z[k] for k in z.files}
+  arrays = files.read_npz(path / VARIABLES_FILE, "converted PSMNet variables")
+  flat = {tuple(k.split("/")): v for k, v in arrays.items()}
   return config["model"], dict(config.get("model_kwargs", {})), _unflatten(flat)

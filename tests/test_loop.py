@@ -340,3 +340,60 @@ def test_the_bar_says_it_is_compiling_then_how_long_the_first_step_took(monkeypa
   assert first.startswith("first step (compiling, or loading from the compile cache) ")
   assert int(first.split()[-2]) >= 1 and first.endswith(" s")  # the 1.2 s stand-in at least
   assert all("epoch" in kw for kw in postfix[2:]) and len(postfix) > 3  # then the loss lines
+
+
+# A child process that runs train.py's main on TinyTwin/MemorySource and sends itself SIGINT
+# once step N is fetched, from inside a garbage-collector callback of the main thread: where
+# a KeyboardInterrupt is dropped ("Exception ignored in ... KeyboardInterrupt"), as it was when
+# Ctrl-C landed in jax's `_xla_gc_callback` and training ran on to the end.
+_SIGINT_CHILD = textwrap.dedent("""
+    import gc, os, signal, sys, threading
+    sys.path.insert(0, sys.argv[1])
+    import toys, test_loop
+    from sljax.train import cli, loop
+    loop.compiled_steps = toys.tiny_steps
+    loop.open_source = lambda config: test_loop.MemorySource()
+    n, fetch, armed = int(sys.argv[2]), loop.fetch_metrics, []
+    def fetch_then_arm(ctx, pending, loop_state):
+      loop_state, last = fetch(ctx, pending, loop_state)
+      if loop_state.step >= n and not armed:
+        armed.append(True)
+        gc.callbacks.append(in_gc)
+        gc.collect()  # a collection now, in the main thread: the signal arrives in in_gc
+      return loop_state, last
+    def in_gc(phase, info):
+      if threading.current_thread() is threading.main_thread() and armed[-1]:
+        armed.append(False)
+        os.kill(os.getpid(), signal.SIGINT)
+    loop.fetch_metrics = fetch_then_arm
+    raise SystemExit(cli.main(sys.argv[3:]))
+""")
+
+
+def test_ctrl_c_stops_after_the_step_and_resumes_exactly(tmp_path, monkeypatch):
+  """A Ctrl-C that lands where Python drops a KeyboardInterrupt still stops the run after its
+  step: exit 130, "interrupted (continue with --resume)", the SIGINT handler of before put
+  back; --resume then ends bit-identical to an uninterrupted run."""
+  monkeypatch.setattr(loop, "compiled_steps", toys.tiny_steps)
+  monkeypatch.setattr(loop, "open_source", lambda config: MemorySource())
+  flags = ["--size", "32", "--maxdisp", "16", "--epochs", "4", "--batch-size", "2", "--lr",
+           "3e-2", "--max-val", "2", "--preset", "quick", "--log-every", "1", "--save-every",
+           "4", "--ynn", "on", "--no-progress"]  # 6 steps per epoch, 24 in all
+  env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(ROOT))
+  wd = tmp_path / "interrupted"
+  proc = subprocess.run([sys.executable, "-c", _SIGINT_CHILD, str(TESTS), "9", *flags,
+                         "--workdir", str(wd)], env=env, cwd=tmp_path, capture_output=True,
+                        text=True, timeout=300)
+  assert proc.returncode == 130, proc.stderr[-3000:]
+  assert "train.py: interrupted (continue with --resume)" in proc.stderr
+  assert "KeyboardInterrupt" not in proc.stderr  # nothing dropped, no traceback
+  rows = (wd / loop.METRICS_FILE).read_text().splitlines()
+  assert 9 <= json.loads(rows[-1])["step"] < 24  # it stopped after the step it was in
+  assert 8 <= _final(wd)[0] < 24
+
+  from sljax.train import cli  # pylint: disable=import-outside-toplevel
+  handler = signal.getsignal(signal.SIGINT)
+  assert cli.main([*flags, "--workdir", str(tmp_path / "full")]) == 0
+  assert signal.getsignal(signal.SIGINT) is handler
+  assert cli.main(["--workdir", str(wd), "--resume", "--no-progress"]) == 0
+  _assert_same_run(tmp_path / "full", wd)

@@ -80,10 +80,14 @@ def test_presets():
 
 def test_run_flags():
   args = cli.build_parser().parse_args(
-      ["--workdir", "runs/x", "--resume", "--overwrite", "--distributed", "--stop-after", "12",
+      ["--workdir", "runs/x", "--resume", "--distributed", "--stop-after", "12",
        "--no-progress"])
   assert (args.workdir, args.resume, args.overwrite, args.distributed, args.stop_after,
-          args.no_progress) == ("runs/x", True, True, True, 12, True)
+          args.no_progress) == ("runs/x", True, False, True, 12, True)
+  assert cli.build_parser().parse_args(["--overwrite"]).overwrite
+  # --resume --overwrite: which one was meant? (overwrite used to win, silently)
+  with pytest.raises(SystemExit):
+    cli.build_parser().parse_args(["--resume", "--overwrite"])
   args = cli.build_parser().parse_args([])
   assert (args.workdir, args.resume, args.overwrite, args.distributed, args.stop_after,
           args.no_progress, args.preset) == (None, False, False, False, None, False, "auto")

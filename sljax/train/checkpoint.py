@@ -25,6 +25,7 @@ import logging
 import math
 import os
 import re
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -267,13 +268,75 @@ def _restore_packed(manager: ocp.CheckpointManager, step: int, lay: list[list[An
                                        in zip(lay, leaves)})
 
 
+class CheckpointUnreadable(SljaxError):
+  """A checkpoint that cannot be restored (damaged, incomplete or unreadable files)."""
+
+  def __init__(self, message: str, directory: Path, step: int):
+    super().__init__(message)
+    self.directory, self.step = directory, step
+
+
+def unreadable(directory: str | os.PathLike, step: int, exc: BaseException) -> CheckpointUnreadable:
+  """The one-line error for a checkpoint whose restore failed with exc (orbax and TensorStore
+  raise anything from KeyError to JSONDecodeError, with tracebacks of ~150 lines)."""
+  folder = Path(directory) / str(step)
+  found = storage_errno(exc)
+  if found is not None:  # a permission problem, not damage: say so
+    code, path = found
+    return CheckpointUnreadable(f"{folder}: checkpoint {step} cannot be read: "
+                                f"{os.strerror(code)} ({path or folder})", Path(directory), step)
+  reason = (str(exc).strip().splitlines() or [""])[0]
+  reason = reason if len(reason) <= 160 else reason[:160] + "..."
+  reason = type(exc).__name__ + (f": {reason}" if reason else "")
+  return CheckpointUnreadable(f"{folder}: checkpoint {step} is damaged or incomplete (its files "
+                              f"do not restore: {reason})", Path(directory), step)
+
+
 def restore(manager: ocp.CheckpointManager, step: int,
             abstract_state: Any | None = None) -> tuple[Any, dict[str, Any]]:
   """(state, meta) saved at step; with abstract_state the arrays get its structure/shardings,
   else they land on this process's first device (also for checkpoints written by several
-  processes, whose saved shardings name devices this process does not have)."""
-  meta = dict(manager.restore(step, args=ocp.args.Composite(
-      meta=ocp.args.JsonRestore()))["meta"])
+  processes, whose saved shardings name devices this process does not have). A checkpoint
+  whose files do not restore raises CheckpointUnreadable naming its folder."""
+  try:
+    return _restore(manager, step, abstract_state)
+  except SljaxError:
+    raise
+  except Exception as e:  # pylint: disable=broad-except
+    _drop_late_read_callbacks()
+    raise unreadable(manager.directory, step, e) from None
+
+
+def _late_read_callback(unraisable: Any) -> bool:
+  """Whether an unraisable exception is a TensorStore read finishing after orbax's event loop
+  closed: when one array of a restore fails, orbax closes its loop while the reads of the
+  others are in flight, and each one's completion prints a traceback (after our one line)."""
+  exc, tb = unraisable.exc_value, unraisable.exc_traceback
+  while tb is not None and tb.tb_next is not None:
+    tb = tb.tb_next
+  return (isinstance(exc, RuntimeError) and str(exc) == "Event loop is closed"
+          and tb is not None and "asyncio" in tb.tb_frame.f_code.co_filename)
+
+
+def _drop_late_read_callbacks() -> None:
+  """Installs (once) an unraisable hook that drops _late_read_callback's tracebacks only."""
+  previous = sys.unraisablehook
+  if getattr(previous, "sljax_drops_late_reads", False):
+    return
+
+  def hook(unraisable: Any) -> None:
+    if not _late_read_callback(unraisable):
+      previous(unraisable)
+  hook.sljax_drops_late_reads = True
+  sys.unraisablehook = hook
+
+
+def _restore(manager: ocp.CheckpointManager, step: int,
+             abstract_state: Any | None) -> tuple[Any, dict[str, Any]]:
+  meta = manager.restore(step, args=ocp.args.Composite(meta=ocp.args.JsonRestore()))["meta"]
+  if not isinstance(meta, dict):  # valid JSON but not the loop's object: damage too
+    raise unreadable(manager.directory, step, ValueError("meta is not a JSON object"))
+  meta = dict(meta)
   if LAYOUT_KEY in meta:
     return _restore_packed(manager, step, meta.pop(LAYOUT_KEY), abstract_state), meta
   if abstract_state is None:  # a checkpoint written as a tree, before packing

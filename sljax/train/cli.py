@@ -52,10 +52,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
   add_config_flags(p)
   p.add_argument("--workdir", default=None,
                  help="run folder (default runs/<model>-<strategy>-<seed>)")
-  p.add_argument("--resume", action="store_true",
-                 help="continue the run in --workdir from its last checkpoint (its saved "
-                 "config is used; flags given must agree)")
-  p.add_argument("--overwrite", action="store_true", help="replace a run in --workdir")
+  start = p.add_mutually_exclusive_group()
+  start.add_argument("--resume", action="store_true",
+                     help="continue the run in --workdir from its last checkpoint (its saved "
+                     "config is used; flags given must agree). Refused when --workdir holds no "
+                     "run (no config.json); a run stopped before its first checkpoint starts "
+                     "again from step 0, and says so")
+  start.add_argument("--overwrite", action="store_true", help="replace a run in --workdir")
   p.add_argument("--preset", choices=PRESETS, default="auto",
                  help="auto (default): paper with an accelerator, quick on CPU only; "
                  "paper: SPEC defaults (256x256, maxdisp 96, 120 epochs, Adam 1e-4); "
@@ -81,11 +84,40 @@ def resolve(args: argparse.Namespace, backend: str) -> tuple[TrainConfig, str, P
             else f" (auto: {backend} accelerator found)")
   config = dataclasses.replace(base, **given)
   workdir = Path(args.workdir) if args.workdir else default_workdir(config)
-  if args.resume and (workdir / ckpt.CONFIG_FILE).exists():
-    saved = config_from_json(ckpt.read_config(workdir))
+  if args.resume:
+    saved = config_from_json(saved_config(workdir))
     config = dataclasses.replace(saved, **given)
+    if "data" not in given:
+      check_saved_data(workdir, config.data)
     note = " (resumed run)"
   return config, note, workdir
+
+
+def saved_config(workdir: Path) -> dict:
+  """The config.json of the run a --resume continues; SljaxError when there is none (a typo in
+  --workdir must not start a new run, and checkpoints without their config cannot be loaded
+  into the right model)."""
+  if not (workdir / ckpt.CONFIG_FILE).is_file():
+    checkpoints = workdir / ckpt.CHECKPOINT_DIR
+    if ckpt.last_good_step(checkpoints) is not None:
+      raise SljaxError(f"{workdir}: has checkpoints but no {ckpt.CONFIG_FILE}, so the run "
+                       f"cannot be resumed (its settings are unknown); put its "
+                       f"{ckpt.CONFIG_FILE} back, or pass --overwrite to start again")
+    what = "does not exist" if not workdir.exists() else f"holds no run (no {ckpt.CONFIG_FILE})"
+    raise SljaxError(f"--resume: {workdir} {what}; nothing to resume (check --workdir, or "
+                     "leave out --resume to start a new run)")
+  return ckpt.read_config(workdir)
+
+
+def check_saved_data(workdir: Path, data: str | None) -> None:
+  """A resumed run's saved --data must be found from here: runs before data paths were
+  recorded absolute saved the path as typed, relative to the folder they started in."""
+  if data is None or Path(data).exists():
+    return
+  where = (f"was relative to the folder the run started in, and {Path(data).absolute()} does "
+           "not exist from here" if not Path(data).is_absolute() else "does not exist")
+  raise SljaxError(f"{workdir}: the run's data {data!r} {where}; run from that folder or pass "
+                   "--data with the data folder's path")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -7,6 +7,7 @@ flag parses (`option`); `sljax.train.cli` generates the flags from the fields.
 import argparse
 import dataclasses
 import json
+from pathlib import Path
 from typing import Any
 
 from sljax.data.synthetic import DOMAINS
@@ -149,6 +150,17 @@ QUICK = dataclasses.replace(PAPER, synth_n=120, synth_size=64, size=(64, 64), ma
                             preset="quick")
 
 
+PATH_FIELDS = ("data", "init_from")  # folders: new runs record them absolute (resolved)
+
+
+def with_absolute_paths(config: TrainConfig) -> TrainConfig:
+  """The config with its existing folders absolute and resolved, so that config.json names them
+  from any directory (a missing one stays as given, for its error message to show)."""
+  paths = {k: str(Path(getattr(config, k)).resolve()) for k in PATH_FIELDS
+           if getattr(config, k) is not None and Path(getattr(config, k)).exists()}
+  return dataclasses.replace(config, **paths)
+
+
 def preset_config(name: str, backend: str) -> TrainConfig:
   """The preset's config; 'auto' = paper with an accelerator, quick on a CPU-only machine."""
   require(name in PRESETS, f"--preset: unknown preset {name!r}; choose from {PRESETS}")
@@ -186,6 +198,11 @@ def validate(config: TrainConfig) -> None:
   require("depth" not in spec.options or (h % 2**config.unet_depth == 0
                                           and w % 2**config.unet_depth == 0),
           f"--size {h}x{w}: must be a multiple of 2^unet_depth = {2**config.unet_depth}")
+  # numpy's generators take non-negative seeds; jax's key keeps 32 bits (2**32 would equal 0).
+  require(0 <= config.seed < 2**32, f"--seed {config.seed}: must be in 0..{2**32 - 1}")
+  require(config.max_val is None or config.max_val >= 1,
+          f"--max-val {config.max_val}: leaves no validation scene; give at least 1 (or leave "
+          "it out to validate on the whole held-out split)")
   require(config.save_every >= 0, f"--save-every {config.save_every}: must be >= 0")
   require(0 < config.test_fraction < 1,
           f"--test-fraction {config.test_fraction}: must be in (0, 1)")

@@ -34,23 +34,24 @@ from tqdm import tqdm
 
 from sljax import tune
 from sljax.data import preflight
-from sljax.errors import require
+from sljax.errors import SljaxError, require
 from sljax.losses import weighting
 from sljax.nets import registry
 from sljax.nets.model_config import ModelConfig
 from sljax.train import checkpoint as ckpt
 from sljax.train import state as st
 from sljax.train import step as stp
-from sljax.train.config import TrainConfig
+from sljax.train.config import TrainConfig, with_absolute_paths
+from sljax.train.interrupt import deferred_interrupt
 from sljax.train.feed import (LOADER_THREADS, PREFETCH, RowCache, batch_parts, check_source,
                               open_source, prefetch, row_caches, train_batches)
-from sljax.train.profiler import StepProfiler
+from sljax.train.profiler import StepProfiler, check_profile_dir
 from sljax.train.record import Recorder, TrainingDiverged, fetch_metrics, save, write_epoch
 from sljax.train.setup import Setup, merge_init, model_config, resolve_ynn, setup
 from sljax.train.state import LoopState
 from sljax.train.validate import validate_split
 from sljax.train.workdir import (EPOCHS_FILE, METRICS_FILE, MetricWriter, default_workdir,
-                                 restart_logs)
+                                 restart_logs, write_config)
 
 # Re-exported: the loop's public names predate its rooms (tests and benchmarks use them).
 __all__ = ["EPOCHS_FILE", "LOADER_THREADS", "METRICS_FILE", "PREFETCH", "LoopState", "RowCache",
@@ -104,10 +105,41 @@ def restore_checkpoint(manager, state: st.TrainState, sharding) -> tuple[st.Trai
   step = manager.latest_step()
   abstract = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding),
                           state)
-  state, meta = ckpt.restore(manager, step, abstract)
-  loop = LoopState.from_meta(meta)
+  try:
+    state, meta = ckpt.restore(manager, step, abstract)
+    try:
+      loop = LoopState.from_meta(meta)
+    except (KeyError, TypeError, ValueError) as e:
+      raise ckpt.unreadable(manager.directory, step, e) from None
+  except ckpt.CheckpointUnreadable as e:
+    raise SljaxError(f"{e}; {resume_advice(Path(manager.directory), step)}") from None
   require(loop.step == int(state.step), f"{manager.directory}: checkpoint {step} is inconsistent")
   return state, loop
+
+
+def resume_advice(checkpoints: Path, step: int) -> str:
+  """What a user can do about a damaged latest checkpoint: never a silent fallback (it would
+  quietly repeat steps), but the earlier checkpoints and how to resume from one."""
+  earlier = sorted(int(p.name) for p in checkpoints.iterdir()
+                   if p.name.isdigit() and p.is_dir() and int(p.name) < step)
+  if not earlier:
+    return "no earlier checkpoint exists; start again with --overwrite"
+  return (f"earlier checkpoints: steps {', '.join(map(str, earlier))}; delete the damaged folder "
+          f"{checkpoints / str(step)} to resume from step {earlier[-1]}")
+
+
+def fresh_start_note(workdir: Path) -> str | None:
+  """The line for a --resume that finds config.json but no checkpoint (a run stopped before its
+  first one): it starts from step 0 and replaces the rows written before; None for a new
+  workdir (the experiment runner resumes every cell, new ones too)."""
+  if not (workdir / ckpt.CONFIG_FILE).exists():
+    return None
+  rows = []
+  for name in (METRICS_FILE, EPOCHS_FILE):
+    n = len((workdir / name).read_text().splitlines()) if (workdir / name).exists() else 0
+    rows += [f"{n} row(s) of {name}"] if n else []
+  return (f"--resume: no checkpoint in {workdir / ckpt.CHECKPOINT_DIR} yet; starting from step 0"
+          + (f" (replacing the {' and '.join(rows)} written without one)" if rows else ""))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -136,6 +168,8 @@ def train(config: TrainConfig, workdir: str | os.PathLike | None = None, *, resu
   tqdm's update(steps), set_postfix(**kw) and write(line), e.g. the experiment runner's.
   """
   workdir = Path(workdir if workdir is not None else default_workdir(config)).absolute()
+  config = with_absolute_paths(config)  # config.json names the folders from anywhere
+  check_profile_dir(profile_dir)
   run = setup(config, workdir, resume, overwrite, log, preset_note, source=open_source(config))
   spe, main_process = run.steps_per_epoch, jax.process_index() == 0
   preflight.check_run(run.source, [(run.train_idx, batch_parts(config)), (
@@ -153,6 +187,9 @@ def train(config: TrainConfig, workdir: str | os.PathLike | None = None, *, resu
   if run.resume:
     state, loop = restore_checkpoint(manager, state, repl)
     log(f"resuming from step {loop.step} (epoch {loop.step // spe + 1})")
+  elif resume and not overwrite and fresh_start_note(workdir):
+    log(fresh_start_note(workdir))
+  write_config(workdir, run.config_json)  # only now: a run that stopped before changed nothing
   restart_logs(workdir, loop.step, spe)
   state = jax.device_put(state, repl)
 
@@ -169,46 +206,49 @@ def train(config: TrainConfig, workdir: str | os.PathLike | None = None, *, resu
   stop_at = run.total_steps if stop_after is None else min(stop_after, run.total_steps)
   weights = jnp.asarray(task_weights(config, loop.history))
   pending, last, clock = [], {}, (time.perf_counter(), loop.step)
-  try:
-    first = loop.step + 1
-    for step in range(first, stop_at + 1):
-      profiler.before(step)
-      if step == first:  # the bar would sit at 0 while XLA compiles (77 s on an H100)
-        bar.set_postfix(status="compiling the training step", refresh=True)
-        t_first = time.perf_counter()
-      state, metrics = train_step(state, next(batches), weights)
-      if step == first:
-        bar.set_postfix(status=f"first step (compiling, or loading from the compile cache) "
-                               f"{time.perf_counter() - t_first:.0f} s", refresh=True)
-      profiler.after(step, state)
-      pending.append((step, metrics))
-      epoch_end = step % spe == 0
-      checkpoint = bool(config.save_every) and step % config.save_every == 0 and not epoch_end
-      if len(pending) == config.log_every or epoch_end or step == stop_at or checkpoint:
-        loop, last = fetch_metrics(rec, pending, loop)
-        pending = []
-      if checkpoint:
-        save(rec, state, loop)
-      if epoch_end:
-        loop = loop.close_epoch()
-        val: dict[str, float] = {}
-        if len(loop.history) % config.val_every == 0 or step == run.total_steps:
-          val = validate_split(state, eval_step, val_rows, run.val_idx, config, mesh)
-          loop = loop.validated(val.get("val_mae"))
-        write_epoch(rec, loop, last, val, time.perf_counter() - clock[0],
-                    (step - clock[1]) * config.batch_size)
-        save(rec, state, loop, val.get("val_mae", val.get("val_sl")))
-        weights = jnp.asarray(task_weights(config, loop.history))  # DWA: from finished epochs
-        clock = time.perf_counter(), step
-    if loop.step < run.total_steps:
-      bar.write(f"stopping at step {loop.step} as asked (--stop-after)")
-    return RunResult(workdir, loop)
-  finally:
-    batches.close()
-    profiler.close()
-    if own_bar:
-      bar.close()
+  with deferred_interrupt() as interrupt:  # Ctrl-C: stop after the step (sljax.train.interrupt)
     try:
-      rec.writer.close()
+      first = loop.step + 1
+      for step in range(first, stop_at + 1):
+        profiler.before(step)
+        if step == first:  # the bar would sit at 0 while XLA compiles (77 s on an H100)
+          bar.set_postfix(status="compiling the training step", refresh=True)
+          t_first = time.perf_counter()
+        state, metrics = train_step(state, next(batches), weights)
+        if step == first:
+          bar.set_postfix(status=f"first step (compiling, or loading from the compile cache) "
+                                 f"{time.perf_counter() - t_first:.0f} s", refresh=True)
+        profiler.after(step, state)
+        pending.append((step, metrics))
+        epoch_end = step % spe == 0
+        checkpoint = bool(config.save_every) and step % config.save_every == 0 and not epoch_end
+        if len(pending) == config.log_every or epoch_end or step == stop_at or checkpoint:
+          loop, last = fetch_metrics(rec, pending, loop)
+          pending = []
+        if checkpoint:
+          save(rec, state, loop)
+        if epoch_end:
+          loop = loop.close_epoch()
+          val: dict[str, float] = {}
+          if len(loop.history) % config.val_every == 0 or step == run.total_steps:
+            val = validate_split(state, eval_step, val_rows, run.val_idx, config, mesh)
+            loop = loop.validated(val.get("val_mae"))
+          write_epoch(rec, loop, last, val, time.perf_counter() - clock[0],
+                      (step - clock[1]) * config.batch_size)
+          save(rec, state, loop, val.get("val_mae", val.get("val_sl")))
+          weights = jnp.asarray(task_weights(config, loop.history))  # DWA: from finished epochs
+          clock = time.perf_counter(), step
+        if interrupt.asked:  # after the step's own writes, as an interruption between steps
+          raise KeyboardInterrupt
+      if loop.step < run.total_steps:
+        bar.write(f"stopping at step {loop.step} as asked (--stop-after)")
+      return RunResult(workdir, loop)
     finally:
-      ckpt.finish(manager)
+      batches.close()
+      profiler.close()
+      if own_bar:
+        bar.close()
+      try:
+        rec.writer.close()
+      finally:
+        ckpt.finish(manager)

@@ -19,7 +19,7 @@ from sljax.nets.model_config import ModelConfig
 from sljax.train import checkpoint as ckpt
 from sljax.train.config import TrainConfig, validate
 from sljax.train.feed import DataInfo, check_source, open_source
-from sljax.train.workdir import prepare_workdir, write_config
+from sljax.train.workdir import prepare_workdir
 
 
 def model_config(config: TrainConfig, info: DataInfo) -> ModelConfig:
@@ -80,6 +80,7 @@ class Setup:
   model: ModelConfig
   resume: bool
   init: tuple[str, dict[str, Any]] | None = None  # --init-from: (source net, its variables)
+  config_json: dict[str, Any] | None = None  # what write_config writes once the run can start
 
   @property
   def steps_per_epoch(self) -> int:
@@ -105,8 +106,10 @@ def resolve_ynn(config: TrainConfig, workdir: Path, resume: bool,
 
 def setup(config: TrainConfig, workdir: Path, resume: bool, overwrite: bool,
           log: Callable[[str], None], preset_note: str = "", source: Any = None) -> Setup:
-  """Checks the options, data and workdir (SljaxError before anything compiles), writes the
-  resolved config.json and announces the run; source: the scenes (default open_source)."""
+  """Checks the options, data and workdir (SljaxError before anything compiles) and announces
+  the run; source: the scenes (default open_source). The caller writes config.json
+  (write_config) once the run has passed its checks and restored its checkpoint, so a run that
+  stops before that leaves the workdir as it was."""
   validate(config)
   n_dev, n_proc = jax.device_count(), jax.process_count()
   require(config.batch_size % n_dev == 0,
@@ -121,7 +124,8 @@ def setup(config: TrainConfig, workdir: Path, resume: bool, overwrite: bool,
   require(len(train_idx) >= config.batch_size,
           f"--batch-size {config.batch_size}: larger than the {len(train_idx)} training scenes "
           f"(fraction {config.fraction} of {len(source)} scenes)")
-  require(len(val_idx) > 0, f"{config.data or 'synthetic data'}: the held-out split is empty")
+  require(len(val_idx) > 0, f"{config.data or 'synthetic data'}: the held-out split is empty"
+          + (f" (--max-val {config.max_val})" if config.max_val is not None else ""))
   steps_per_epoch = len(train_idx) // config.batch_size
   log(announce(config, preset_note, steps_per_epoch, len(train_idx), len(val_idx)))
   config = resolve_ynn(config, workdir, resume, log)  # after the checks: it may compile
@@ -131,7 +135,7 @@ def setup(config: TrainConfig, workdir: Path, resume: bool, overwrite: bool,
                      t=info.t,
                      gray=config.use_gray, steps_per_epoch=steps_per_epoch,
                      n_train=len(train_idx), n_val=len(val_idx))
-  do_resume = prepare_workdir(workdir, config_json, resume, overwrite)
+  do_resume, config_json = prepare_workdir(workdir, config_json, resume, overwrite)
   init = None
   if config.init_from and not do_resume:
     # Shapes are compared on an abstract init, so a mismatch errors before compiling anything.
@@ -141,9 +145,8 @@ def setup(config: TrainConfig, workdir: Path, resume: bool, overwrite: bool,
         lambda a, b: model.init(jax.random.PRNGKey(0), a, b, train=False), x, x)
     init = load_init(config.init_from, config)
     merge_init(dict(abstract), init[1], init[0], config, config.init_from)
-  write_config(workdir, config_json)
   return Setup(config, workdir, source, tuple(train_idx), tuple(val_idx), info, model_cfg,
-               do_resume, init)
+               do_resume, init, config_json)
 
 
 def announce(config: TrainConfig, preset_note: str, steps_per_epoch: int,

@@ -20,7 +20,7 @@ from jax.experimental import multihost_utils
 from sljax.errors import SljaxError
 from sljax.nets import registry
 from sljax.train.checkpoint import CHECKPOINT_DIR, CONFIG_FILE, read_config, storage_guard
-from sljax.train.config import TrainConfig, diff_configs, dumps
+from sljax.train.config import PATH_FIELDS, TrainConfig, diff_configs, dumps
 from sljax.train.tensorboard import TensorBoardWriter
 
 METRICS_FILE = "metrics.jsonl"
@@ -45,20 +45,60 @@ def sync(name: str) -> None:
     multihost_utils.sync_global_devices(name)
 
 
+def _relative_note(value: Any) -> str:
+  """For a saved relative path: where it points from here (it was relative to the folder the
+  run started in, which config.json does not record)."""
+  if not isinstance(value, str) or Path(value).is_absolute():
+    return ""
+  here = Path(value).absolute()
+  return (f" (a path relative to the folder the run started in: {here} from here"
+          + ("" if here.exists() else ", which does not exist") + ")")
+
+
+def accepted_paths(saved: dict[str, Any], new: dict[str, Any]) -> dict[str, str]:
+  """{field: value to record} of the path fields where the saved value, relative (written by
+  runs before paths were recorded absolute), names the folder the new absolute value names:
+  the same folder from here, or a path that does not exist from here (the run started in
+  another folder; the data-derived fields n_train, n_val and t are still compared)."""
+  out = {}
+  for k in PATH_FIELDS:
+    s, n = saved.get(k), new.get(k)
+    if not (isinstance(s, str) and isinstance(n, str)) or s == n or Path(s).is_absolute():
+      continue
+    if Path(s).resolve() == Path(n).resolve():
+      out[k] = s  # the same folder from the run's own folder: config.json stays as it was
+    elif not Path(s).exists():
+      out[k] = n  # recorded absolute from now on, so a resume works from any folder
+  return out
+
+
 def prepare_workdir(workdir: Path, config_json: dict[str, Any], resume: bool,
-                    overwrite: bool) -> bool:
+                    overwrite: bool) -> tuple[bool, dict[str, Any]]:
   """Checks the workdir against the run (every process, before any writes), then clears it
-  for --overwrite (the main process); returns whether there is a checkpoint to resume."""
+  for --overwrite (the main process); returns (whether there is a checkpoint to resume, the
+  config.json to write)."""
   cfg_path = workdir / CONFIG_FILE
   ckpt_dir = workdir / CHECKPOINT_DIR
   has_ckpt = ckpt_dir.is_dir() and any(p.name.isdigit() for p in ckpt_dir.iterdir())
+  if resume and has_ckpt and not cfg_path.exists() and not overwrite:
+    # Without the run's config a checkpoint would be loaded into whatever the flags say.
+    raise SljaxError(f"{workdir}: has checkpoints but no {CONFIG_FILE}, so the run cannot be "
+                     f"resumed (its settings are unknown); put its {CONFIG_FILE} back, or pass "
+                     "--overwrite to start again")
   if cfg_path.exists() and not overwrite:
     saved = read_config(workdir)
-    diff = diff_configs(saved, config_json)
+    paths = accepted_paths(saved, config_json)
+    diff = diff_configs(saved, dict(config_json, **{k: saved[k] for k in paths}))
+    config_json = dict(config_json, **paths)
     if diff:
-      detail = ", ".join(f"{k}: {saved.get(k)!r} -> {config_json.get(k)!r}" for k in diff[:4])
-      raise SljaxError(f"{workdir}: holds another run ({detail}); choose another --workdir or "
-                       "pass --overwrite to replace it")
+      detail = ", ".join(f"{k}: {saved.get(k)!r}"
+                         f"{_relative_note(saved.get(k)) if k in PATH_FIELDS else ''}"
+                         f" -> {config_json.get(k)!r}" for k in diff[:4])
+      # A relative path that names a folder here may not be the run's: say where it points.
+      notes = "".join(f"; its {k} {saved[k]!r} is{_relative_note(saved[k])}"
+                      for k in PATH_FIELDS if k not in diff and _relative_note(saved.get(k)))
+      raise SljaxError(f"{workdir}: holds another run ({detail}{notes}); choose another "
+                       "--workdir or pass --overwrite to replace it")
     if not resume and (has_ckpt or (workdir / METRICS_FILE).exists()):
       raise SljaxError(f"{workdir}: holds this run already; pass --resume to continue it or "
                        "--overwrite to start again")
@@ -69,7 +109,7 @@ def prepare_workdir(workdir: Path, config_json: dict[str, Any], resume: bool,
       for name in (METRICS_FILE, EPOCHS_FILE, CONFIG_FILE):
         (workdir / name).unlink(missing_ok=True)
     has_ckpt = False
-  return has_ckpt and resume
+  return has_ckpt and resume, config_json
 
 
 def write_config(workdir: Path, config_json: dict[str, Any]) -> None:

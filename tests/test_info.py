@@ -70,6 +70,19 @@ def test_info_reports_problems(tmp_path, capsys):
   assert "disp0.pfm: not a PFM" in out
 
 
+def test_info_flags_mixed_or_undeclared_pattern_counts(tmp_path, capsys):
+  """Its help promises exit 1 on inconsistent scenes: a 5-pattern scene among 4-pattern ones,
+  or scenes that disagree with dataset.json, are problems (training would fail on them)."""
+  write_scene(tmp_path / "a", _scene(0))
+  write_scene(tmp_path / "b", _scene(1, t=5))
+  assert cli.main(["info", str(tmp_path)]) == 1
+  assert "scenes hold different pattern counts: 4 (1 scene), 5 (1 scene)" in capsys.readouterr().out
+  (tmp_path / "b").rename(tmp_path.parent / f"{tmp_path.name}-b")  # keep only 4-pattern scenes
+  (tmp_path / "dataset.json").write_text(json.dumps({"patterns": 6}))
+  assert cli.main(["info", str(tmp_path)]) == 1
+  assert "dataset.json declares 6 patterns; the scenes hold 4 (1 scene)" in capsys.readouterr().out
+
+
 def test_info_empty_dataset(tmp_path, capsys):
   assert cli.main(["info", str(tmp_path)]) == 2
   err = capsys.readouterr().err

@@ -4,6 +4,7 @@ import argparse
 import collections
 import os
 import struct
+from typing import Any
 from pathlib import Path
 
 import numpy as np
@@ -142,6 +143,17 @@ def _table(rows: list[list[str]]) -> str:
   return "\n".join("  " + "  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in rows)
 
 
+def _pattern_problems(counts: collections.Counter, declared: Any) -> list[str]:
+  """Scenes whose pattern counts disagree with each other or with dataset.json's "patterns":
+  one training batch stacks them, so a mixed dataset fails there, later and less clearly."""
+  found = ", ".join(f"{t} ({_plural(v, 'scene')})" for t, v in sorted(counts.items()))
+  if len(counts) > 1:
+    return [f"scenes hold different pattern counts: {found}"]
+  if declared is not None and counts and set(counts) != {int(declared)}:
+    return [f"dataset.json declares {declared} patterns; the scenes hold {found}"]
+  return []
+
+
 def run(args: argparse.Namespace) -> int:
   """Prints the summary; returns 1 when problems were found."""
   src = FolderSource(args.dataset)
@@ -164,6 +176,7 @@ def run(args: argparse.Namespace) -> int:
         ", ".join(f"{f} {counts[f]}/{n}" for f in _FILES if counts[f]))
 
   patterns = collections.Counter(r.get("sl0") for r in rows if "sl0" in r)
+  problems += _pattern_problems(patterns, src.info.get("patterns"))
   if patterns or src.num_patterns:
     found = ", ".join(f"{t} patterns ({_plural(v, 'scene')})" for t, v in sorted(patterns.items()))
     print(f"patterns: code {src.code or 'unknown'}; {found or f'{src.num_patterns} declared'}")

@@ -293,3 +293,41 @@ def test_a_trace_that_cannot_be_written_is_a_warning(monkeypatch):
     prof.after(step, np.zeros(1))
   assert lines == ["warning: --profile /x: could not start the trace (PERMISSION_DENIED: "
                    "cannot write /x/trace.pb); training goes on"]
+
+
+def test_an_absolute_data_path_spelled_another_way_is_the_same_run(base, tmp_path, capsys):
+  """A run that recorded its data as typed ('/x/data/' from tab completion, or through a
+  symlink) resumes with the resolved path every new call records; its config.json keeps its
+  own spelling."""
+  data = base[0]
+  link = tmp_path / "link"
+  link.symlink_to(data.parent)
+  for spelling in (str(data) + "/", str(link / data.name), str(data.parent / "." / data.name)):
+    wd = _copy(base, tmp_path / spelling.replace("/", "_"))
+    cfg = json.loads((wd / "config.json").read_text())
+    (wd / "config.json").write_text(json.dumps(dict(cfg, data=spelling), indent=2))
+    code, _, err = _run(["--workdir", str(wd), "--resume", "--epochs", "3", "--no-progress"],
+                        capsys)
+    assert code == 0, (spelling, err)
+    assert json.loads((wd / "config.json").read_text())["data"] == spelling
+
+
+def test_a_restore_failing_for_another_reason_keeps_its_error(base, tmp_path, monkeypatch):
+  """Only damaged files read as a damaged checkpoint: a device out of memory while the arrays
+  are placed (a RuntimeError here) surfaces as itself, and a permission problem says 'cannot
+  be read' without advice to delete the checkpoint."""
+  wd = _copy(base, tmp_path)
+
+  def oom(*args, **kwargs):
+    raise RuntimeError("RESOURCE_EXHAUSTED: out of memory")
+  monkeypatch.setattr(ckpt, "_restore", oom)
+  with pytest.raises(RuntimeError, match="RESOURCE_EXHAUSTED"):
+    ckpt.load_params(wd, 6)
+
+  def denied(*args, **kwargs):
+    raise PermissionError(13, "Permission denied", str(wd / "checkpoints" / "6" / "meta"))
+  monkeypatch.setattr(ckpt, "_restore", denied)
+  with pytest.raises(SljaxError) as e:
+    ckpt.load_params(wd, 6)
+  assert "checkpoint 6 cannot be read: Permission denied" in str(e.value)
+  assert "delete" not in str(e.value)

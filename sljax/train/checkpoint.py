@@ -271,9 +271,10 @@ def _restore_packed(manager: ocp.CheckpointManager, step: int, lay: list[list[An
 class CheckpointUnreadable(SljaxError):
   """A checkpoint that cannot be restored (damaged, incomplete or unreadable files)."""
 
-  def __init__(self, message: str, directory: Path, step: int):
+  def __init__(self, message: str, directory: Path, step: int, damaged: bool = True):
     super().__init__(message)
-    self.directory, self.step = directory, step
+    # damaged: the files are broken (deleting the step is the remedy); else unreadable here.
+    self.directory, self.step, self.damaged = directory, step, damaged
 
 
 def unreadable(directory: str | os.PathLike, step: int, exc: BaseException) -> CheckpointUnreadable:
@@ -284,7 +285,8 @@ def unreadable(directory: str | os.PathLike, step: int, exc: BaseException) -> C
   if found is not None:  # a permission problem, not damage: say so
     code, path = found
     return CheckpointUnreadable(f"{folder}: checkpoint {step} cannot be read: "
-                                f"{os.strerror(code)} ({path or folder})", Path(directory), step)
+                                f"{os.strerror(code)} ({path or folder})", Path(directory), step,
+                                damaged=False)
   reason = (str(exc).strip().splitlines() or [""])[0]
   reason = reason if len(reason) <= 160 else reason[:160] + "..."
   reason = type(exc).__name__ + (f": {reason}" if reason else "")
@@ -302,9 +304,16 @@ def restore(manager: ocp.CheckpointManager, step: int,
     return _restore(manager, step, abstract_state)
   except SljaxError:
     raise
-  except Exception as e:  # pylint: disable=broad-except
+  except RESTORE_ERRORS as e:
     _drop_late_read_callbacks()
     raise unreadable(manager.directory, step, e) from None
+
+
+# What orbax and TensorStore raise for damaged or missing files (TensorStore's DATA_LOSS,
+# OUT_OF_RANGE and FAILED_PRECONDITION arrive as ValueError, a garbage JSON item as
+# JSONDecodeError, a missing item as KeyError). Anything else (a device out of memory while
+# the arrays are placed, a bug) is not the checkpoint's fault and keeps its own error.
+RESTORE_ERRORS = (ValueError, KeyError, TypeError, EOFError, OSError)
 
 
 def _late_read_callback(unraisable: Any) -> bool:

@@ -114,10 +114,21 @@ def check_saved_data(workdir: Path, data: str | None) -> None:
   recorded absolute saved the path as typed, relative to the folder they started in."""
   if data is None or Path(data).exists():
     return
-  where = (f"was relative to the folder the run started in, and {Path(data).absolute()} does "
-           "not exist from here" if not Path(data).is_absolute() else "does not exist")
-  raise SljaxError(f"{workdir}: the run's data {data!r} {where}; run from that folder or pass "
-                   "--data with the data folder's path")
+  if Path(data).is_absolute():
+    raise SljaxError(f"{workdir}: the run's data {data!r} does not exist; pass --data with the "
+                     "data folder's path")
+  raise SljaxError(f"{workdir}: the run's data {data!r} was relative to the folder the run "
+                   f"started in, and {Path(data).absolute()} does not exist from here; run from "
+                   "that folder or pass --data with the data folder's path")
+
+
+def _resume_hint(args: argparse.Namespace) -> str:
+  """' (continue with --resume)' where the interrupted run left a config.json to resume (a run
+  stopped before its checks passed wrote nothing, and --resume would refuse it)."""
+  workdir = getattr(args, "workdir", None)
+  if workdir is None or (Path(workdir) / ckpt.CONFIG_FILE).is_file():
+    return " (continue with --resume)"
+  return " before the run started; nothing was saved"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -144,7 +155,7 @@ def run(args: argparse.Namespace, prog: str = "train.py") -> int:
     print(f"{prog}: error: {e}", file=sys.stderr)
     return 2
   except KeyboardInterrupt:
-    print(f"{prog}: interrupted (continue with --resume)", file=sys.stderr)
+    print(f"{prog}: interrupted{_resume_hint(args)}", file=sys.stderr)
     return 130
   except OSError as e:  # a full or read-only disk, a file where a folder must be
     print(f"{prog}: error: {describe_os_error(e)}", file=sys.stderr)

@@ -33,15 +33,19 @@ class Interrupt:
 @contextlib.contextmanager
 def deferred_interrupt() -> Iterator[Interrupt]:
   """An Interrupt whose flag a Ctrl-C sets while the block runs (the main thread only: signal
-  handlers can only be set there; elsewhere the flag stays unset); restores the previous
-  handler after."""
+  handlers can only be set there; elsewhere, or where SIGINT is ignored, the flag stays unset);
+  KeyboardInterrupt on leaving if the flag was set and not acted on; restores the handler."""
   flag = Interrupt()
-  if threading.current_thread() is not threading.main_thread():
+  if (threading.current_thread() is not threading.main_thread()
+      or signal.getsignal(signal.SIGINT) is signal.SIG_IGN):
+    # A background job (`cmd &` from a script) inherits SIGINT ignored: keep it ignored.
     yield flag
     return
   previous = signal.signal(signal.SIGINT, flag.handle)
   try:
     yield flag
+    if flag.asked:  # a Ctrl-C during the block's own cleanup, after the last check
+      raise KeyboardInterrupt
   finally:
     # None: a handler set outside Python, which cannot be put back; Python's default then.
     signal.signal(signal.SIGINT, signal.default_int_handler if previous is None else previous)

@@ -112,6 +112,8 @@ def restore_checkpoint(manager, state: st.TrainState, sharding) -> tuple[st.Trai
     except (KeyError, TypeError, ValueError) as e:
       raise ckpt.unreadable(manager.directory, step, e) from None
   except ckpt.CheckpointUnreadable as e:
+    if not e.damaged:  # a permission problem: deleting the checkpoint is not the remedy
+      raise
     raise SljaxError(f"{e}; {resume_advice(Path(manager.directory), step)}") from None
   require(loop.step == int(state.step), f"{manager.directory}: checkpoint {step} is inconsistent")
   return state, loop
@@ -189,7 +191,9 @@ def train(config: TrainConfig, workdir: str | os.PathLike | None = None, *, resu
     log(f"resuming from step {loop.step} (epoch {loop.step // spe + 1})")
   elif resume and not overwrite and fresh_start_note(workdir):
     log(fresh_start_note(workdir))
-  write_config(workdir, run.config_json)  # only now: a run that stopped before changed nothing
+  # Only now, so that a new run stopped by its checks leaves no config.json (and a corrected
+  # rerun is not refused as "another run"); --overwrite has already cleared the old run.
+  write_config(workdir, run.config_json)
   restart_logs(workdir, loop.step, spe)
   state = jax.device_put(state, repl)
 

@@ -108,8 +108,9 @@ def setup(config: TrainConfig, workdir: Path, resume: bool, overwrite: bool,
           log: Callable[[str], None], preset_note: str = "", source: Any = None) -> Setup:
   """Checks the options, data and workdir (SljaxError before anything compiles) and announces
   the run; source: the scenes (default open_source). The caller writes config.json
-  (write_config) once the run has passed its checks and restored its checkpoint, so a run that
-  stops before that leaves the workdir as it was."""
+  (write_config) once the run has passed its checks and restored its checkpoint, so a new run
+  that stops before that leaves no config.json (with --overwrite, the old run is cleared here,
+  before those checks)."""
   validate(config)
   n_dev, n_proc = jax.device_count(), jax.process_count()
   require(config.batch_size % n_dev == 0,

@@ -17,6 +17,7 @@ from typing import Any
 import jax
 from jax.experimental import multihost_utils
 
+from sljax import files
 from sljax.errors import SljaxError
 from sljax.nets import registry
 from sljax.train.checkpoint import CHECKPOINT_DIR, CONFIG_FILE, read_config, storage_guard
@@ -56,18 +57,20 @@ def _relative_note(value: Any) -> str:
 
 
 def accepted_paths(saved: dict[str, Any], new: dict[str, Any]) -> dict[str, str]:
-  """{field: value to record} of the path fields where the saved value, relative (written by
-  runs before paths were recorded absolute), names the folder the new absolute value names:
-  the same folder from here, or a path that does not exist from here (the run started in
+  """{field: value to record} of the path fields where the saved value names the folder the new
+  absolute value names: the same folder however spelled, or a relative path (written by runs
+  before paths were recorded absolute) that does not exist from here (the run started in
   another folder; the data-derived fields n_train, n_val and t are still compared)."""
   out = {}
   for k in PATH_FIELDS:
     s, n = saved.get(k), new.get(k)
-    if not (isinstance(s, str) and isinstance(n, str)) or s == n or Path(s).is_absolute():
+    if not (isinstance(s, str) and isinstance(n, str)) or s == n:
       continue
     if Path(s).resolve() == Path(n).resolve():
-      out[k] = s  # the same folder from the run's own folder: config.json stays as it was
-    elif not Path(s).exists():
+      # The same folder, spelled as the run typed it (relative, a trailing slash, a symlink):
+      # the run's config.json keeps its own spelling.
+      out[k] = s
+    elif not Path(s).is_absolute() and not Path(s).exists():
       out[k] = n  # recorded absolute from now on, so a resume works from any folder
   return out
 
@@ -108,6 +111,7 @@ def prepare_workdir(workdir: Path, config_json: dict[str, Any], resume: bool,
       shutil.rmtree(ckpt_dir, ignore_errors=True)
       for name in (METRICS_FILE, EPOCHS_FILE, CONFIG_FILE):
         (workdir / name).unlink(missing_ok=True)
+    sync("sljax-workdir-cleared")  # no process may list checkpoints while they are deleted
     has_ckpt = False
   return has_ckpt and resume, config_json
 
@@ -117,7 +121,7 @@ def write_config(workdir: Path, config_json: dict[str, Any]) -> None:
   if jax.process_index() == 0:
     with storage_guard(f"writing {CONFIG_FILE}", workdir / CHECKPOINT_DIR):
       workdir.mkdir(parents=True, exist_ok=True)
-      (workdir / CONFIG_FILE).write_text(dumps(config_json) + "\n")
+      files.write_text(workdir / CONFIG_FILE, dumps(config_json) + "\n")  # never half-written
   sync("sljax-workdir-ready")
 
 
@@ -133,7 +137,7 @@ def _truncate_jsonl(path: Path, keep: Callable[[dict[str, Any]], bool]) -> None:
       continue
     if keep(rec):
       lines.append(line)
-  path.write_text("".join(l + "\n" for l in lines))
+  files.write_text(path, "".join(l + "\n" for l in lines))  # a kill here keeps the old log
 
 
 def restart_logs(workdir: Path, step: int, steps_per_epoch: int) -> None:

@@ -232,7 +232,7 @@ def write_export(predictor, size: tuple[int, int], out: str | os.PathLike, sourc
   info = json.dumps(sidecar(predictor, exported, size, source), indent=2) + "\n"
   out.parent.mkdir(parents=True, exist_ok=True)
   # Both to temporary files first: a full disk leaves the earlier pair, never a truncated
-  # artifact or a new artifact beside the old sidecar.
+  # artifact (the two renames follow each other, so only a kill between them can mix a pair).
   with files.replacing(out, side) as (out_tmp, side_tmp):
     out_tmp.write_bytes(exported.serialize())
     side_tmp.write_text(info, encoding="utf-8")

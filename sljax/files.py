@@ -1,7 +1,9 @@
 """Output files written whole: to temporary files beside them, renamed into place when complete.
 
-A full disk or a killed process then leaves the earlier file (with --overwrite) or nothing,
-never a truncated file, and an artifact and its sidecar change together.
+A full disk or an error then leaves the earlier file (with --overwrite) or nothing, never a
+truncated file; files written together are renamed only once all are complete (one after the
+other, so only a kill between two renames can mix old and new). A kill while writing leaves a
+hidden temporary file (.NAME.tmpPID.EXT) beside the output.
 """
 
 import contextlib

@@ -40,7 +40,7 @@ import jax.numpy as jnp
 import jaxlib
 import numpy as np
 
-from sljax import cache, machine
+from sljax import cache, files, machine
 from sljax.nets import build_model
 
 ENV_TUNE = "SLJAX_TUNE"
@@ -117,9 +117,7 @@ def write_cache(key: str, choice: KernelChoice, table: list[dict], seconds: floa
                "seconds": round(seconds, 1), "cpu": machine.cpu_description(),
                "time": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
   path.parent.mkdir(parents=True, exist_ok=True)
-  tmp = path.with_suffix(f".tmp{os.getpid()}")
-  tmp.write_text(json.dumps(data, indent=1), encoding="utf-8")
-  os.replace(tmp, path)
+  files.write_text(path, json.dumps(data, indent=1))
   return path
 
 

@@ -1,4 +1,4 @@
-"""Pictures: panels of images and colour-mapped maps with scale bars, saved as PNG."""
+"""Pictures: panels of images and colour-mapped maps with scale bars (PNG, PDF, SVG, ...)."""
 
 import dataclasses
 import functools
@@ -43,7 +43,8 @@ def check_figure_path(path: str | os.PathLike, option: str = "--out") -> Path:
 
 def save_panels(path: str | os.PathLike, panels: list[Panel], ncols: int = 4,
                 title: str | None = None, tile_inches: float = 3.0) -> None:
-  """Writes a grid of panels to a picture (PNG, PDF, ... by path's extension); non-finite map values are drawn grey."""
+  """Writes a grid of panels to a picture (PNG, PDF, ... by path's extension); non-finite map
+  values are drawn grey."""
   ncols = max(1, min(ncols, len(panels)))
   nrows = -(-len(panels) // ncols)
   fig = Figure(figsize=(tile_inches * ncols * 1.15, tile_inches * nrows))

@@ -24,7 +24,6 @@ else ~/.cache/sljax), never inside the dataset; a second run stats the files and
 import concurrent.futures
 import hashlib
 import json
-import os
 import struct
 import zlib
 from collections.abc import Iterable, Sequence
@@ -35,6 +34,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
+from sljax import files
 from sljax.cache import user_cache_dir
 from sljax.data.calib import read_calib
 from sljax.data.dataset import FolderSource, PART_FIELD
@@ -269,10 +269,8 @@ def _save_cache(path: Path, root: Path, scenes: dict[str, Any]) -> None:
   """Writes the cache atomically; a cache folder that cannot be written only costs speed."""
   try:
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(f".{os.getpid()}.tmp")
-    tmp.write_text(json.dumps({"version": CACHE_VERSION, "root": str(root.resolve()),
-                               "scenes": scenes}), encoding="utf-8")
-    os.replace(tmp, path)
+    files.write_text(path, json.dumps({"version": CACHE_VERSION, "root": str(root.resolve()),
+                                       "scenes": scenes}))
   except OSError:
     pass
 

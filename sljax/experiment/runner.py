@@ -29,7 +29,7 @@ from typing import Any
 
 from tqdm import tqdm
 
-from sljax import inference, machine, tune
+from sljax import files, inference, machine, tune
 from sljax.data.dataset import FolderSource, parse_fraction, split_indices
 from sljax.data.scene import read_json_object
 from sljax.data.synthetic import SynthConfig, SyntheticSource
@@ -63,10 +63,8 @@ def read_json(path: Path) -> dict[str, Any] | None:
 
 
 def write_json(path: Path, obj: Any) -> None:
-  """Writes atomically (a killed runner never leaves half a file)."""
-  tmp = path.with_suffix(path.suffix + ".tmp")
-  tmp.write_text(dumps(obj) + "\n", encoding="utf-8")
-  os.replace(tmp, path)
+  """Writes whole (a killed runner never leaves half a file; sljax.files)."""
+  files.write_text(path, dumps(obj) + "\n")
 
 
 def plan_args(plan: Plan) -> dict[str, Any]:

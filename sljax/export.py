@@ -223,11 +223,7 @@ def write_export(predictor, size: tuple[int, int], out: str | os.PathLike, sourc
   """Exports and writes OUT (serialised artifact) and its JSON sidecar; returns both paths."""
   out = Path(out)
   side = sidecar_path(out)
-  for p in (out, side):
-    if p.exists() and not overwrite:
-      raise SljaxError(f"{p}: exists (pass --overwrite to replace it)")
-    if p.is_dir():
-      raise SljaxError(f"{p}: is a folder; OUT names the file to write")
+  files.refuse_existing([out, side], overwrite)
   exported = export_model(predictor, size)
   info = json.dumps(sidecar(predictor, exported, size, source), indent=2) + "\n"
   out.parent.mkdir(parents=True, exist_ok=True)

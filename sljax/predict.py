@@ -127,13 +127,8 @@ def check_outputs(out: Path, pairs: list[Pair], overwrite: bool) -> None:
   """Refuses (one line) when any output file of any pair exists and overwrite is off."""
   if out.exists() and not out.is_dir():
     raise SljaxError(f"--out {out}: exists and is not a folder")
-  if overwrite:
-    return
-  for pair in pairs:
-    for f in OUTPUT_FILES:
-      path = output_dir(out, pair) / f
-      if path.exists():
-        raise SljaxError(f"{path}: exists (pass --overwrite to replace it)")
+  if not overwrite:
+    files.refuse_existing([output_dir(out, p) / f for p in pairs for f in OUTPUT_FILES], False)
 
 
 def load_predictor(model: str, mode: str = "pad", maxdisp: int | None = None):

@@ -272,6 +272,30 @@ def test_failed_preflight_leaves_no_config_behind(base, tmp_path, capsys):
   assert code == 0, err
 
 
+def test_overwrite_refused_by_its_checks_keeps_the_old_run(base, tmp_path, capsys):
+  """--overwrite deletes the old run only once the new one has passed every check: a damaged
+  scene (found by preflight) or a wrong --init-from must not cost the user the old run."""
+  data = tmp_path / "data"
+  shutil.copytree(base[0], data)
+  victim = data / "s07" / "im0.png"
+  victim.write_bytes(victim.read_bytes()[:-20])
+  wd = _copy(base, tmp_path)
+  before = _digest(wd)
+  code, _, err = _run([*_flags(data), "--workdir", str(wd), "--overwrite"], capsys)
+  assert code == 2 and f"{victim}: truncated" in err, err
+  assert _digest(wd) == before
+  code, _, err = _run([*_flags(base[0]), "--workdir", str(wd), "--overwrite", "--init-from",
+                       str(tmp_path / "nowhere")], capsys)
+  assert code == 2 and "--init-from" in err, err
+  assert _digest(wd) == before
+  # Accepted: the old run (6 steps) is replaced by a new one of 3.
+  code, _, err = _run([*_flags(base[0]), "--epochs", "1", "--workdir", str(wd), "--overwrite"],
+                      capsys)
+  assert code == 0, err
+  assert sorted(int(p.name) for p in (wd / "checkpoints").iterdir()) == [2, 3]
+  assert len((wd / "metrics.jsonl").read_text().splitlines()) == 3
+
+
 def test_a_trace_that_cannot_be_written_is_a_warning(monkeypatch):
   def fail(*a, **k):
     raise RuntimeError("PERMISSION_DENIED: cannot write /x/trace.pb\nmore")

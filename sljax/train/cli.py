@@ -14,6 +14,7 @@ from sljax.quiet import quiet_libraries
 from sljax.train import checkpoint as ckpt
 from sljax.train.config import FIELDS, PRESETS, TrainConfig, config_from_json, preset_config
 from sljax.train.loop import default_workdir, train
+from sljax.train.workdir import check_config_kept
 
 
 def add_config_flags(parser: argparse.ArgumentParser) -> None:
@@ -97,12 +98,8 @@ def saved_config(workdir: Path) -> dict:
   """The config.json of the run a --resume continues; SljaxError when there is none (a typo in
   --workdir must not start a new run, and checkpoints without their config cannot be loaded
   into the right model)."""
+  check_config_kept(workdir)
   if not (workdir / ckpt.CONFIG_FILE).is_file():
-    checkpoints = workdir / ckpt.CHECKPOINT_DIR
-    if ckpt.last_good_step(checkpoints) is not None:
-      raise SljaxError(f"{workdir}: has checkpoints but no {ckpt.CONFIG_FILE}, so the run "
-                       f"cannot be resumed (its settings are unknown); put its "
-                       f"{ckpt.CONFIG_FILE} back, or pass --overwrite to start again")
     what = "does not exist" if not workdir.exists() else f"holds no run (no {ckpt.CONFIG_FILE})"
     raise SljaxError(f"--resume: {workdir} {what}; nothing to resume (check --workdir, or "
                      "leave out --resume to start a new run)")

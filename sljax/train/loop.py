@@ -50,8 +50,8 @@ from sljax.train.record import Recorder, TrainingDiverged, fetch_metrics, save, 
 from sljax.train.setup import Setup, merge_init, model_config, resolve_ynn, setup
 from sljax.train.state import LoopState
 from sljax.train.validate import validate_split
-from sljax.train.workdir import (EPOCHS_FILE, METRICS_FILE, MetricWriter, default_workdir,
-                                 restart_logs, write_config)
+from sljax.train.workdir import (EPOCHS_FILE, METRICS_FILE, MetricWriter, clear_run,
+                                 default_workdir, restart_logs, write_config)
 
 # Re-exported: the loop's public names predate its rooms (tests and benchmarks use them).
 __all__ = ["EPOCHS_FILE", "LOADER_THREADS", "METRICS_FILE", "PREFETCH", "LoopState", "RowCache",
@@ -177,6 +177,8 @@ def train(config: TrainConfig, workdir: str | os.PathLike | None = None, *, resu
   preflight.check_run(run.source, [(run.train_idx, batch_parts(config)), (
       run.val_idx, batch_parts(config, validation=run.info.has_disp))],
                       progress=progress is True or (progress is None and main_process))
+  if overwrite:
+    clear_run(workdir)  # only now: a run refused by its checks leaves the old one whole
 
   mesh = stp.make_mesh()
   repl, _ = stp.shardings(mesh)
@@ -192,7 +194,7 @@ def train(config: TrainConfig, workdir: str | os.PathLike | None = None, *, resu
   elif resume and not overwrite and fresh_start_note(workdir):
     log(fresh_start_note(workdir))
   # Only now, so that a new run stopped by its checks leaves no config.json (and a corrected
-  # rerun is not refused as "another run"); --overwrite has already cleared the old run.
+  # rerun is not refused as "another run").
   write_config(workdir, run.config_json)
   restart_logs(workdir, loop.step, spe)
   state = jax.device_put(state, repl)

@@ -35,6 +35,7 @@ def model_config(config: TrainConfig, info: DataInfo) -> ModelConfig:
 def load_init(path: str, config: TrainConfig) -> tuple[str, dict[str, Any]]:
   """(source net name, variables) of an --init-from checkpoint/converted PSMNet; a twin's
   checkpoint gives its disparity path to a single-task run."""
+  require(Path(path).exists(), f"--init-from {path}: does not exist")
   name, _, variables, _ = ckpt.load_for_inference(path)
   if registry.spec(name).single == config.net:
     variables, name = detach_sl(variables), config.net
@@ -109,8 +110,8 @@ def setup(config: TrainConfig, workdir: Path, resume: bool, overwrite: bool,
   """Checks the options, data and workdir (SljaxError before anything compiles) and announces
   the run; source: the scenes (default open_source). The caller writes config.json
   (write_config) once the run has passed its checks and restored its checkpoint, so a new run
-  that stops before that leaves no config.json (with --overwrite, the old run is cleared here,
-  before those checks)."""
+  that stops before that leaves no config.json (with --overwrite, the caller clears the old run
+  once every check has passed: workdir.clear_run)."""
   validate(config)
   n_dev, n_proc = jax.device_count(), jax.process_count()
   require(config.batch_size % n_dev == 0,

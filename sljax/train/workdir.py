@@ -28,8 +28,8 @@ METRICS_FILE = "metrics.jsonl"
 EPOCHS_FILE = "epochs.jsonl"
 
 __all__ = ["CHECKPOINT_DIR", "CONFIG_FILE", "EPOCHS_FILE", "METRICS_FILE", "MetricWriter",
-           "default_workdir", "prepare_workdir", "read_config", "restart_logs", "sync",
-           "write_config"]
+           "check_config_kept", "clear_run", "default_workdir", "has_checkpoints",
+           "prepare_workdir", "read_config", "restart_logs", "sync", "write_config"]
 
 
 def default_workdir(config: TrainConfig) -> Path:
@@ -75,19 +75,30 @@ def accepted_paths(saved: dict[str, Any], new: dict[str, Any]) -> dict[str, str]
   return out
 
 
-def prepare_workdir(workdir: Path, config_json: dict[str, Any], resume: bool,
-                    overwrite: bool) -> tuple[bool, dict[str, Any]]:
-  """Checks the workdir against the run (every process, before any writes), then clears it
-  for --overwrite (the main process); returns (whether there is a checkpoint to resume, the
-  config.json to write)."""
-  cfg_path = workdir / CONFIG_FILE
+def has_checkpoints(workdir: Path) -> bool:
+  """Whether workdir/checkpoints holds a step folder (damaged or not)."""
   ckpt_dir = workdir / CHECKPOINT_DIR
-  has_ckpt = ckpt_dir.is_dir() and any(p.name.isdigit() for p in ckpt_dir.iterdir())
-  if resume and has_ckpt and not cfg_path.exists() and not overwrite:
-    # Without the run's config a checkpoint would be loaded into whatever the flags say.
+  return ckpt_dir.is_dir() and any(p.name.isdigit() for p in ckpt_dir.iterdir())
+
+
+def check_config_kept(workdir: Path) -> None:
+  """SljaxError when workdir has checkpoints but no config.json: without the run's settings a
+  checkpoint would be loaded into whatever the flags say (the one wording of this refusal)."""
+  if has_checkpoints(workdir) and not (workdir / CONFIG_FILE).exists():
     raise SljaxError(f"{workdir}: has checkpoints but no {CONFIG_FILE}, so the run cannot be "
                      f"resumed (its settings are unknown); put its {CONFIG_FILE} back, or pass "
                      "--overwrite to start again")
+
+
+def prepare_workdir(workdir: Path, config_json: dict[str, Any], resume: bool,
+                    overwrite: bool) -> tuple[bool, dict[str, Any]]:
+  """Checks the workdir against the run (every process, before any writes; nothing is
+  deleted here: --overwrite clears the old run with clear_run once every check has passed);
+  returns (whether there is a checkpoint to resume, the config.json to write)."""
+  cfg_path = workdir / CONFIG_FILE
+  has_ckpt = has_checkpoints(workdir)
+  if resume and not overwrite:
+    check_config_kept(workdir)
   if cfg_path.exists() and not overwrite:
     saved = read_config(workdir)
     paths = accepted_paths(saved, config_json)
@@ -106,14 +117,17 @@ def prepare_workdir(workdir: Path, config_json: dict[str, Any], resume: bool,
       raise SljaxError(f"{workdir}: holds this run already; pass --resume to continue it or "
                        "--overwrite to start again")
   sync("sljax-workdir-checked")
-  if overwrite:
-    if jax.process_index() == 0:
-      shutil.rmtree(ckpt_dir, ignore_errors=True)
-      for name in (METRICS_FILE, EPOCHS_FILE, CONFIG_FILE):
-        (workdir / name).unlink(missing_ok=True)
-    sync("sljax-workdir-cleared")  # no process may list checkpoints while they are deleted
-    has_ckpt = False
-  return has_ckpt and resume, config_json
+  return has_ckpt and resume and not overwrite, config_json
+
+
+def clear_run(workdir: Path) -> None:
+  """--overwrite: deletes the old run's checkpoints, logs and config.json (the main process),
+  called only once the new run has passed its checks, so that a refused run loses nothing."""
+  if jax.process_index() == 0:
+    shutil.rmtree(workdir / CHECKPOINT_DIR, ignore_errors=True)
+    for name in (METRICS_FILE, EPOCHS_FILE, CONFIG_FILE):
+      (workdir / name).unlink(missing_ok=True)
+  sync("sljax-workdir-cleared")  # no process may list checkpoints while they are deleted
 
 
 def write_config(workdir: Path, config_json: dict[str, Any]) -> None:

@@ -148,6 +148,33 @@ def test_refuses_overwrite_then_overwrites(tmp_path):
   assert load_scene(tmp_path / "o", parts={"sl"}).sl0.shape == (H, W, 2)  # stale 002.png gone
 
 
+def test_failed_overwrite_keeps_the_old_scene_files(tmp_path, monkeypatch):
+  """A write that fails part-way through a pattern folder (a full disk: cv2.imwrite returns
+  False on its second plane) leaves the old planes as they were and no temporaries: each file is
+  replaced whole, a pattern sequence all at once or not at all (the other files, rewritten
+  with the same content here, are replaced one by one)."""
+  s = _full_scene()
+  write_scene(tmp_path / "o", s)
+  before = {str(p.relative_to(tmp_path)): p.read_bytes()
+            for p in sorted((tmp_path / "o").rglob("*")) if p.is_file()}
+  s.sl0, s.sl1 = 1.0 - s.sl0[..., :2], 1.0 - s.sl1[..., :2]
+  calls = []
+  real = cv2.imwrite
+
+  def full_disk(path, img, *a):
+    calls.append(path)
+    planes = [c for c in calls if "/sl0/" in c]
+    return False if len(planes) == 2 and "/sl0/" in path else real(path, img, *a)
+
+  monkeypatch.setattr(cv2, "imwrite", full_disk)
+  with pytest.raises(SljaxError, match="could not write image"):
+    write_scene(tmp_path / "o", s, overwrite=True)
+  after = {str(p.relative_to(tmp_path)): p.read_bytes()
+           for p in sorted((tmp_path / "o").rglob("*")) if p.is_file()}
+  assert after == before  # the names include any leftover temporary
+  assert len([c for c in calls if "/sl0/" in c]) == 2
+
+
 def test_parts_subset(tmp_path):
   write_scene(tmp_path / "o", _full_scene())
   r = load_scene(tmp_path / "o", parts={"disp"})

@@ -5,6 +5,7 @@ import os
 
 import numpy as np
 
+from sljax import files
 from sljax.errors import SljaxError
 
 
@@ -117,8 +118,7 @@ def write_calib(path: str | os.PathLike, calib: Calib) -> None:
     lines.append(f"vmin={_format_number(calib.vmin)}")
   if calib.vmax is not None:
     lines.append(f"vmax={_format_number(calib.vmax)}")
-  with open(os.fspath(path), "w", encoding="utf-8") as f:
-    f.write("\n".join(lines) + "\n")
+  files.write_text(path, "\n".join(lines) + "\n")
 
 
 def depth_from_disparity(disp: np.ndarray, calib: Calib) -> np.ndarray:

@@ -10,6 +10,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from sljax import files
 from sljax.data.calib import Calib, read_calib, write_calib
 from sljax.data.pfm import read_pfm, write_pfm
 from sljax.errors import SljaxError
@@ -118,8 +119,9 @@ def write_image(path: str | os.PathLike, image: np.ndarray, bit_depth: int = 8) 
   q = q.astype(np.uint8 if bit_depth == 8 else np.uint16)
   if q.ndim == 3:
     q = np.ascontiguousarray(q[..., ::-1])  # RGB -> BGR for OpenCV
-  if not cv2.imwrite(path, q):
-    raise SljaxError(f"{path}: could not write image")
+  with files.replacing(path) as (tmp,):  # a full disk keeps the earlier file, never half of one
+    if not cv2.imwrite(os.fspath(tmp), q):
+      raise SljaxError(f"{path}: could not write image")
 
 
 def patterns_to_png(patterns: np.ndarray) -> np.ndarray:
@@ -194,12 +196,15 @@ def write_patterns(folder: str | os.PathLike, patterns: np.ndarray,
   if existing and not overwrite:
     raise SljaxError(f"{existing[0]}: exists (use --overwrite / overwrite=True to replace it)")
   folder.mkdir(parents=True, exist_ok=True)
-  for old in existing:  # a shorter sequence must not leave stale planes behind
-    old.unlink()
   png = patterns_to_png(p)
-  for k in range(png.shape[2]):
-    if not cv2.imwrite(os.fspath(folder / f"{k:03d}.png"), png[..., k]):
-      raise SljaxError(f"{folder / f'{k:03d}.png'}: could not write image")
+  paths = [folder / f"{k:03d}.png" for k in range(png.shape[2])]
+  # All planes or none: the old sequence is replaced only once every new plane is written.
+  with files.replacing(*paths) as tmps:
+    for k, tmp in enumerate(tmps):
+      if not cv2.imwrite(os.fspath(tmp), png[..., k]):
+        raise SljaxError(f"{paths[k]}: could not write image")
+  for old in set(existing) - set(paths):  # a shorter sequence must not leave stale planes
+    old.unlink()
 
 
 def read_raw(folder: str | os.PathLike) -> dict[str, np.ndarray]:
@@ -232,10 +237,11 @@ def write_raw(folder: str | os.PathLike, raw: dict[str, np.ndarray], bit_depth: 
   if existing and not overwrite:
     raise SljaxError(f"{existing[0]}: exists (use --overwrite / overwrite=True to replace it)")
   folder.mkdir(parents=True, exist_ok=True)
-  for old in existing:
+  paths = [folder / f"{key}.png" for key in raw]
+  for path, img in zip(paths, raw.values()):  # each written whole; stale captures go last
+    write_image(path, img, bit_depth)
+  for old in set(existing) - set(paths):
     old.unlink()
-  for key, img in raw.items():
-    write_image(folder / f"{key}.png", img, bit_depth)
 
 
 def present_parts(path: str | os.PathLike) -> dict[str, list[str]]:
@@ -401,6 +407,5 @@ def write_scene(path: str | os.PathLike, scene: Scene, overwrite: bool = False,
   if scene.calib is not None:
     write_calib(scene_dir / "calib.txt", scene.calib)
   if scene.meta:
-    with open(scene_dir / "meta.json", "w", encoding="utf-8") as f:
-      json.dump(scene.meta, f, indent=2, sort_keys=True, default=_json_default)
-      f.write("\n")
+    files.write_text(scene_dir / "meta.json", json.dumps(
+        scene.meta, indent=2, sort_keys=True, default=_json_default) + "\n")

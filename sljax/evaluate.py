@@ -50,11 +50,7 @@ NO_GT_NOTE = "no scene has ground-truth disparity (disp0.pfm): no metrics could 
 
 def check_out_dir(out: str | os.PathLike, overwrite: bool) -> Path:
   """Creates the output folder; refuses a non-empty one unless overwrite."""
-  out = Path(out)
-  if out.exists() and not out.is_dir():
-    raise SljaxError(f"--out {out}: exists and is not a folder")
-  if out.is_dir() and any(out.iterdir()) and not overwrite:
-    raise SljaxError(f"--out {out}: folder is not empty (pass --overwrite to write into it)")
+  out = files.check_output_folder(out, overwrite, must_be_empty=True)
   out.mkdir(parents=True, exist_ok=True)
   return out
 

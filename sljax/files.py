@@ -8,6 +8,7 @@ hidden temporary file (.NAME.tmpPID.EXT) beside the output.
 
 import contextlib
 import os
+import re
 import zipfile
 import zlib
 from pathlib import Path
@@ -16,6 +17,14 @@ from typing import Iterator
 import numpy as np
 
 from sljax.errors import SljaxError
+
+
+_TEMPORARY = re.compile(r"^\..+\.tmp\d+(\.[^.]*)?$")
+
+
+def is_temporary(path: str | os.PathLike) -> bool:
+  """Whether path is a temporary of temp_path (a leftover of a killed write)."""
+  return bool(_TEMPORARY.match(Path(path).name))
 
 
 def temp_path(path: str | os.PathLike) -> Path:
@@ -64,6 +73,20 @@ def refuse_existing(paths, overwrite: bool) -> None:
       raise SljaxError(f"{path}: exists (pass --overwrite to replace it)")
 
 
+def check_output_folder(out: str | os.PathLike, overwrite: bool, label: str = "--out",
+                        must_be_empty: bool = False) -> Path:
+  """The output folder (not created here); SljaxError "LABEL OUT: ..." for a file in its place
+  or, with must_be_empty, a folder holding anything but leftovers of killed writes unless
+  overwrite."""
+  out = Path(out)
+  if out.exists() and not out.is_dir():
+    raise SljaxError(f"{label} {out}: exists and is not a folder")
+  if must_be_empty and not overwrite and out.is_dir() and any(
+      not is_temporary(p) for p in out.iterdir()):
+    raise SljaxError(f"{label} {out}: folder is not empty (pass --overwrite to write into it)")
+  return out
+
+
 def _npz_problem(head: bytes) -> str | None:
   """Why a file that starts with head is no .npz archive (None: it looks like one)."""
   if not head:
@@ -78,15 +101,32 @@ def _npz_problem(head: bytes) -> str | None:
 def read_npz(path: str | os.PathLike, what: str) -> dict[str, np.ndarray]:
   """The arrays of an .npz file; SljaxError "PATH: not an .npz archive of WHAT (why)" for an
   empty, truncated or foreign file (numpy raises EOFError, BadZipFile or a misleading
-  "pickled data" ValueError for these)."""
+  "pickled data" ValueError for these), and one saying so for an array of Python objects."""
   path = Path(path)
   with open(path, "rb") as f:
     problem = _npz_problem(f.read(6))
+  key = None
   try:
     if problem is None:
       with np.load(path, allow_pickle=False) as z:
-        return {k: np.asarray(z[k]) for k in z.files}
-  except (ValueError, EOFError, zipfile.BadZipFile, zlib.error) as e:
-    damaged = "" if isinstance(e, ValueError) else "damaged or truncated: "
-    problem = f"{damaged}{type(e).__name__}: {(str(e).splitlines() or [''])[0][:200]}"
-  raise SljaxError(f"{path}: not an .npz archive of {what} ({problem})")
+        out = {}
+        for key in z.files:
+          out[key] = np.asarray(z[key])
+        return out
+  except ValueError as e:
+    if not str(e).startswith("Object arrays"):
+      raise _not_npz(path, what, f"ValueError: {_first_line(e)}") from None
+    # A readable archive, but an array of Python objects: loading it would run pickled code.
+    raise SljaxError(f"{path}: array {key!r} holds Python objects (dtype object), which are not "
+                     f"loaded (unpickling can run code); save {what} as numeric arrays") from None
+  except (EOFError, zipfile.BadZipFile, zlib.error) as e:
+    problem = f"damaged or truncated: {type(e).__name__}: {_first_line(e)}"
+  raise _not_npz(path, what, problem)
+
+
+def _first_line(e: Exception) -> str:
+  return (str(e).splitlines() or [""])[0][:200]
+
+
+def _not_npz(path: Path, what: str, problem: str) -> SljaxError:
+  return SljaxError(f"{path}: not an .npz archive of {what} ({problem})")

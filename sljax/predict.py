@@ -125,8 +125,7 @@ def output_dir(out: Path, pair: Pair) -> Path:
 
 def check_outputs(out: Path, pairs: list[Pair], overwrite: bool) -> None:
   """Refuses (one line) when any output file of any pair exists and overwrite is off."""
-  if out.exists() and not out.is_dir():
-    raise SljaxError(f"--out {out}: exists and is not a folder")
+  files.check_output_folder(out, overwrite)
   if not overwrite:
     files.refuse_existing([output_dir(out, p) / f for p in pairs for f in OUTPUT_FILES], False)
 

@@ -6,6 +6,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from sljax import files
 from sljax.data.scene import write_scene
 from sljax.data.synthetic import SynthConfig, render_scene
 from sljax.errors import require
@@ -38,15 +39,13 @@ def run(args: argparse.Namespace) -> int:
   """Renders and writes the scenes with a progress bar."""
   out = Path(args.out)
   require(args.n >= 1, f"--n must be >= 1, got {args.n}")
-  require(not out.exists() or out.is_dir(), f"{out}: exists and is not a folder")
-  require(args.overwrite or not out.exists() or not any(out.iterdir()),
-          f"{out}: folder is not empty (use --overwrite)")
+  files.check_output_folder(out, args.overwrite, label="OUT", must_be_empty=True)
   cfg = SynthConfig(size=args.size, domain=args.domain, t=args.patterns).resolved()
   out.mkdir(parents=True, exist_ok=True)
   info = {"name": out.name or "synthetic", "code": cfg.code, "patterns": cfg.t,
           "generator": {"seed": args.seed, "n": args.n, "domain": cfg.domain, "size": cfg.size,
                         "raw": bool(args.raw)}}
-  (out / "dataset.json").write_text(json.dumps(info, indent=2) + "\n")
+  files.write_text(out / "dataset.json", json.dumps(info, indent=2) + "\n")
   for i in tqdm(range(args.n), desc="make-data", unit="scene"):
     scene = render_scene(i, args.seed, cfg, raw=args.raw)
     write_scene(out / scene.name, scene, overwrite=args.overwrite)

@@ -67,7 +67,7 @@ def run(args) -> int:
   require(args.max_disp is None or args.max_disp >= 0,
           f"--max-disp must be >= 0, got {args.max_disp}")
   out = Path(args.out)
-  require(not out.exists() or out.is_dir(), f"--out {out}: exists and is not a folder")
+  files.check_output_folder(out, args.overwrite)
   files.refuse_existing([out / n for n in (METRICS_JSON, HIST_PNG, MAPS_PNG)], args.overwrite)
   pred = _load_pred(Path(args.pred))
   parts = {"disp", "mask"} if args.mask else {"disp"}

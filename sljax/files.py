@@ -87,6 +87,16 @@ def check_output_folder(out: str | os.PathLike, overwrite: bool, label: str = "-
   return out
 
 
+def require_folder(path: str | os.PathLike, what: str) -> Path:
+  """path as a Path; SljaxError "PATH: is a file, not a WHAT" or "PATH: WHAT does not exist"
+  (a file named by mistake is not "missing")."""
+  path = Path(path)
+  if not path.is_dir():
+    raise SljaxError(f"{path}: " + (f"is a file, not a {what}" if path.exists()
+                                    else f"{what} does not exist"))
+  return path
+
+
 def _npz_problem(head: bytes) -> str | None:
   """Why a file that starts with head is no .npz archive (None: it looks like one)."""
   if not head:

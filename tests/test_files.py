@@ -83,3 +83,12 @@ def test_read_npz_reads_arrays_and_names_each_problem(tmp_path):
   assert str(err.value) == (
       f"{tmp_path / 'objects.npz'}: array 'meta' holds Python objects (dtype object), which are "
       "not loaded (unpickling can run code); save predictions as numeric arrays")
+
+
+def test_require_folder_tells_a_file_from_a_missing_folder(tmp_path):
+  (tmp_path / "f").write_text("x")
+  assert files.require_folder(tmp_path, "dataset folder") == tmp_path
+  with pytest.raises(SljaxError, match=f"^{tmp_path / 'f'}: is a file, not a keyframe folder$"):
+    files.require_folder(tmp_path / "f", "keyframe folder")
+  with pytest.raises(SljaxError, match=f"^{tmp_path / 'g'}: dataset folder does not exist$"):
+    files.require_folder(tmp_path / "g", "dataset folder")

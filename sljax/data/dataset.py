@@ -14,6 +14,7 @@ from typing import Any, Protocol
 import cv2
 import numpy as np
 
+from sljax import files
 from sljax.data.scene import Scene, load_scene, read_json_object, to_gray
 from sljax.errors import SljaxError
 from sljax.sizes import as_size
@@ -43,10 +44,7 @@ class Source(Protocol):
 
 def find_scenes(root: str | os.PathLike) -> list[Path]:
   """Every folder at or below root that holds im0.png, sorted by relative path."""
-  root = Path(root)
-  if not root.is_dir():  # a file named by mistake is not "missing"
-    raise SljaxError(f"{root}: " + ("is a file, not a dataset folder" if root.exists()
-                                    else "dataset folder does not exist"))
+  root = files.require_folder(root, "dataset folder")
   found = []
   for dirpath, dirnames, filenames in os.walk(root):
     dirnames[:] = sorted(d for d in dirnames if not d.startswith("."))

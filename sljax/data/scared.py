@@ -30,6 +30,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from sljax import files
 from sljax.data.calib import Calib
 from sljax.data.pfm import write_pfm
 from sljax.data.scene import Scene, image_to_float, write_scene
@@ -162,11 +163,8 @@ def rectified_disparity(xyz: np.ndarray, r1: np.ndarray, p1: np.ndarray, baselin
 def import_scared(keyframe_dir: str | os.PathLike, out_dir: str | os.PathLike,
                   overwrite: bool = False) -> Path:
   """Converts one SCARED keyframe folder into a rectified scene folder; returns out_dir."""
-  kf = Path(keyframe_dir)
+  kf = files.require_folder(keyframe_dir, "keyframe folder")
   out = Path(out_dir)
-  if not kf.is_dir():
-    raise SljaxError(f"{kf}: " + ("is a file, not a keyframe folder" if kf.exists()
-                                  else "keyframe folder does not exist"))
   left, right = _read_view(kf / LEFT), _read_view(kf / RIGHT)
   h, w = left.shape[:2]
   if right.shape[:2] != (h, w):

@@ -38,6 +38,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from sljax import files
 from sljax.data.dataset import FolderSource
 from sljax.errors import SljaxError, require
 from sljax.losses.weighting import STRATEGIES
@@ -355,9 +356,8 @@ def _check_args(name: str, scale: str, seeds: int, data: str | None,
           "needs its own test groups kept out of training, which the v1 plans' held-out split "
           "does not do (use a v1 plan, or score your data with table3-v2's --eval-data)")
   for folder in (data, *eval_data):
-    require(folder is None or Path(folder).is_dir(), f"{folder}: " + (
-        "is a file, not a dataset folder" if folder and Path(folder).exists()
-        else "dataset folder does not exist"))
+    if folder is not None:
+      files.require_folder(folder, "dataset folder")
 
 
 def build_plan(name: str, scale: str = "cpu", seeds: int = 3, data: str | None = None,

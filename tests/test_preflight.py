@@ -2,6 +2,7 @@
 structure and CRCs, PFM headers and sizes, calib.txt, shapes, pattern counts), cached by size
 and mtime outside the dataset, and `sljax info --check`."""
 
+import json
 import zlib
 
 import cv2
@@ -131,6 +132,21 @@ def test_bad_file_is_named(tmp_path, damage, where, problem):
   # Parts a run does not read are not checked (a run without disparity targets).
   if where.endswith("disp0.pfm"):
     preflight.check(src, [(range(8), {"im", "sl"})], progress=False)
+
+
+def test_scenes_disagreeing_with_dataset_json_are_named(tmp_path):
+  """dataset.json's "patterns" sizes the experiment plans' networks: scenes holding another
+  count are caught before training, even when they all agree with each other."""
+  root = _dataset(tmp_path / "data", n=3)
+  t = FolderSource(root)[0].sl0.shape[-1]
+  (root / "dataset.json").write_text(json.dumps({"patterns": t + 1}))
+  with pytest.raises(SljaxError) as info:
+    preflight.check(FolderSource(root), [(range(3), {"im", "sl"})], progress=False)
+  assert str(info.value) == (f"{root / 's0' / 'sl0'}: holds {t} patterns, "
+                             f"{root / 'dataset.json'} declares {t + 1} (and 2 more bad "
+                             "scene(s)); checked before training, nothing was run")
+  (root / "dataset.json").write_text(json.dumps({"patterns": t}))
+  preflight.check(FolderSource(root), [(range(3), {"im", "sl"})], progress=False)
 
 
 def test_cache_skips_unchanged_files_and_never_writes_the_dataset(tmp_path, cache_dir,

@@ -312,12 +312,17 @@ def scan(source, jobs: Sequence[tuple[Iterable[int], Iterable[str]]], *,
   if use_cache and todo:
     cache.update({key(i): r for i, r in results.items()})
     _save_cache(path, root, cache)
-  # Every scene must hold as many patterns as the first (the network is built for them).
+  # Every scene must hold as many patterns as dataset.json declares, else as the first (the
+  # network is built for them; the experiment plans size it by dataset.json).
   counted = [(i, r["t"]) for i, r in sorted(results.items()) if r.get("t") is not None]
+  declared = getattr(source, "num_patterns", None)
+  expected, whose = ((declared, f"{root / 'dataset.json'} declares") if declared else
+                     (counted[0][1], f"scene {source.name(counted[0][0])} holds") if counted
+                     else (None, ""))
   for i, t in counted:
-    if t != counted[0][1]:
-      problems.setdefault(i, f"{source.paths[i] / 'sl0'}: holds {t} patterns, scene "
-                             f"{source.name(counted[0][0])} holds {counted[0][1]}")
+    if t != expected:
+      problems.setdefault(i, f"{source.paths[i] / 'sl0'}: holds {t} patterns, {whose} "
+                             f"{expected}")
   return ([problems[i] for i in sorted(problems)],
           {"scenes": len(wanted), "cached": len(wanted) - len(todo)})
 

@@ -59,8 +59,8 @@ def _load(source, i: int):
   """Scene i without raw captures (not needed here) when the source is a folder."""
   paths = getattr(source, "paths", None)
   if paths is not None and hasattr(source, "get"):
-    parts = {p for p, files in present_parts(paths[i]).items()
-             if p != "raw" and (p == "im" or _LEFT_FILES & set(files))}
+    parts = {p for p, present in present_parts(paths[i]).items()
+             if p != "raw" and (p == "im" or _LEFT_FILES & set(present))}
     return source.get(i, parts=parts | {"im"})
   return source[i]
 

@@ -161,16 +161,17 @@ def read_patterns(folder: str | os.PathLike) -> np.ndarray:
   folder = Path(folder)
   if not folder.is_dir():
     raise SljaxError(f"{folder}: missing pattern folder")
-  files = _numbered_files(folder, _PATTERN_FILE)
-  if not files:
+  planes_found = _numbered_files(folder, _PATTERN_FILE)
+  if not planes_found:
     raise SljaxError(f"{folder}: no pattern images 000.png, 001.png, ...")
-  numbers = [int(_PATTERN_FILE.match(p.name).group(1)) for p in files]
-  if numbers != list(range(len(files))):
+  numbers = [int(_PATTERN_FILE.match(p.name).group(1)) for p in planes_found]
+  if numbers != list(range(len(planes_found))):
     missing = sorted(set(range(max(numbers) + 1)) - set(numbers))
-    raise SljaxError(f"{folder}: pattern images are not numbered 000..{len(files) - 1:03d} "
+    raise SljaxError(f"{folder}: pattern images are not numbered "
+                     f"000..{len(planes_found) - 1:03d} "
                      f"(missing {', '.join(f'{m:03d}.png' for m in missing[:5])})")
   planes = []
-  for p in files:
+  for p in planes_found:
     v = cv2.imread(os.fspath(p), cv2.IMREAD_UNCHANGED)
     if v is None:
       raise SljaxError(f"{p}: not a readable image")
@@ -180,7 +181,7 @@ def read_patterns(folder: str | os.PathLike) -> np.ndarray:
       v = v[..., 0]
     if planes and v.shape != planes[0].shape:
       raise SljaxError(f"{p}: size {v.shape[1]}x{v.shape[0]} differs from "
-                       f"{files[0].name} ({planes[0].shape[1]}x{planes[0].shape[0]})")
+                       f"{planes_found[0].name} ({planes[0].shape[1]}x{planes[0].shape[0]})")
     planes.append(v)
   return patterns_from_png(np.stack(planes, axis=-1))
 
@@ -212,11 +213,11 @@ def read_raw(folder: str | os.PathLike) -> dict[str, np.ndarray]:
   folder = Path(folder)
   if not folder.is_dir():
     raise SljaxError(f"{folder}: missing raw capture folder")
-  files = _numbered_files(folder, _RAW_FILE)
-  if not files:
+  captures = _numbered_files(folder, _RAW_FILE)
+  if not captures:
     raise SljaxError(f"{folder}: no raw captures (white.png, black.png, p000.png, ...)")
   out: dict[str, np.ndarray] = {}
-  for p in files:
+  for p in captures:
     img = read_image(p, gray=True)[..., 0]
     first = next(iter(out.items()), None)
     if first is not None and img.shape != first[1].shape:
@@ -252,8 +253,8 @@ def present_parts(path: str | os.PathLike) -> dict[str, list[str]]:
       "sl": ["sl0", "sl1"], "raw": ["raw0", "raw1"], "calib": ["calib.txt"], "meta": ["meta.json"],
   }
   out = {}
-  for part, files in names.items():
-    found = [f for f in files if (path / f).exists()]
+  for part, candidates in names.items():
+    found = [f for f in candidates if (path / f).exists()]
     if found:
       out[part] = found
   return out

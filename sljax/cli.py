@@ -7,10 +7,9 @@ needs at its top.
 
 import argparse
 import importlib
-import os
 import sys
 
-from sljax.errors import SljaxError, describe_os_error
+from sljax.errors import run_command
 from sljax.quiet import quiet_libraries
 
 # subcommand -> (module in sljax.commands, one line for `sljax --help`)
@@ -59,21 +58,9 @@ def main(argv: list[str] | None = None) -> int:
   # Imported here, at the command-line edge, so that `sljax --help` does not import jax.
   from sljax.cache import enable_compile_cache  # pylint: disable=import-outside-toplevel
   enable_compile_cache()
-  try:
-    result = args.func(args)
-  except SljaxError as e:
-    print(f"sljax {args.command}: error: {e}", file=sys.stderr)
-    return 2
-  except BrokenPipeError:
-    # `sljax info DATA | head`: the reader went away; stop quietly like other Unix tools.
-    os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-    return 0
-  except KeyboardInterrupt:
-    print(f"sljax {args.command}: interrupted", file=sys.stderr)
-    return 130
-  except OSError as e:  # a full or read-only disk, a file where a folder must be
-    print(f"sljax {args.command}: error: {describe_os_error(e)}", file=sys.stderr)
-    return 2
+  code, result = run_command(f"sljax {args.command}", lambda: args.func(args))
+  if code:
+    return code
   return int(result or 0)
 
 

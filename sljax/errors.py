@@ -1,5 +1,10 @@
 """User-facing errors: one clear line, no traceback from the command line."""
 
+import os
+import sys
+from collections.abc import Callable
+from typing import Any
+
 
 class SljaxError(Exception):
   """Bad input or configuration; the message names the file or option and the problem."""
@@ -19,3 +24,25 @@ def describe_os_error(e: OSError) -> str:
     return reason
   where = str(e.filename) + (f" -> {e.filename2}" if e.filename2 is not None else "")
   return f"{where}: {reason}"
+
+
+def run_command(prog: str, fn: Callable[[], Any],
+                interrupted_note: Callable[[], str] = lambda: "") -> tuple[int, Any]:
+  """(exit code, fn()'s result) for a command-line entry point (train.py and every `sljax`
+  command): SljaxError or a failed file operation -> "PROG: error: ..." on stderr and 2;
+  Ctrl-C -> "PROG: interrupted" + interrupted_note() and 130; a reader that went away
+  (`sljax info DATA | head`) -> 0 quietly, as other Unix tools."""
+  try:
+    return 0, fn()
+  except SljaxError as e:
+    print(f"{prog}: error: {e}", file=sys.stderr)
+    return 2, None
+  except BrokenPipeError:
+    os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+    return 0, None
+  except KeyboardInterrupt:
+    print(f"{prog}: interrupted{interrupted_note()}", file=sys.stderr)
+    return 130, None
+  except OSError as e:  # a full or read-only disk, a file where a folder must be
+    print(f"{prog}: error: {describe_os_error(e)}", file=sys.stderr)
+    return 2, None

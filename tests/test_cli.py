@@ -4,6 +4,7 @@ import sys
 import pytest
 
 from sljax import cli
+from sljax.errors import SljaxError, run_command
 
 
 def _subcommands():
@@ -52,3 +53,33 @@ def test_describe_os_error_names_both_paths():
   e = OSError(28, "No space left on device", "/disk/a.tmp", None, "/disk/a")
   assert describe_os_error(e) == "/disk/a.tmp -> /disk/a: No space left on device"
   assert describe_os_error(OSError("bare")) == "bare"
+
+
+def _raise(e):
+  raise e
+
+
+@pytest.mark.parametrize("exc, code, line", [
+    (None, 0, ""),
+    (SljaxError("data: bad"), 2, "prog: error: data: bad"),
+    (OSError(30, "Read-only file system", "/ro/x"), 2, "prog: error: /ro/x: Read-only file system"),
+    (KeyboardInterrupt(), 130, "prog: interrupted (note)"),
+])
+def test_run_command_turns_each_failure_into_one_line_and_a_code(exc, code, line, capsys):
+  """The one mapping from failures to exit codes that train.py and every sljax command use."""
+  got = run_command("prog", (lambda: 7) if exc is None else (lambda: _raise(exc)),
+                    lambda: " (note)")
+  assert got == ((0, 7) if exc is None else (code, None))
+  err = capsys.readouterr().err
+  assert err == (line + "\n" if line else "")
+
+
+def test_a_closed_pipe_ends_quietly():
+  """`sljax info DATA | head -1`: the reader goes away; exit 0 and nothing on stderr."""
+  code = ("import sys; from sljax.errors import run_command\n"
+          "def f():\n"
+          "  for i in range(100000): print('line', i)\n"
+          "sys.exit(run_command('prog', f)[0])\n")
+  p = subprocess.run(f"set -o pipefail; {sys.executable} -c \"{code}\" | head -1", shell=True,
+                     executable="/bin/bash", capture_output=True, text=True)
+  assert (p.returncode, p.stdout, p.stderr) == (0, "line 0\n", "")

@@ -9,7 +9,7 @@ from pathlib import Path
 import jax
 
 from sljax.cache import enable_compile_cache
-from sljax.errors import SljaxError, describe_os_error
+from sljax.errors import SljaxError, run_command
 from sljax.quiet import quiet_libraries
 from sljax.train import checkpoint as ckpt
 from sljax.train.config import FIELDS, PRESETS, TrainConfig, config_from_json, preset_config
@@ -134,9 +134,10 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def run(args: argparse.Namespace, prog: str = "train.py") -> int:
-  """Trains as the parsed arguments say (train.py and `sljax train`); SljaxError -> one line
-  on stderr naming `prog`, exit code 2."""
-  try:
+  """Trains as the parsed arguments say (train.py and `sljax train`); errors end with one line
+  on stderr naming `prog` (errors.run_command)."""
+
+  def start():
     if args.distributed:
       # Cross-process collectives on CPU need gloo (GPUs and TPUs bring their own).
       jax.config.update("jax_cpu_collectives_implementation", "gloo")
@@ -144,19 +145,14 @@ def run(args: argparse.Namespace, prog: str = "train.py") -> int:
     quiet_libraries()
     enable_compile_cache()
     config, note, workdir = resolve(args, jax.default_backend())
-    result = train(config, workdir, resume=args.resume, overwrite=args.overwrite,
-                   stop_after=args.stop_after, preset_note=note, profile_dir=args.profile,
-                   log=lambda line: print(line, flush=True),
-                   progress=False if args.no_progress else None)
-  except SljaxError as e:
-    print(f"{prog}: error: {e}", file=sys.stderr)
-    return 2
-  except KeyboardInterrupt:
-    print(f"{prog}: interrupted{_resume_hint(args)}", file=sys.stderr)
-    return 130
-  except OSError as e:  # a full or read-only disk, a file where a folder must be
-    print(f"{prog}: error: {describe_os_error(e)}", file=sys.stderr)
-    return 2
+    return train(config, workdir, resume=args.resume, overwrite=args.overwrite,
+                 stop_after=args.stop_after, preset_note=note, profile_dir=args.profile,
+                 log=lambda line: print(line, flush=True),
+                 progress=False if args.no_progress else None)
+
+  code, result = run_command(prog, start, lambda: _resume_hint(args))
+  if code or result is None:
+    return code
   best = "n/a" if result.best_val is None else f"{result.best_val:.4f}"
   last = "n/a" if result.last_val is None else f"{result.last_val:.4f}"
   print(f"done: step {result.step}, {result.epochs_done} epochs; val MAE last {last}, best "

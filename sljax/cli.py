@@ -58,7 +58,8 @@ def main(argv: list[str] | None = None) -> int:
   # Imported here, at the command-line edge, so that `sljax --help` does not import jax.
   from sljax.cache import enable_compile_cache  # pylint: disable=import-outside-toplevel
   enable_compile_cache()
-  code, result = run_command(f"sljax {args.command}", lambda: args.func(args))
+  code, result = run_command(f"sljax {args.command}", lambda: args.func(args),
+                             quiet_broken_pipe=True)
   if code:
     return code
   return int(result or 0)

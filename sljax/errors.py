@@ -27,18 +27,23 @@ def describe_os_error(e: OSError) -> str:
 
 
 def run_command(prog: str, fn: Callable[[], Any],
-                interrupted_note: Callable[[], str] = lambda: "") -> tuple[int, Any]:
+                interrupted_note: Callable[[], str] = lambda: "",
+                quiet_broken_pipe: bool = False) -> tuple[int, Any]:
   """(exit code, fn()'s result) for a command-line entry point (train.py and every `sljax`
   command): SljaxError or a failed file operation -> "PROG: error: ..." on stderr and 2;
-  Ctrl-C -> "PROG: interrupted" + interrupted_note() and 130; a reader that went away
-  (`sljax info DATA | head`) -> 0 quietly, as other Unix tools."""
+  Ctrl-C -> "PROG: interrupted" + interrupted_note() and 130. quiet_broken_pipe: a reader that
+  went away (`sljax info DATA | head`) ends the command quietly with 0, as other Unix tools
+  (not for training, where it would pass an unfinished run off as done)."""
   try:
     return 0, fn()
   except SljaxError as e:
     print(f"{prog}: error: {e}", file=sys.stderr)
     return 2, None
-  except BrokenPipeError:
-    os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+  except BrokenPipeError as e:
+    if not quiet_broken_pipe:
+      print(f"{prog}: error: {describe_os_error(e)}", file=sys.stderr)
+      return 2, None
+    _silence_stdout()
     return 0, None
   except KeyboardInterrupt:
     print(f"{prog}: interrupted{interrupted_note()}", file=sys.stderr)
@@ -46,3 +51,15 @@ def run_command(prog: str, fn: Callable[[], Any],
   except OSError as e:  # a full or read-only disk, a file where a folder must be
     print(f"{prog}: error: {describe_os_error(e)}", file=sys.stderr)
     return 2, None
+
+
+def _silence_stdout() -> None:
+  """Points stdout at /dev/null, so that Python's flush at exit does not fail on the closed
+  pipe again (a replaced stdout, as in a notebook, has no descriptor and is left alone)."""
+  try:
+    fd = sys.stdout.fileno()
+  except (AttributeError, OSError, ValueError):  # io.UnsupportedOperation is both of the last
+    return
+  null = os.open(os.devnull, os.O_WRONLY)
+  os.dup2(null, fd)
+  os.close(null)

@@ -14,6 +14,7 @@ import zlib
 from pathlib import Path
 from typing import Iterator
 
+import cv2
 import numpy as np
 
 from sljax.errors import SljaxError
@@ -28,8 +29,8 @@ def is_temporary(path: str | os.PathLike) -> bool:
 
 
 def temp_path(path: str | os.PathLike) -> Path:
-  """A hidden temporary name in path's folder with path's suffix (cv2.imwrite and savefig pick
-  the format by it); the same folder, so that the rename is atomic."""
+  """A hidden temporary name in path's folder with path's suffix (savefig picks the format by
+  it); the same folder, so that the rename is atomic."""
   path = Path(path)
   return path.with_name(f".{path.stem}.tmp{os.getpid()}{path.suffix}")
 
@@ -61,6 +62,28 @@ def write_bytes(path: str | os.PathLike, data: bytes) -> None:
 def write_text(path: str | os.PathLike, text: str) -> None:
   """Writes UTF-8 text to path whole (see `replacing`)."""
   write_bytes(path, text.encode("utf-8"))
+
+
+def encode_png(image: np.ndarray, path: str | os.PathLike) -> bytes:
+  """An 8- or 16-bit image (HxW, or HxWx3 in OpenCV's BGR order) as PNG bytes; SljaxError
+  naming path when OpenCV cannot encode it."""
+  ok, buf = cv2.imencode(".png", image)
+  if not ok:
+    raise SljaxError(f"{path}: could not encode a PNG image of shape {np.shape(image)}")
+  return buf.tobytes()
+
+
+def write_png(path: str | os.PathLike, image: np.ndarray) -> None:
+  """Writes image as a PNG whole. Encoded in memory and written by Python, which reports a
+  failed write or close: cv2.imwrite ignores a failing close and calls a file cut short by a
+  full disk written."""
+  write_bytes(path, encode_png(image, path))
+
+
+def save_figure(fig, path: str | os.PathLike, dpi: int) -> None:
+  """Saves a matplotlib figure whole (the format from path's suffix)."""
+  with replacing(path) as (tmp,):
+    fig.savefig(tmp, dpi=dpi)
 
 
 def refuse_existing(paths, overwrite: bool) -> None:

@@ -21,7 +21,6 @@ import os
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 from tqdm import tqdm
 
@@ -179,9 +178,7 @@ def write_outputs(folder: Path, pair: Pair, left: np.ndarray, out: dict[str, np.
     depth = geometry.depth_mm(disp, pair.calib, max_depth)
     write_pfm(folder / "depth_mm.pfm", depth)
     png = geometry.depth_png16(depth)
-    with files.replacing(folder / "depth_mm.png") as (tmp,):
-      if not cv2.imwrite(os.fspath(tmp), png):
-        raise SljaxError(f"{folder / 'depth_mm.png'}: could not write image")
+    files.write_png(folder / "depth_mm.png", png)
     xyz, rgb = geometry.point_cloud(disp, pair.calib, left, max_depth)
     with files.replacing(folder / "cloud.ply") as (tmp,):
       geometry.write_ply(tmp, xyz, rgb, comment=f"sljax predict {label}: x y z in mm, left "

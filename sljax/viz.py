@@ -74,5 +74,4 @@ def save_panels(path: str | os.PathLike, panels: list[Panel], ncols: int = 4,
   fig.tight_layout()
   path = check_figure_path(path, "picture")
   os.makedirs(path.absolute().parent, exist_ok=True)
-  with files.replacing(path) as (tmp,):  # whole or not at all
-    fig.savefig(tmp, dpi=100)
+  files.save_figure(fig, path, dpi=100)

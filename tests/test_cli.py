@@ -1,3 +1,4 @@
+import io
 import subprocess
 import sys
 
@@ -74,12 +75,24 @@ def test_run_command_turns_each_failure_into_one_line_and_a_code(exc, code, line
   assert err == (line + "\n" if line else "")
 
 
-def test_a_closed_pipe_ends_quietly():
-  """`sljax info DATA | head -1`: the reader goes away; exit 0 and nothing on stderr."""
-  code = ("import sys; from sljax.errors import run_command\n"
-          "def f():\n"
-          "  for i in range(100000): print('line', i)\n"
-          "sys.exit(run_command('prog', f)[0])\n")
-  p = subprocess.run(f"set -o pipefail; {sys.executable} -c \"{code}\" | head -1", shell=True,
-                     executable="/bin/bash", capture_output=True, text=True)
-  assert (p.returncode, p.stdout, p.stderr) == (0, "line 0\n", "")
+@pytest.mark.parametrize("quiet, code, err", [
+    (True, 0, ""),
+    (False, 2, "prog: error: Broken pipe\n"),
+])
+def test_a_closed_pipe(quiet, code, err):
+  """`sljax info DATA | head -1`: the reader goes away; the commands end quietly with 0, but
+  training (quiet off) says so and exits 2, never passing an unfinished run off as done."""
+  script = ("import sys; from sljax.errors import run_command\n"
+            "def f():\n"
+            "  for i in range(100000): print('line', i)\n"
+            f"sys.exit(run_command('prog', f, quiet_broken_pipe={quiet})[0])\n")
+  p = subprocess.run(f"set -o pipefail; {sys.executable} -c \"{script}\" | head -1",
+                     shell=True, executable="/bin/bash", capture_output=True, text=True)
+  assert (p.returncode, p.stdout, p.stderr) == (code, "line 0\n", err)
+
+
+def test_a_closed_pipe_with_a_replaced_stdout(monkeypatch, capsys):
+  """In a notebook stdout has no file descriptor: still no traceback."""
+  monkeypatch.setattr(sys, "stdout", io.StringIO())
+  assert run_command("prog", lambda: _raise(BrokenPipeError()), quiet_broken_pipe=True) == (
+      0, None)

@@ -83,6 +83,17 @@ def test_info_flags_mixed_or_undeclared_pattern_counts(tmp_path, capsys):
   assert "dataset.json declares 6 patterns; the scenes hold 4 (1 scene)" in capsys.readouterr().out
 
 
+def test_info_does_not_count_a_killed_writes_leftover(tmp_path, capsys):
+  """A decode or make-data killed mid-write leaves sl0/.000.tmpPID.png: not a fifth pattern."""
+  from sljax import files
+  write_scene(tmp_path / "a", _scene(0))
+  write_scene(tmp_path / "b", _scene(1))
+  sl0 = tmp_path / "b" / "sl0"
+  files.temp_path(sl0 / "000.png").write_bytes((sl0 / "000.png").read_bytes())
+  assert cli.main(["info", str(tmp_path)]) == 0
+  assert "4 patterns (2 scenes)" in capsys.readouterr().out
+
+
 def test_info_empty_dataset(tmp_path, capsys):
   assert cli.main(["info", str(tmp_path)]) == 2
   err = capsys.readouterr().err

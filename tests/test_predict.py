@@ -278,13 +278,12 @@ def test_full_disk_keeps_the_earlier_file(tmp_path, capsys, monkeypatch, victim)
     raise OSError(errno.ENOSPC, "No space left on device", str(path))
   if victim == "cloud.ply":
     monkeypatch.setattr(geometry, "write_ply", full)
-  elif victim == "disparity.pfm":
-    from pathlib import Path
-    real = Path.write_bytes  # what write_pfm's temporary file is written with
-    monkeypatch.setattr(Path, "write_bytes", lambda path, data: (
-        full if "disparity" in path.name and path.suffix == ".pfm" else real)(path, data))
   else:
-    monkeypatch.setattr(predict.cv2, "imwrite", lambda path, img: full(path))
+    from pathlib import Path
+    real = Path.write_bytes  # what write_pfm's and write_png's temporary files are written with
+    stem, suffix = victim.split(".")
+    monkeypatch.setattr(Path, "write_bytes", lambda path, data: (
+        full if stem in path.name and path.suffix == f".{suffix}" else real)(path, data))
   capsys.readouterr()
   assert cli.main(argv + ["--overwrite"]) == 2
   err = capsys.readouterr().err.strip().splitlines()

@@ -147,6 +147,17 @@ def test_scenes_disagreeing_with_dataset_json_are_named(tmp_path):
                              "scene(s)); checked before training, nothing was run")
   (root / "dataset.json").write_text(json.dumps({"patterns": t}))
   preflight.check(FolderSource(root), [(range(3), {"im", "sl"})], progress=False)
+  # A stray file beside the planes is not a pattern (the loader reads 000.png, 001.png, ...).
+  (root / "dataset.json").unlink()
+  (root / "s0" / "sl0" / "000_old.png").write_bytes((root / "s0" / "sl0" / "000.png").read_bytes())
+  preflight.check(FolderSource(root), [(range(3), {"im", "sl"})], progress=False)
+  # Without dataset.json, the first scene sets the count, and the message says so.
+  for v in ("sl0", "sl1"):
+    (root / "s2" / v / f"{t - 1:03d}.png").unlink()
+  with pytest.raises(SljaxError, match=rf"s2/sl0: holds {t - 1} patterns, scene s0 holds {t};"
+                     ) as info:
+    preflight.check(FolderSource(root), [(range(3), {"im", "sl"})], progress=False)
+  assert "dataset.json" not in str(info.value)
 
 
 def test_cache_skips_unchanged_files_and_never_writes_the_dataset(tmp_path, cache_dir,

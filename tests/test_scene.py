@@ -1,5 +1,8 @@
+import errno
 import json
+import os
 import struct
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -149,30 +152,43 @@ def test_refuses_overwrite_then_overwrites(tmp_path):
 
 
 def test_failed_overwrite_keeps_the_old_scene_files(tmp_path, monkeypatch):
-  """A write that fails part-way through a pattern folder (a full disk: cv2.imwrite returns
-  False on its second plane) leaves the old planes as they were and no temporaries: each file is
-  replaced whole, a pattern sequence all at once or not at all (the other files, rewritten
-  with the same content here, are replaced one by one)."""
+  """A disk that fills part-way through a pattern folder (the second plane's write fails)
+  leaves the old planes as they were and no temporaries: each file is replaced whole, a pattern
+  sequence all at once or not at all (the other files, rewritten with the same content here,
+  are replaced one by one)."""
   s = _full_scene()
   write_scene(tmp_path / "o", s)
   before = {str(p.relative_to(tmp_path)): p.read_bytes()
             for p in sorted((tmp_path / "o").rglob("*")) if p.is_file()}
   s.sl0, s.sl1 = 1.0 - s.sl0[..., :2], 1.0 - s.sl1[..., :2]
-  calls = []
-  real = cv2.imwrite
+  planes = []
+  real = Path.write_bytes
 
-  def full_disk(path, img, *a):
-    calls.append(path)
-    planes = [c for c in calls if "/sl0/" in c]
-    return False if len(planes) == 2 and "/sl0/" in path else real(path, img, *a)
+  def full_disk(path, data):
+    if path.parent.name == "sl0":
+      planes.append(path)
+      if len(planes) == 2:
+        real(path, data[:10])  # what a full disk leaves
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+    return real(path, data)
 
-  monkeypatch.setattr(cv2, "imwrite", full_disk)
-  with pytest.raises(SljaxError, match="could not write image"):
+  monkeypatch.setattr(Path, "write_bytes", full_disk)
+  with pytest.raises(OSError, match="No space left on device") as err:
     write_scene(tmp_path / "o", s, overwrite=True)
+  assert err.value.filename == str(tmp_path / "o" / "sl0" / "001.png")  # the user's file
   after = {str(p.relative_to(tmp_path)): p.read_bytes()
            for p in sorted((tmp_path / "o").rglob("*")) if p.is_file()}
   assert after == before  # the names include any leftover temporary
-  assert len([c for c in calls if "/sl0/" in c]) == 2
+  assert len(planes) == 2
+
+
+def test_images_are_written_by_python_not_cv2_imwrite(tmp_path, monkeypatch):
+  """cv2.imwrite ignores a failing close (a full disk can cut a small PNG short and still be
+  called written): scene images must not go through it."""
+  monkeypatch.setattr(cv2, "imwrite", lambda *a: pytest.fail("cv2.imwrite used"))
+  write_scene(tmp_path / "o", _full_scene())
+  back = load_scene(tmp_path / "o")
+  assert back.sl0.shape == (H, W, 3) and back.mask0 is not None
 
 
 def test_parts_subset(tmp_path):

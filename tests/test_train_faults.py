@@ -165,13 +165,19 @@ def test_resume_refuses_a_missing_workdir_and_a_run_without_config(base, tmp_pat
   before = _digest(wd)
   code, _, err = _run(["--workdir", str(wd), "--resume", "--no-progress"], capsys)
   assert code == 2
-  assert f"{wd}: has checkpoints but no config.json, so the run cannot be resumed" in err
+  assert (f"{wd}: has checkpoints but no config.json, so the run they belong to is unknown; "
+          "put its config.json back (to --resume it), or pass --overwrite") in err
   assert _digest(wd) == before  # no default run started, no epochs.jsonl rows lost
   # The library refuses too (the experiment runner calls train(resume=True)).
   config = loop.TrainConfig(data=str(base[0]), size=(32, 32), maxdisp=16, batch_size=2,
                             max_val=2, ynn="on")
   with pytest.raises(SljaxError, match="has checkpoints but no config.json"):
     loop.train(config, wd, resume=True, log=lambda line: None, progress=False)
+  assert _digest(wd) == before
+  # A new run there is refused too: it would write its config.json beside another run's
+  # checkpoints (and a later --resume would load them into it).
+  code, _, err = _run([*_flags(base[0]), "--workdir", str(wd)], capsys)
+  assert code == 2 and "has checkpoints but no config.json" in err, err
   assert _digest(wd) == before
 
 

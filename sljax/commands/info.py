@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from sljax import files
 from sljax.data import preflight
 from sljax.data.calib import read_calib
 from sljax.data.dataset import FolderSource, split_indices
@@ -60,7 +61,8 @@ def png_header(path: Path) -> tuple[int, int, int, str]:
 
 
 def _count(folder: Path, prefix: str = "") -> int:
-  return sum(1 for p in folder.iterdir() if p.suffix == ".png" and p.name.startswith(prefix))
+  return sum(1 for p in folder.iterdir() if p.suffix == ".png" and p.name.startswith(prefix)
+             and not files.is_temporary(p))  # a killed write's leftover is no pattern
 
 
 def _scene_row(path: Path, problems: list[str], name: str, group: str) -> dict:

@@ -121,8 +121,7 @@ def plot(runs: list[dict[str, Any]], out: str | os.PathLike, title: str = "Valid
   ax.legend()
   fig.tight_layout()
   Path(out).parent.mkdir(parents=True, exist_ok=True)
-  with files.replacing(out) as (tmp,):  # whole or not at all
-    fig.savefig(tmp, dpi=120)
+  files.save_figure(fig, out, dpi=120)
 
 
 def run(args) -> int:

@@ -178,16 +178,16 @@ class _Scene:
     path = self.require(folder)
     if not path.is_dir():
       raise BadFile(folder, "not a folder")
-    files = _numbered_files(path, pattern)
-    if not files:
+    images = _numbered_files(path, pattern)
+    if not images:
       raise BadFile(folder, "no images")
     if pattern is _PATTERN_FILE:
-      numbers = [int(pattern.match(p.name).group(1)) for p in files]
-      if numbers != list(range(len(files))):
-        raise BadFile(folder, f"pattern images are not numbered 000..{len(files) - 1:03d}")
-    for p in files:
+      numbers = [int(pattern.match(p.name).group(1)) for p in images]
+      if numbers != list(range(len(images))):
+        raise BadFile(folder, f"pattern images are not numbered 000..{len(images) - 1:03d}")
+    for p in images:
       self.image(f"{folder}/{p.name}", hw, max_depth)
-    return len(files)
+    return len(images)
 
 
 def check_scene(scene_dir: Path, parts: Iterable[str]) -> dict[str, Any]:
@@ -315,7 +315,7 @@ def scan(source, jobs: Sequence[tuple[Iterable[int], Iterable[str]]], *,
   # Every scene must hold as many patterns as dataset.json declares, else as the first (the
   # network is built for them; the experiment plans size it by dataset.json).
   counted = [(i, r["t"]) for i, r in sorted(results.items()) if r.get("t") is not None]
-  declared = getattr(source, "num_patterns", None)
+  declared = getattr(source, "info", {}).get("patterns")  # not num_patterns: a glob of scene 0
   expected, whose = ((declared, f"{root / 'dataset.json'} declares") if declared else
                      (counted[0][1], f"scene {source.name(counted[0][0])} holds") if counted
                      else (None, ""))

@@ -119,9 +119,7 @@ def write_image(path: str | os.PathLike, image: np.ndarray, bit_depth: int = 8) 
   q = q.astype(np.uint8 if bit_depth == 8 else np.uint16)
   if q.ndim == 3:
     q = np.ascontiguousarray(q[..., ::-1])  # RGB -> BGR for OpenCV
-  with files.replacing(path) as (tmp,):  # a full disk keeps the earlier file, never half of one
-    if not cv2.imwrite(os.fspath(tmp), q):
-      raise SljaxError(f"{path}: could not write image")
+  files.write_png(path, q)  # a full disk keeps the earlier file, never half of one
 
 
 def patterns_to_png(patterns: np.ndarray) -> np.ndarray:
@@ -202,8 +200,7 @@ def write_patterns(folder: str | os.PathLike, patterns: np.ndarray,
   # All planes or none: the old sequence is replaced only once every new plane is written.
   with files.replacing(*paths) as tmps:
     for k, tmp in enumerate(tmps):
-      if not cv2.imwrite(os.fspath(tmp), png[..., k]):
-        raise SljaxError(f"{paths[k]}: could not write image")
+      tmp.write_bytes(files.encode_png(png[..., k], paths[k]))
   for old in set(existing) - set(paths):  # a shorter sequence must not leave stale planes
     old.unlink()
 
@@ -395,8 +392,7 @@ def write_scene(path: str | os.PathLike, scene: Scene, overwrite: bool = False,
     write_pfm(scene_dir / "disp1.pfm", scene.disp1)
   if scene.mask0 is not None:
     m = np.where(np.asarray(scene.mask0).reshape(hw) != 0, 255, 0).astype(np.uint8)
-    if not cv2.imwrite(os.fspath(scene_dir / "mask0.png"), m):
-      raise _fail(scene_dir, "mask0.png", "could not write image")
+    files.write_png(scene_dir / "mask0.png", m)
   if scene.sl0 is not None:
     write_patterns(scene_dir / "sl0", scene.sl0, overwrite=True)
   if scene.sl1 is not None:

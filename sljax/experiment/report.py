@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 from matplotlib.figure import Figure
 
+from sljax import files
 from sljax.evaluate import json_safe
 from sljax.experiment import stats
 from sljax.experiment.claims import ALPHA, PAPER, POWER, claims
@@ -240,7 +241,7 @@ def _figures(plan: Plan, agg: dict[str, Any], fig_dir: Path) -> list[str]:
   fig.suptitle(f"{plan.name}: mean and 95% interval over seeds (dots: seeds)", fontsize=10)
   fig.tight_layout()
   name = f"{plan.name}_bars.png"
-  fig.savefig(fig_dir / name, dpi=110)
+  files.save_figure(fig, fig_dir / name, dpi=110)
   names.append(name)
   with_curves = [g for g in groups if g["curves"]]
   if with_curves:
@@ -264,7 +265,7 @@ def _figures(plan: Plan, agg: dict[str, Any], fig_dir: Path) -> list[str]:
                  fontsize=10)
     fig.tight_layout()
     name = f"{plan.name}_curves.png"
-    fig.savefig(fig_dir / name, dpi=110)
+    files.save_figure(fig, fig_dir / name, dpi=110)
     names.append(name)
   return names
 
@@ -433,6 +434,6 @@ def write_report(out: str | Path) -> Path:
     figs = _figures(plan, agg, out / "figures")
     lines += _plan_markdown(out, plan, agg, cl, figs)
     data[name] = {"args": args, "aggregate": agg, "claims": cl, "figures": figs}
-  (out / "report.md").write_text("\n".join(lines), encoding="utf-8")
-  (out / "report.json").write_text(dumps(json_safe(data)) + "\n", encoding="utf-8")
+  files.write_text(out / "report.md", "\n".join(lines))
+  files.write_text(out / "report.json", dumps(json_safe(data)) + "\n")
   return out / "report.md"

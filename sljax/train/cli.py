@@ -3,7 +3,6 @@ presets, one flag per TrainConfig field, clear errors."""
 
 import argparse
 import dataclasses
-import sys
 from pathlib import Path
 
 import jax

@@ -35,8 +35,10 @@ def model_config(config: TrainConfig, info: DataInfo) -> ModelConfig:
 def load_init(path: str, config: TrainConfig) -> tuple[str, dict[str, Any]]:
   """(source net name, variables) of an --init-from checkpoint/converted PSMNet; a twin's
   checkpoint gives its disparity path to a single-task run."""
-  require(Path(path).exists(), f"--init-from {path}: does not exist")
-  name, _, variables, _ = ckpt.load_for_inference(path)
+  try:
+    name, _, variables, _ = ckpt.load_for_inference(path)
+  except SljaxError as e:  # the loader's line ("PATH: does not exist"), naming the flag
+    raise SljaxError(f"--init-from {e}") from None
   if registry.spec(name).single == config.net:
     variables, name = detach_sl(variables), config.net
   return name, variables
@@ -94,13 +96,13 @@ class Setup:
     return self.steps_per_epoch * self.config.epochs
 
 
-def resolve_ynn(config: TrainConfig, workdir: Path, resume: bool,
+def resolve_ynn(config: TrainConfig, workdir: Path, resume: bool, overwrite: bool,
                 log: Callable[[str], None]) -> TrainConfig:
   """The config with --ynn auto resolved: a resumed run keeps its saved choice (the same
-  programs), a new one takes this CPU's tuned choice (sljax.tune)."""
+  programs), a new one (or one replacing the old run) takes this CPU's tuned choice."""
   if config.ynn != "auto":
     return config
-  if resume and (workdir / ckpt.CONFIG_FILE).exists():
+  if resume and not overwrite and (workdir / ckpt.CONFIG_FILE).is_file():
     return dataclasses.replace(config, ynn=ckpt.read_config(workdir).get("ynn", "on"))
   return dataclasses.replace(config, ynn=tune.choice(log=log).name)
 
@@ -130,7 +132,7 @@ def setup(config: TrainConfig, workdir: Path, resume: bool, overwrite: bool,
           + (f" (--max-val {config.max_val})" if config.max_val is not None else ""))
   steps_per_epoch = len(train_idx) // config.batch_size
   log(announce(config, preset_note, steps_per_epoch, len(train_idx), len(val_idx)))
-  config = resolve_ynn(config, workdir, resume, log)  # after the checks: it may compile
+  config = resolve_ynn(config, workdir, resume, overwrite, log)  # may compile: after checks
   info = check_source(source, config)
   model_cfg = model_config(config, info)
   config_json = dict(config.to_json(), net=config.net, model_kwargs=model_cfg.saved_kwargs,

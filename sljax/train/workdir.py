@@ -82,11 +82,11 @@ def has_checkpoints(workdir: Path) -> bool:
 
 
 def check_config_kept(workdir: Path) -> None:
-  """SljaxError when workdir has checkpoints but no config.json: without the run's settings a
-  checkpoint would be loaded into whatever the flags say (the one wording of this refusal)."""
-  if has_checkpoints(workdir) and not (workdir / CONFIG_FILE).exists():
-    raise SljaxError(f"{workdir}: has checkpoints but no {CONFIG_FILE}, so the run cannot be "
-                     f"resumed (its settings are unknown); put its {CONFIG_FILE} back, or pass "
+  """SljaxError when workdir has checkpoints but no config.json: a resume would load them into
+  whatever the flags say, and a new run would write its own beside them (the one refusal)."""
+  if has_checkpoints(workdir) and not (workdir / CONFIG_FILE).is_file():
+    raise SljaxError(f"{workdir}: has checkpoints but no {CONFIG_FILE}, so the run they belong "
+                     f"to is unknown; put its {CONFIG_FILE} back (to --resume it), or pass "
                      "--overwrite to start again")
 
 
@@ -97,7 +97,7 @@ def prepare_workdir(workdir: Path, config_json: dict[str, Any], resume: bool,
   returns (whether there is a checkpoint to resume, the config.json to write)."""
   cfg_path = workdir / CONFIG_FILE
   has_ckpt = has_checkpoints(workdir)
-  if resume and not overwrite:
+  if not overwrite:
     check_config_kept(workdir)
   if cfg_path.exists() and not overwrite:
     saved = read_config(workdir)
@@ -124,7 +124,8 @@ def clear_run(workdir: Path) -> None:
   """--overwrite: deletes the old run's checkpoints, logs and config.json (the main process),
   called only once the new run has passed its checks, so that a refused run loses nothing."""
   if jax.process_index() == 0:
-    shutil.rmtree(workdir / CHECKPOINT_DIR, ignore_errors=True)
+    if (workdir / CHECKPOINT_DIR).exists():  # a failure here is one line, not a mixed run
+      shutil.rmtree(workdir / CHECKPOINT_DIR)
     for name in (METRICS_FILE, EPOCHS_FILE, CONFIG_FILE):
       (workdir / name).unlink(missing_ok=True)
   sync("sljax-workdir-cleared")  # no process may list checkpoints while they are deleted

@@ -19,6 +19,7 @@ import os
 
 import numpy as np
 
+from sljax import files
 from sljax.data.calib import Calib, depth_from_disparity
 from sljax.errors import SljaxError
 
@@ -27,19 +28,32 @@ PNG16_MAX_MM = 65535
 
 def check_calib_size(calib: Calib, shape: tuple[int, int], where: str) -> None:
   """SljaxError unless calib's width x height is the image size (H, W)."""
+  check_calib(calib, where)
   h, w = shape
   if (calib.width, calib.height) != (w, h):
     raise SljaxError(f"{where}: calibration is for {calib.width}x{calib.height} images, the pair "
                      f"is {w}x{h} (depth would be wrong; give the calib.txt of these images)")
-  if not (np.isfinite(calib.focal) and calib.focal > 0 and np.isfinite(calib.baseline)
-          and calib.baseline > 0):
+
+
+def check_calib(calib: Calib, where: str) -> None:
+  """SljaxError unless calib is a Calib with positive, finite focal lengths and baseline."""
+  if not isinstance(calib, Calib):
+    raise SljaxError(f"{where}: calib must be a sljax.data.calib.Calib (read_calib reads "
+                     f"calib.txt), got {type(calib).__name__}")
+  fy = float(np.asarray(calib.cam0, dtype=np.float64)[1, 1])
+  # A zero or negative f, fy or baseline gives zero, negative or infinite depths, not an error.
+  if not all(np.isfinite(v) and v > 0 for v in (calib.focal, fy, calib.baseline)):
     raise SljaxError(f"{where}: calibration needs a positive focal length and baseline, got "
-                     f"f = {calib.focal:g}, baseline = {calib.baseline:g}")
+                     f"f = {calib.focal:g}, fy = {fy:g}, baseline = {calib.baseline:g}")
 
 
 def depth_mm(disp: np.ndarray, calib: Calib, max_depth: float | None = None) -> np.ndarray:
   """HxW float32 depth in mm; inf where unknown (see the module docstring) or beyond max_depth."""
-  z = depth_from_disparity(disp, calib)
+  d = np.asarray(disp)
+  if d.ndim != 2:
+    raise SljaxError(f"depth: disparity must be HxW, got shape {d.shape}")
+  check_calib_size(calib, d.shape, "depth")
+  z = depth_from_disparity(d, calib)
   if max_depth is not None:
     z = np.where(z <= max_depth, z, np.float32(np.inf)).astype(np.float32)
   return z
@@ -65,6 +79,7 @@ def point_cloud(disp: np.ndarray, calib: Calib, image: np.ndarray | None = None,
   d = np.asarray(disp)
   if d.ndim != 2:
     raise SljaxError(f"point cloud: disparity must be HxW, got shape {d.shape}")
+  check_calib_size(calib, d.shape, "point cloud")
   z = depth_mm(d, calib, max_depth).astype(np.float64)
   known = np.isfinite(z)
   ys, xs = np.nonzero(known)
@@ -75,14 +90,34 @@ def point_cloud(disp: np.ndarray, calib: Calib, image: np.ndarray | None = None,
   if image is None:
     rgb = np.full((len(zk), 3), 128, np.uint8)
   else:
-    img = np.asarray(image, dtype=np.float32)
+    img = _image_01(image)
     if img.ndim == 2:
       img = img[..., None]
+    if img.ndim != 3 or img.shape[2] not in (1, 3, 4):
+      raise SljaxError(f"point cloud: image must be HxW, HxWx1, HxWx3 or HxWx4, got shape "
+                       f"{img.shape}")
     if img.shape[:2] != d.shape:
       raise SljaxError(f"point cloud: image {img.shape[:2]} and disparity {d.shape} differ")
     img = np.repeat(img, 3, axis=2) if img.shape[2] == 1 else img[..., :3]
     rgb = np.rint(np.clip(img[known], 0.0, 1.0) * 255.0).astype(np.uint8)
   return xyz, rgb
+
+
+def _image_01(image: np.ndarray) -> np.ndarray:
+  """float32 image: uint8 / uint16 scaled to [0, 1], floats as given; SljaxError otherwise."""
+  a = np.asarray(image)
+  # An 8-bit image read as float and clipped to [0, 1] would be a white cloud.
+  if a.dtype == np.uint8:
+    return a.astype(np.float32) / np.float32(255.0)
+  if a.dtype == np.uint16:
+    return a.astype(np.float32) / np.float32(65535.0)
+  if a.dtype.kind != "f":
+    raise SljaxError(f"point cloud: image must be uint8, uint16 or float in [0, 1], got "
+                     f"{a.dtype}")
+  a = a.astype(np.float32)
+  if not np.isfinite(a).all():
+    raise SljaxError("point cloud: image holds NaN or infinite values")
+  return a
 
 
 _PLY_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
@@ -92,8 +127,18 @@ _PLY_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
 def write_ply(path: str | os.PathLike, xyz: np.ndarray, rgb: np.ndarray,
               comment: str = "") -> None:
   """Binary little-endian PLY of coloured points (float x, y, z; uchar red, green, blue)."""
-  xyz = np.asarray(xyz, dtype=np.float32).reshape(-1, 3)
-  rgb = np.asarray(rgb, dtype=np.uint8).reshape(-1, 3)
+  xyz = np.asarray(xyz, dtype=np.float32)
+  rgb = np.asarray(rgb)
+  for name, a in (("xyz", xyz), ("rgb", rgb)):
+    if a.ndim < 1 or a.shape[-1] != 3:
+      raise SljaxError(f"{path}: {name} must be Nx3, got shape {a.shape}")
+  xyz, rgb = xyz.reshape(-1, 3), rgb.reshape(-1, 3)
+  # Colours in [0, 1] would truncate to 0 (black) and values over 255 wrap around.
+  if rgb.size and not (rgb.dtype.kind in "biuf" and np.all((rgb >= 0) & (rgb <= 255))
+                       and np.all(rgb == np.round(rgb))):
+    raise SljaxError(f"{path}: rgb must hold integers 0..255 (uint8 colours), got {rgb.dtype} "
+                     f"values in [{rgb.min()}, {rgb.max()}]")
+  rgb = rgb.astype(np.uint8)
   if len(xyz) != len(rgb):
     raise SljaxError(f"{path}: {len(xyz)} points but {len(rgb)} colours")
   body = np.empty(len(xyz), _PLY_DTYPE)
@@ -106,6 +151,5 @@ def write_ply(path: str | os.PathLike, xyz: np.ndarray, rgb: np.ndarray,
   lines += [f"element vertex {len(xyz)}", "property float x", "property float y",
             "property float z", "property uchar red", "property uchar green",
             "property uchar blue", "end_header"]
-  with open(os.fspath(path), "wb") as f:
-    f.write(("\n".join(lines) + "\n").encode("ascii"))
-    f.write(body.tobytes())
+  # Whole or not at all: a full disk leaves the earlier file, never half of one.
+  files.write_bytes(path, ("\n".join(lines) + "\n").encode("ascii") + body.tobytes())

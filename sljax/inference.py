@@ -113,6 +113,12 @@ def pad_pair(left: np.ndarray, right: np.ndarray, rule: PadRule
   return pad(left), pad(right), ph
 
 
+def _short(value: Any) -> str:
+  """repr of value cut to 60 characters, for messages."""
+  r = repr(value)
+  return r if len(r) <= 60 else r[:57] + "..."
+
+
 def _to_float(image: np.ndarray, what: str) -> np.ndarray:
   """uint8/uint16/float image -> float32 in [0, 1]; SljaxError for NaN or other dtypes."""
   a = np.asarray(image)
@@ -133,7 +139,13 @@ def _to_float(image: np.ndarray, what: str) -> np.ndarray:
 
 def _as_batch(image: np.ndarray, what: str) -> tuple[np.ndarray, bool]:
   """HxW / HxWxC / BxHxWxC -> (BxHxWxC, batched)."""
-  a = np.asarray(image)
+  try:
+    a = np.asarray(image)
+  except ValueError:  # a ragged nested list
+    a = np.empty((), object)
+  if a.dtype.kind in "OUSV":  # a path, None or a ragged list: say what it was, not "shape ()"
+    raise SljaxError(f"{what}: expected an image array (numpy HxW, HxWxC or BxHxWxC), got "
+                     f"{type(image).__name__} {_short(image)}")
   if a.ndim == 2:
     a, batched = a[None, :, :, None], False
   elif a.ndim == 3:
@@ -322,6 +334,9 @@ def _probe(model, variables, channels_first_guess: int, size: tuple[int, int],
   for c in (channels_first_guess, 4 - channels_first_guess):
     try:
       shapes, outputs = _abstract_run(model, c, h, w)
+    except MemoryError as e:  # e.g. a huge maxdisp: not a mismatch of the checkpoint
+      raise SljaxError(f"{name}: cannot build the model {model_desc}: out of memory "
+                       f"({str(e).splitlines()[0][:200]})") from None
     except Exception as e:  # a model that cannot take this channel count at all
       diffs.append(f"{c} channels: {type(e).__name__}: {str(e).splitlines()[0][:200]}")
       continue
@@ -344,6 +359,8 @@ class Predictor:
                kernels: "tune.KernelChoice" = tune.DEFAULT):
     if mode not in MODES:
       raise SljaxError(f"mode must be one of {MODES}, got {mode!r}")
+    if not isinstance(kernels, tune.KernelChoice):  # else it fails only at the first call
+      raise SljaxError(f"kernels must be a sljax.tune.KernelChoice, got {_short(kernels)}")
     try:
       hash(model)  # the shared compiled function takes the model as a static argument
     except TypeError:
@@ -446,12 +463,23 @@ def load(checkpoint: str | os.PathLike, mode: str = "pad", maxdisp: int | None =
   given, is the choice itself (e.g. the one a run trained with) and nothing is tuned.
   conv_impl: the convolution kernels ("auto", "lax" or "fast"; None: $SLJAX_CONV3D's default).
   """
+  if not isinstance(checkpoint, (str, os.PathLike)) or not os.fspath(checkpoint):
+    raise SljaxError(f"checkpoint must be a folder path (a training workdir, its checkpoints "
+                     f"folder or a converted PSMNet), got {_short(checkpoint)}")
+  if mode not in MODES:  # before the (slow) checkpoint read
+    raise SljaxError(f"mode must be one of {MODES}, got {mode!r}")
+  if tune_kernels is not None and not isinstance(tune_kernels, (bool, np.bool_)):
+    raise SljaxError(f"tune_kernels must be True, False or None, got {tune_kernels!r}")
+  if kernels is not None and not isinstance(kernels, tune.KernelChoice):
+    raise SljaxError(f"kernels must be a sljax.tune.KernelChoice or None, got {_short(kernels)}")
   path = os.fspath(checkpoint)
   model_name, model_kwargs, variables, config = load_for_inference(path)
   config = dict(config or {})
   sl_max_disp = None
   if maxdisp is not None:
-    if not isinstance(maxdisp, (int, np.integer)) or maxdisp <= 0:
+    # bool is an int: True would silently become a range of 1 px
+    if (not isinstance(maxdisp, (int, np.integer)) or isinstance(maxdisp, (bool, np.bool_))
+        or maxdisp <= 0):
       raise SljaxError(f"maxdisp must be a positive integer, got {maxdisp!r}")
     spec = registry.spec(model_name)
     if "maxdisp" in spec.options:

@@ -180,9 +180,9 @@ def write_outputs(folder: Path, pair: Pair, left: np.ndarray, out: dict[str, np.
     png = geometry.depth_png16(depth)
     files.write_png(folder / "depth_mm.png", png)
     xyz, rgb = geometry.point_cloud(disp, pair.calib, left, max_depth)
-    with files.replacing(folder / "cloud.ply") as (tmp,):
-      geometry.write_ply(tmp, xyz, rgb, comment=f"sljax predict {label}: x y z in mm, left "
-                                                "camera frame (x right, y down, z forward)")
+    geometry.write_ply(folder / "cloud.ply", xyz, rgb,  # written whole
+                       comment=f"sljax predict {label}: x y z in mm, left camera frame "
+                               "(x right, y down, z forward)")
     summary.update(points=len(xyz),
                    png_zero_but_known=int((np.isfinite(depth) & (png == 0)).sum()))
   return summary

@@ -276,14 +276,11 @@ def test_full_disk_keeps_the_earlier_file(tmp_path, capsys, monkeypatch, victim)
     with open(path, "wb") as f:
       f.write(b"half")
     raise OSError(errno.ENOSPC, "No space left on device", str(path))
-  if victim == "cloud.ply":
-    monkeypatch.setattr(geometry, "write_ply", full)
-  else:
-    from pathlib import Path
-    real = Path.write_bytes  # what write_pfm's and write_png's temporary files are written with
-    stem, suffix = victim.split(".")
-    monkeypatch.setattr(Path, "write_bytes", lambda path, data: (
-        full if stem in path.name and path.suffix == f".{suffix}" else real)(path, data))
+  from pathlib import Path
+  real = Path.write_bytes  # what write_pfm's, write_png's and write_ply's temporaries use
+  stem, suffix = victim.split(".")
+  monkeypatch.setattr(Path, "write_bytes", lambda path, data: (
+      full if stem in path.name and path.suffix == f".{suffix}" else real)(path, data))
   capsys.readouterr()
   assert cli.main(argv + ["--overwrite"]) == 2
   err = capsys.readouterr().err.strip().splitlines()

@@ -55,6 +55,7 @@ _EPS = 1e-12
 
 def default_max_disp(width: int) -> int:
   """The paper's search range: u = floor(0.25 * width)."""
+  require(width >= 1, f"image width must be >= 1, got {width!r}")  # else a negative range
   return int(math.floor(PAPER_DISP_FRACTION * width))
 
 
@@ -245,6 +246,12 @@ def _bytes_per_shift(height: int, width: int, window: int, normalized: bool) -> 
 def choose_block(batch: int, height: int, width: int, max_disp: int, window: int = PAPER_WINDOW,
                  normalized: bool = False, budget: int = MEMORY_BUDGET) -> int:
   """Shifts per scan step so that one block of maps over the batch fits in budget bytes."""
+  for key, v in (("batch", batch), ("height", height), ("width", width), ("window", window),
+                 ("budget", budget)):
+    require(isinstance(v, (int, np.integer)) and v >= 1,
+            f"choose_block: {key} must be a positive integer, got {v!r}")
+  require(isinstance(max_disp, (int, np.integer)) and max_disp >= 0,
+          f"choose_block: max_disp must be a non-negative integer, got {max_disp!r}")
   per_shift = batch * _bytes_per_shift(height, width, window, normalized)
   return int(max(1, min(max_disp + 1, budget // per_shift)))
 
@@ -253,7 +260,14 @@ def _host_pair(p_left, p_right, name: str) -> tuple[np.ndarray, np.ndarray, bool
   """float32 BxHxWxt host copies with non-finite values read as 0, and whether input was single."""
   out = []
   for x, which in ((p_left, "p_left"), (p_right, "p_right")):
-    a = np.asarray(x, dtype=np.float32)
+    try:
+      a = np.asarray(x)
+    except ValueError:  # a ragged nested list
+      a = np.empty((), object)
+    # Strings, None, ragged lists or complex values: name the type, not numpy's cast error.
+    require(a.dtype.kind in "biuf", f"{name}: {which} must be a real-valued array (HxWxt "
+            f"patterns), got {type(x).__name__} of dtype {a.dtype}")
+    a = a.astype(np.float32)
     require(a.ndim in (3, 4), f"{name}: {which} must be HxWxt or BxHxWxt, got shape {a.shape}")
     out.append(np.nan_to_num(a[None] if a.ndim == 3 else a, nan=0.0, posinf=0.0, neginf=0.0))
   pl, pr = out
@@ -362,7 +376,9 @@ def cost_volume(p_left, p_right, max_disp: int | None = None, window: int = PAPE
   the shift-major path for normalized cc.
   """
   pl, pr, single = _host_pair(p_left, p_right, "cost_volume")
-  b, h, w, _ = pl.shape
+  b, h, w, t = pl.shape
+  # As sl_disparity: an empty input would fail inside the thread pool or JAX.
+  require(t >= 1 and h >= 1 and w >= 1, f"cost_volume: empty input of shape {pl.shape}")
   u = _check_window_u("cost_volume", window, max_disp, w)
   if normalized:
     vol = np.asarray(_volume(jnp.asarray(pl), jnp.asarray(pr), u=u, window=int(window),

@@ -13,6 +13,7 @@ import numpy as np
 from matplotlib import colors as mcolors
 from matplotlib.figure import Figure
 
+from sljax import files
 from sljax.errors import require
 from sljax.viz import Panel, save_panels
 
@@ -124,7 +125,7 @@ def plot_uncertainty_histogram(path: str | os.PathLike, uncertainty: np.ndarray,
   ax.set_ylabel("normalised disparity error")
   fig.tight_layout()
   os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-  fig.savefig(path, dpi=100)
+  files.save_figure(fig, path, dpi=100)  # whole or not at all
   return stats
 
 

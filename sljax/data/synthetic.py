@@ -67,6 +67,24 @@ ROOM_HI = (0.5, 0.5, 1.0)
 _LUMA = (0.299, 0.587, 0.114)
 
 
+def _is_int(v: Any) -> bool:
+  """An integer that is not a bool (True would pass for 1)."""
+  return isinstance(v, (int, np.integer)) and not isinstance(v, (bool, np.bool_))
+
+
+def _is_real(v: Any) -> bool:
+  """A real number that is not a bool."""
+  return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(
+      v, (bool, np.bool_))
+
+
+def _check_seed_index(seed: Any, index: Any) -> None:
+  """Seeds and indices are uint32 in the renderer: outside that JAX fails with an overflow."""
+  for name, v in (("seed", seed), ("index", index)):
+    require(_is_int(v) and 0 <= v < 2**32,
+            f"synthetic scene {name} must be an integer in 0..2^32-1, got {v!r}")
+
+
 @dataclasses.dataclass(frozen=True)
 class SynthConfig:
   """Renderer settings; None fields take the domain's default (see `resolved`)."""
@@ -100,20 +118,59 @@ class SynthConfig:
     """A copy with every domain default filled in, validated."""
     require(self.domain in DOMAINS, f"unknown synthetic domain {self.domain!r}; "
             f"expected one of {DOMAINS}")
-    require(self.size >= 16, f"synthetic image size must be >= 16 px, got {self.size}")
+    require(_is_int(self.size) and self.size >= 16,
+            f"synthetic image size must be an integer >= 16 px, got {self.size!r}")
     obj = self.domain == "objects"
     code = self.code or ("binary" if obj else "gray")
     require(code in codes.CODES, f"unknown code {code!r}; expected one of {codes.CODES}")
     t = self.t if self.t is not None else (8 if code == "binary" else 9)
-    require(1 <= t <= 12, f"number of patterns t must be in 1..12, got {t}")
-    require(self.views_per_object >= 1, "views_per_object must be >= 1")
+    require(_is_int(t) and 1 <= t <= 12, f"number of patterns t must be an integer in 1..12, "
+            f"got {t!r}")
+    require(_is_int(self.views_per_object) and self.views_per_object >= 1,
+            f"views_per_object must be an integer >= 1, got {self.views_per_object!r}")
     pick = lambda v, a, b: v if v is not None else (a if obj else b)  # noqa: E731
-    return dataclasses.replace(
+    resolved = dataclasses.replace(
         self, code=code, t=t, baseline_m=pick(self.baseline_m, 0.012, 0.005),
         num_ellipsoids=pick(self.num_ellipsoids, 7, 8),
         texture_amplitude=pick(self.texture_amplitude, 0.05, 1.0),
         specular=pick(self.specular, 0.0, 0.25),
         projector_fov_deg=pick(self.projector_fov_deg, 70.0, 90.0))
+    resolved._check_values()
+    return resolved
+
+  def _check_values(self) -> None:
+    """SljaxError naming the first field whose value would render garbage or fail in JAX."""
+    def field(name: str, ok, expected: str) -> None:
+      v = getattr(self, name)
+      require(ok(v), f"SynthConfig.{name} must be {expected}, got {v!r}")
+
+    def number(lo: float, hi: float = math.inf, lo_open: bool = False):
+      def ok(v):
+        if not _is_real(v) or not math.isfinite(v) or v > hi:
+          return False
+        return v > lo if lo_open else v >= lo
+      return ok
+
+    def vector(n: int):
+      return lambda v: (isinstance(v, (tuple, list)) and len(v) == n
+                        and all(_is_real(x) and math.isfinite(x) for x in v))
+
+    # A zero/negative focal length or baseline gives NaN or negative disparities, a projector
+    # field of view of 180 deg or more an infinite tan, zero lobes an empty shape.
+    field("focal_factor", number(0, lo_open=True), "a positive number")
+    field("baseline_m", number(0, lo_open=True), "a positive number (metres)")
+    field("projector_fov_deg", lambda v: number(0, lo_open=True)(v) and v < 180,
+          "in (0, 180) degrees")
+    field("projector_translation_m", vector(3), "3 finite numbers (metres)")
+    field("projector_rotation_deg", vector(3), "3 finite numbers (degrees)")
+    field("object_size_m", lambda v: vector(2)(v) and 0 < v[0] <= v[1],
+          "(min, max) metres with 0 < min <= max")
+    field("num_ellipsoids", lambda v: _is_int(v) and v >= 1, "an integer >= 1")
+    field("max_disparity_fraction", number(0, 1, lo_open=True), "in (0, 1]")
+    for name in ("podium_height_m", "texture_amplitude", "specular", "ambient", "light",
+                 "projector_power", "raw_ambient", "min_contrast", "min_stripe_px",
+                 "image_noise", "raw_noise", "raw_blur"):
+      field(name, number(0), "a finite number >= 0")
 
   @property
   def focal(self) -> float:
@@ -377,8 +434,10 @@ def calib_for(cfg: SynthConfig, vmin: float | None = None, vmax: float | None = 
 def render_scene(index: int, seed: int, config: SynthConfig = SynthConfig(), raw: bool = False
                  ) -> SyntheticScene:
   """Renders scene `index` of dataset `seed` (depends on (seed, index) only)."""
+  require(isinstance(config, SynthConfig),
+          f"config must be a SynthConfig, got {type(config).__name__}")
   cfg = config.resolved()
-  require(int(index) >= 0, f"synthetic scene index must be >= 0, got {index}")
+  _check_seed_index(seed, index)
   out = jax.device_get(_render(jnp.uint32(seed), jnp.uint32(index), cfg, bool(raw)))
   for k in ("im", "disp", "depth", "sl", "mask", "occ", "col"):  # views stacked on axis 0
     out[f"{k}0"], out[f"{k}1"] = out[k][0], out[k][1]
@@ -421,6 +480,9 @@ class SyntheticSource:
   def __init__(self, n: int, seed: int = 0, config: SynthConfig = SynthConfig(),
                raw: bool = False):
     require(int(n) >= 1, f"a synthetic source needs n >= 1 scenes, got {n}")
+    require(isinstance(config, SynthConfig),
+            f"config must be a SynthConfig, got {type(config).__name__}")
+    _check_seed_index(seed, int(n) - 1)  # every scene's index, before any rendering
     self.n = int(n)
     self.seed = int(seed)
     self.config = config.resolved()

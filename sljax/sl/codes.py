@@ -36,7 +36,9 @@ def encode(columns: Any, code: str, t: int, xp: ModuleType = np) -> Any:
   Columns are taken modulo 2^t (only the t least significant bits are encoded).
   """
   _check_code(code)
-  require(int(t) >= 1, f"number of patterns t must be >= 1, got {t}")
+  # The bits come from int32 shifts: t > 31 (or a float t) gives garbage, not an error.
+  require(isinstance(t, (int, np.integer)) and 1 <= t <= 31,
+          f"number of patterns t must be an integer in 1..31, got {t!r}")
   c = xp.asarray(columns).astype(xp.int32)
   if code == "gray":
     c = c ^ (c >> 1)
@@ -48,6 +50,8 @@ def decode(bits: Any, code: str, xp: ModuleType = np) -> Any:
   """Inverse of encode: (..., t) bits (0/1, any numeric dtype) -> (...,) int32 columns."""
   _check_code(code)
   b = xp.asarray(bits).astype(xp.int32)
+  require(b.ndim >= 1 and 1 <= b.shape[-1] <= 31,
+          f"code bits must be (..., t) with t in 1..31, got shape {b.shape}")
   t = b.shape[-1]
   if code == "gray":
     # Binary bit k is the XOR of Gray bits 0..k: a running sum taken modulo 2.

@@ -10,10 +10,12 @@ whose two compared values are too close is uncertain and unknown.
 
 import dataclasses
 import re
+from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 
-from sljax.errors import require
+from sljax.errors import SljaxError, require
 from sljax.sl import codes
 
 
@@ -75,19 +77,42 @@ def column_from_bits(bits: np.ndarray, code: str, threshold: float = 0.5) -> np.
   return column
 
 
+def _capture(value: Any, key: str, where: str) -> np.ndarray:
+  """One capture as float32 in [0, 1]; uint8 / uint16 are scaled (the thresholds are in [0, 1])."""
+  a = np.asarray(value)
+  if a.dtype == np.uint8:
+    return a.astype(np.float32) / np.float32(255.0)
+  if a.dtype == np.uint16:
+    return a.astype(np.float32) / np.float32(65535.0)
+  require(a.dtype.kind == "f", f"{where}: capture '{key}' must be uint8, uint16 or float in "
+          f"[0, 1], got {type(value).__name__} of dtype {a.dtype}")
+  a = a.astype(np.float32)
+  finite = a[np.isfinite(a)]
+  # Captures in 0..255 as floats would make every threshold (1/255 scale) meaningless.
+  if finite.size and (finite.min() < -0.01 or finite.max() > 1.01):
+    raise SljaxError(f"{where}: capture '{key}' must be scaled to [0, 1], got values in "
+                     f"[{finite.min():g}, {finite.max():g}]")
+  return a
+
+
 def decode_captures(raw: dict[str, np.ndarray], code: str, t: int | None = None,
                     config: DecodeConfig = DecodeConfig(), where: str = "raw captures"
                     ) -> Decoded:
   """Classifies every pattern bit and decodes the projector column of every pixel.
 
-  raw: float32 HxW captures in [0, 1] keyed 'white', 'black', 'p000'... and optionally
-  'i000'...; t defaults to the number of pattern captures. `where` names the capture set in
-  error messages (e.g. the scene folder).
+  raw: HxW captures keyed 'white', 'black', 'p000'... and optionally 'i000'..., float in
+  [0, 1] or uint8 / uint16 (divided by 255 / 65535); t defaults to the number of pattern
+  captures. `where` names the capture set in error messages (e.g. the scene folder). A NaN
+  capture pixel makes its bits unknown.
   """
   codes._check_code(code)
+  require(isinstance(raw, Mapping), f"{where}: raw captures must be a dict of HxW images "
+          f"keyed 'white', 'black', 'p000', ..., got {type(raw).__name__}")
   for key in ("white", "black"):
     require(key in raw, f"{where}: missing capture '{key}'")
   n = count_patterns(raw, where)
+  require(t is None or (isinstance(t, (int, np.integer)) and t >= 1),
+          f"{where}: number of patterns t must be a positive integer, got {t!r}")
   t = n if t is None else int(t)
   for k in range(t):
     require(f"p{k:03d}" in raw, f"{where}: missing pattern capture p{k:03d}")
@@ -96,24 +121,26 @@ def decode_captures(raw: dict[str, np.ndarray], code: str, t: int | None = None,
     for k in range(t):
       require(f"i{k:03d}" in raw, f"{where}: missing inverse capture i{k:03d}")
 
-  white = np.asarray(raw["white"], np.float32)
-  black = np.asarray(raw["black"], np.float32)
+  keys = ["white", "black"] + [f"p{k:03d}" for k in range(t)] + (
+      [f"i{k:03d}" for k in range(t)] if inv else [])
+  cap = {key: _capture(raw[key], key, where) for key in keys}
+  white, black = cap["white"], cap["black"]
   require(white.ndim == 2, f"{where}: captures must be HxW grey images, got white {white.shape}")
   shape = white.shape
-  keys = ["black"] + [f"p{k:03d}" for k in range(t)] + ([f"i{k:03d}" for k in range(t)] if inv
-                                                         else [])
-  for key in keys:
-    require(np.shape(raw[key]) == shape,
-            f"{where}: capture '{key}' has shape {np.shape(raw[key])}, 'white' has {shape}")
+  for key in keys[1:]:
+    require(cap[key].shape == shape,
+            f"{where}: capture '{key}' has shape {cap[key].shape}, 'white' has {shape}")
 
-  p = np.stack([np.asarray(raw[f"p{k:03d}"], np.float32) for k in range(t)], axis=-1)
+  p = np.stack([cap[f"p{k:03d}"] for k in range(t)], axis=-1)
   if inv:
-    ref = np.stack([np.asarray(raw[f"i{k:03d}"], np.float32) for k in range(t)], axis=-1)
+    ref = np.stack([cap[f"i{k:03d}"] for k in range(t)], axis=-1)
   else:
     ref = ((white + black) * 0.5)[..., None]
   diff = p - ref
-  shadow = (white - black) < config.shadow_threshold
-  uncertain = np.abs(diff) < config.bit_threshold
+  # Written as "not above the threshold" so that a NaN capture pixel is shadow / uncertain
+  # (unknown) rather than a confident dark bit.
+  shadow = ~((white - black) >= config.shadow_threshold)
+  uncertain = ~(np.abs(diff) >= config.bit_threshold)
   unknown = uncertain | shadow[..., None]
   bits = np.where(unknown, np.float32(np.nan), (diff > 0).astype(np.float32))
   bits = np.broadcast_to(bits, shape + (t,)).astype(np.float32)

@@ -300,12 +300,14 @@ def restore(manager: ocp.CheckpointManager, step: int,
   else they land on this process's first device (also for checkpoints written by several
   processes, whose saved shardings name devices this process does not have). A checkpoint
   whose files do not restore raises CheckpointUnreadable naming its folder."""
+  # Installed before the restore, not after its failure: a late read can finish while orbax
+  # is still raising, before any except clause here runs (seen on a busy 2-core CPU).
+  _drop_late_read_callbacks()
   try:
     return _restore(manager, step, abstract_state)
   except SljaxError:
     raise
   except RESTORE_ERRORS as e:
-    _drop_late_read_callbacks()
     raise unreadable(manager.directory, step, e) from None
 
 

@@ -42,6 +42,7 @@ import numpy as np
 
 from sljax import cache, files, machine
 from sljax.nets import build_model
+from sljax.train.state import init_variables
 
 ENV_TUNE = "SLJAX_TUNE"
 YNN_OFF = {"xla_cpu_experimental_ynn_fusion_type": ""}
@@ -171,7 +172,9 @@ def workload(size: int = 128, maxdisp: int = 48, seed: int = 0):
   rng = np.random.default_rng(seed)
   left, right = (jnp.asarray(rng.random((1, size, size, 3), np.float32)) for _ in range(2))
   gt = jnp.asarray(rng.random((1, size, size), np.float32) * maxdisp)
-  variables = jax.jit(lambda k: model.init(k, left, right, train=False))(jax.random.PRNGKey(seed))
+  # The training loop's initialiser: compiled with its options, ~10x faster than XLA's default
+  # for PSMNet's threefry initialisers (40 s of a Zen 3's time per tuning otherwise).
+  variables = init_variables(model, seed, size, size, 3)
 
   def forward(variables, left, right, gt):
     return model.apply(variables, left, right, train=False)["disparity"]

@@ -12,6 +12,7 @@ import pytest
 from sljax.errors import SljaxError
 from sljax.kernels import ConvBase
 from sljax.nets import PSMNetMTL, UNet, build_model
+from sljax.train.state import INIT_COMPILER_OPTIONS
 
 SIZE, MAXDISP = 32, 16
 # unsafe_rbg compiles the initialisers far faster than threefry on the CPU.
@@ -81,25 +82,29 @@ def _outputs_and_grads(model, variables, left, right, grads=True):
     return jax.tree.map(np.asarray, (out, g))
 
 
-@pytest.mark.parametrize("name, kwargs, channels", [
-    ("psmnet", {"maxdisp": MAXDISP}, 3),
-    ("unet-sl", {"t": 3, "depth": 2, "base_width": 4}, 1),
+# PSMNet's parameter gradients are compared kernel by kernel (tests/test_conv3d.py: every fast
+# 3D kernel's VJP against lax's), not through the whole network: its float64 gradient programs
+# took 70 s of the suite's compile time on a Zen 3 and guard no wiring the outputs do not.
+@pytest.mark.parametrize("name, kwargs, channels, grads", [
+    ("psmnet", {"maxdisp": MAXDISP}, 3, False),
+    ("unet-sl", {"t": 3, "depth": 2, "base_width": 4}, 1, True),
 ])
-def test_lax_and_fast_models_in_one_process_agree(monkeypatch, name, kwargs, channels):
+def test_lax_and_fast_models_in_one_process_agree(monkeypatch, name, kwargs, channels, grads):
   """Built with "lax" and "fast" in one process (no environment): the same parameter tree,
-  equal outputs and parameter gradients, and really two programs: every convolution module
-  got the model's choice, and the fast program has no 3D convolution but custom VJPs."""
+  equal training-mode outputs (and parameter gradients for the UNet), and really two
+  programs: every convolution module got the model's choice, and the fast program has no 3D
+  convolution but custom VJPs."""
   monkeypatch.delenv("SLJAX_CONV3D", raising=False)
   left, right = _pair(channels)
   lax_model = build_model(name, conv_impl="lax", in_channels=channels, **kwargs)
   fast_model = build_model(name, conv_impl="fast", in_channels=channels, **kwargs)
   assert (lax_model.conv_impl, fast_model.conv_impl) == ("lax", "fast")
-  variables = jax.jit(lax_model.init)(KEY, left, right)
+  variables = jax.jit(lax_model.init, compiler_options=INIT_COMPILER_OPTIONS)(KEY, left, right)
   assert jax.tree.map(jnp.shape, jax.eval_shape(fast_model.init, KEY, left, right)) == \
       jax.tree.map(jnp.shape, variables)  # the same parameter tree
 
-  want = _outputs_and_grads(lax_model, variables, left, right)
-  got = _outputs_and_grads(fast_model, variables, left, right)
+  want = _outputs_and_grads(lax_model, variables, left, right, grads)
+  got = _outputs_and_grads(fast_model, variables, left, right, grads)
   _assert_trees_close(got, want, 1e-9)
 
   lax_ranks = _conv_ranks(lax_model, left, right, variables)
@@ -136,13 +141,10 @@ def test_environment_is_only_the_default_read_when_built(monkeypatch):
   assert set(_impls_seen(twin, left, right)) == {"lax"}
   assert set(_impls_seen(unet, left, right)) == {"lax"}
   assert set(_impls_seen(explicit, left, right)) == {"fast"}
-  variables = jax.jit(default.init)(KEY, left, right)
+  variables = jax.eval_shape(default.init, KEY, left, right)  # traced, never compiled
   assert 3 in _conv_ranks(default, left, right, variables)
   assert 3 not in _conv_ranks(explicit, left, right, variables)
-  # The lax-built model is the reference the fast one must equal.
-  want = _outputs_and_grads(default, variables, left, right, grads=False)
-  got = _outputs_and_grads(explicit, variables, left, right, grads=False)
-  _assert_trees_close(got, want, 1e-9)
+  # That the two programs compute the same function is the test above's job.
 
   monkeypatch.delenv("SLJAX_CONV3D")
   assert build_model("unet-disp").conv_impl == auto.conv_impl

@@ -1,4 +1,5 @@
-"""The jitted training step: every strategy and both UNets overfit one batch; unc's log-sigma
+"""The jitted training step: one compilation serves every strategy, stl, epr, unc and both
+UNets overfit one batch (cg_a and cg_b differ from epr only in weight values); unc's log-sigma
 update; the sharded step equals the single-device step (8 forced host devices)."""
 
 import os
@@ -68,6 +69,10 @@ def mesh():
 
 
 STEPS = 12  # both task losses fall > 10x within ~10 steps at LR
+# cg_a, cg_b and epr differ only in the weights' values, which are inputs of the one compiled
+# step: epr's unequal DWA weights overfit for all three, cg_a and cg_b take two steps (their
+# loss is checked to be their weighted sum), saving 20 compiled-step runs of the suite.
+OVERFIT = ("stl", "epr", "unc")
 
 
 @pytest.fixture(scope="module")
@@ -84,7 +89,7 @@ def twin_runs(twin, mesh):
     w = jnp.asarray(wt.step_weights(name, history))
     state = _fresh(variables, tx, mesh)
     metrics = []
-    for i in range(STEPS):
+    for i in range(STEPS if name in OVERFIT else 2):
       state, m = step(state, batch, w)
       metrics.append(jax.device_get(m))
       if i == 0:
@@ -95,14 +100,17 @@ def twin_runs(twin, mesh):
 
 
 @pytest.mark.parametrize("name", wt.STRATEGIES)
-def test_twin_overfits_one_batch(twin_runs, name):
+def test_twin_step_under_every_strategy(twin_runs, name):
   metrics, w, _ = twin_runs[name]
   first, last = metrics[0], metrics[-1]
-  assert last["loss_disp"] * 10 <= first["loss_disp"], (first, last)
+  if name in OVERFIT:
+    assert last["loss_disp"] * 10 <= first["loss_disp"], (first, last)
   if name == "stl":
     assert last["loss_sl"] > 0.1  # SL path untrained under stl weights
-  else:
+  elif name in OVERFIT:
     assert last["loss_sl"] * 10 <= first["loss_sl"], (first, last)
+  else:
+    assert last["loss_disp"] < first["loss_disp"] and last["loss_sl"] < first["loss_sl"]
   if name != "unc":
     np.testing.assert_allclose([last["w_sl"], last["w_disp"]], w[:2])
     np.testing.assert_allclose(first["loss"], w[0] * first["loss_sl"] + w[1] * first["loss_disp"],

@@ -15,6 +15,7 @@ from sljax.train import checkpoint as ckpt
 from sljax.train import loop
 from sljax.train import step as stp
 from sljax.train.config import QUICK, config_from_json
+from sljax.train.state import init_variables
 
 
 def fake(table):
@@ -193,7 +194,7 @@ def test_both_settings_compute_the_same_function():
   model = build_model("unet-disp", in_channels=3, depth=2, base_width=4)
   rng = np.random.default_rng(0)
   x, y = (rng.random((2, 16, 16, 3), np.float32) for _ in range(2))
-  variables = model.init(jax.random.PRNGKey(0), x, y, train=False)
+  variables = init_variables(model, 0, 16, 16, 3)
 
   def f(params):
     out = model.apply({**variables, "params": params}, x, y, train=False)["disparity"]
@@ -242,7 +243,7 @@ def test_inference_runs_its_forward_with_the_choice(monkeypatch):
   from sljax.nets import build_model
   model = build_model("unet-disp", **kw)
   x = np.zeros((1, 16, 16, 1), np.float32)
-  variables = model.init(jax.random.PRNGKey(0), x, x, train=False)
+  variables = init_variables(model, 0, 16, 16, 1)
   pred = inference.make_predictor("unet-disp", kw, variables, mode="pad",
                                   kernels=tune.KernelChoice(forward_ynn=False))
   out = pred(np.zeros((16, 16), np.float32), np.zeros((16, 16), np.float32))

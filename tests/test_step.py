@@ -188,8 +188,8 @@ _SHARDED = textwrap.dedent("""
 
 
 def test_sharded_step_equals_single_device():
-  env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=8",
-             JAX_PLATFORMS="cpu", PYTHONPATH=str(ROOT))
+  flags = f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=8"
+  env = dict(os.environ, XLA_FLAGS=flags.strip(), JAX_PLATFORMS="cpu", PYTHONPATH=str(ROOT))
   r = subprocess.run([sys.executable, "-c", _SHARDED], env=env, cwd=ROOT, capture_output=True,
                      text=True, timeout=600)
   assert r.returncode == 0 and "SHARDED_OK" in r.stdout, r.stdout + r.stderr[-3000:]

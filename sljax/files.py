@@ -112,7 +112,10 @@ def check_output_folder(out: str | os.PathLike, overwrite: bool, label: str = "-
 
 def require_folder(path: str | os.PathLike, what: str) -> Path:
   """path as a Path; SljaxError "PATH: is a file, not a WHAT" or "PATH: WHAT does not exist"
-  (a file named by mistake is not "missing")."""
+  (a file named by mistake is not "missing"); "WHAT must be a folder path" for None, "" or a
+  value that is no path."""
+  if not isinstance(path, (str, os.PathLike)) or not os.fspath(path):
+    raise SljaxError(f"{what} must be a folder path, got {path!r}")
   path = Path(path)
   if not path.is_dir():
     raise SljaxError(f"{path}: " + (f"is a file, not a {what}" if path.exists()

@@ -20,7 +20,8 @@ import os
 import numpy as np
 
 from sljax import files
-from sljax.data.calib import Calib, depth_from_disparity
+from sljax.data.calib import Calib, check_calib, depth_from_disparity
+from sljax.data.scene import unit_image
 from sljax.errors import SljaxError
 
 PNG16_MAX_MM = 65535
@@ -33,18 +34,6 @@ def check_calib_size(calib: Calib, shape: tuple[int, int], where: str) -> None:
   if (calib.width, calib.height) != (w, h):
     raise SljaxError(f"{where}: calibration is for {calib.width}x{calib.height} images, the pair "
                      f"is {w}x{h} (depth would be wrong; give the calib.txt of these images)")
-
-
-def check_calib(calib: Calib, where: str) -> None:
-  """SljaxError unless calib is a Calib with positive, finite focal lengths and baseline."""
-  if not isinstance(calib, Calib):
-    raise SljaxError(f"{where}: calib must be a sljax.data.calib.Calib (read_calib reads "
-                     f"calib.txt), got {type(calib).__name__}")
-  fy = float(np.asarray(calib.cam0, dtype=np.float64)[1, 1])
-  # A zero or negative f, fy or baseline gives zero, negative or infinite depths, not an error.
-  if not all(np.isfinite(v) and v > 0 for v in (calib.focal, fy, calib.baseline)):
-    raise SljaxError(f"{where}: calibration needs a positive focal length and baseline, got "
-                     f"f = {calib.focal:g}, fy = {fy:g}, baseline = {calib.baseline:g}")
 
 
 def depth_mm(disp: np.ndarray, calib: Calib, max_depth: float | None = None) -> np.ndarray:
@@ -90,7 +79,7 @@ def point_cloud(disp: np.ndarray, calib: Calib, image: np.ndarray | None = None,
   if image is None:
     rgb = np.full((len(zk), 3), 128, np.uint8)
   else:
-    img = _image_01(image)
+    img = unit_image(image, "point cloud: image")
     if img.ndim == 2:
       img = img[..., None]
     if img.ndim != 3 or img.shape[2] not in (1, 3, 4):
@@ -101,23 +90,6 @@ def point_cloud(disp: np.ndarray, calib: Calib, image: np.ndarray | None = None,
     img = np.repeat(img, 3, axis=2) if img.shape[2] == 1 else img[..., :3]
     rgb = np.rint(np.clip(img[known], 0.0, 1.0) * 255.0).astype(np.uint8)
   return xyz, rgb
-
-
-def _image_01(image: np.ndarray) -> np.ndarray:
-  """float32 image: uint8 / uint16 scaled to [0, 1], floats as given; SljaxError otherwise."""
-  a = np.asarray(image)
-  # An 8-bit image read as float and clipped to [0, 1] would be a white cloud.
-  if a.dtype == np.uint8:
-    return a.astype(np.float32) / np.float32(255.0)
-  if a.dtype == np.uint16:
-    return a.astype(np.float32) / np.float32(65535.0)
-  if a.dtype.kind != "f":
-    raise SljaxError(f"point cloud: image must be uint8, uint16 or float in [0, 1], got "
-                     f"{a.dtype}")
-  a = a.astype(np.float32)
-  if not np.isfinite(a).all():
-    raise SljaxError("point cloud: image holds NaN or infinite values")
-  return a
 
 
 _PLY_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"),

@@ -62,7 +62,7 @@ from sljax import tune
 from sljax.corr.correlation import sl_disparity
 from sljax.corr.uncertainty import view_uncertainty
 from sljax.data.dataset import resize_image
-from sljax.data.scene import to_gray
+from sljax.data.scene import to_gray, unit_image
 from sljax.errors import SljaxError
 from sljax.sizes import as_size
 from sljax.nets import build_model, registry
@@ -119,24 +119,6 @@ def _short(value: Any) -> str:
   return r if len(r) <= 60 else r[:57] + "..."
 
 
-def _to_float(image: np.ndarray, what: str) -> np.ndarray:
-  """uint8/uint16/float image -> float32 in [0, 1]; SljaxError for NaN or other dtypes."""
-  a = np.asarray(image)
-  if a.dtype == np.uint8:
-    return a.astype(np.float32) / 255.0
-  if a.dtype == np.uint16:
-    return a.astype(np.float32) / 65535.0
-  if a.dtype == np.bool_ or not np.issubdtype(a.dtype, np.floating):
-    raise SljaxError(f"{what}: images must be uint8, uint16 or float in [0, 1], got {a.dtype}")
-  a = a.astype(np.float32)
-  if not np.isfinite(a).all():
-    raise SljaxError(f"{what}: image holds NaN or infinite values")
-  if a.size and (a.min() < -0.01 or a.max() > 1.01):
-    raise SljaxError(f"{what}: float images must be scaled to [0, 1], got values in "
-                     f"[{a.min():g}, {a.max():g}]")
-  return np.clip(a, 0.0, 1.0)
-
-
 def _as_batch(image: np.ndarray, what: str) -> tuple[np.ndarray, bool]:
   """HxW / HxWxC / BxHxWxC -> (BxHxWxC, batched)."""
   try:
@@ -172,8 +154,8 @@ def prepare_pair(left: np.ndarray, right: np.ndarray, channels: int | None = Non
   if batched != batched_r or lb.shape[:3] != rb.shape[:3]:
     raise SljaxError(f"{name}: left and right views differ in size: {np.shape(left)} vs "
                      f"{np.shape(right)}")
-  lf = _to_float(lb, f"{name}: left view")
-  rf = _to_float(rb, f"{name}: right view")
+  lf = unit_image(lb, f"{name}: left view")
+  rf = unit_image(rb, f"{name}: right view")
   if channels is not None:
     lf, rf = convert_channels(lf, channels), convert_channels(rf, channels)
   elif lf.shape[3] != rf.shape[3]:  # one gray, one colour: promote the gray one

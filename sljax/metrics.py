@@ -92,8 +92,10 @@ class DisparityAccumulator:
     self._errors.append(err.astype(np.float32))
     if calib is not None:
       self._has_depth = True
-      z_gt = depth_from_disparity(gt, calib).astype(np.float64)
-      z_pred = depth_from_disparity(np.where(finite_pred, pred, np.inf), calib).astype(np.float64)
+      where = f"{name}: depth metrics"
+      z_gt = depth_from_disparity(gt, calib, where).astype(np.float64)
+      z_pred = depth_from_disparity(np.where(finite_pred, pred, np.inf), calib,
+                                    where).astype(np.float64)
       both = scored & np.isfinite(z_gt)
       if both.any():
         cap = DEPTH_CAP_FACTOR * float(z_gt[valid & np.isfinite(z_gt)].max())

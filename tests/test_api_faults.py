@@ -12,8 +12,12 @@ import pytest
 from sljax import geometry, inference, sl
 from sljax.corr import correlation
 from sljax.data import synthetic
-from sljax.data.calib import Calib
+from sljax.data import FolderSource
+from sljax.data.calib import Calib, depth_from_disparity
+from sljax.data.dataset import iterate_batches
+from sljax.data.scene import Scene, load_scene, write_scene
 from sljax.errors import SljaxError
+from sljax.metrics import DisparityAccumulator
 from sljax.sl import codes
 
 
@@ -232,3 +236,89 @@ def test_synthetic_seed_outside_uint32_and_a_dict_config_are_refused():
     synthetic.render_scene(0, 2**40, synthetic.SynthConfig(size=16))
   with pytest.raises(SljaxError, match="config must be a SynthConfig, got dict"):
     synthetic.render_scene(0, 0, {"size": 16})
+
+
+# ---- sljax.data.scene: write_scene, one check before the first file ------------------------
+
+
+def _scene(**kw):
+  rng = np.random.default_rng(0)
+  parts = {"name": "s", "im0": rng.random((8, 10, 3)).astype(np.float32),
+           "im1": rng.random((8, 10, 3)).astype(np.float32)}
+  return Scene(**{**parts, **kw})
+
+
+def test_write_scene_scales_8_and_16_bit_views(tmp_path):
+  """A uint8 view used to be read as floats and clipped to [0, 1]: a white image."""
+  rng = np.random.default_rng(1)
+  im8 = rng.integers(0, 256, (8, 10, 3), dtype=np.uint8)
+  im16 = rng.integers(0, 65536, (8, 10), dtype=np.uint16)
+  write_scene(tmp_path / "a", _scene(im0=im8, im1=im8))
+  np.testing.assert_array_equal(load_scene(tmp_path / "a").im0, im8 / np.float32(255))
+  write_scene(tmp_path / "b", _scene(im0=im16, im1=im16), bit_depth=16)
+  np.testing.assert_array_equal(load_scene(tmp_path / "b").im0[..., 0], im16 / np.float32(65535))
+
+
+CALIB = Calib(cam0=np.eye(3), cam1=np.eye(3), doffs=0.0, baseline=10.0, width=10, height=8,
+              ndisp=4)
+
+
+@pytest.mark.parametrize("kw, file, message", [
+    ({"im0": np.full((8, 10, 3), 200.0, np.float32)}, "im0.png",
+     r"must be scaled to \[0, 1\], got values in \[200, 200\]"),
+    ({"im1": np.full((8, 10, 3), np.nan, np.float32)}, "im1.png", "holds NaN or infinite values"),
+    ({"im0": None}, "im0", "must be an HxW or HxWxC image, got NoneType"),
+    ({"raw0": {"white": np.full((8, 10), np.nan, np.float32)}}, "raw0/white.png", "NaN"),
+    ({"meta": {"group": object()}}, "meta.json", "cannot be written: cannot store object"),
+    ({"calib": Calib(cam0=np.eye(2), cam1=np.eye(3), doffs=0.0, baseline=1.0, width=10,
+                     height=8, ndisp=4)}, "calib.txt", "cam0 and cam1 must be 3x3"),
+])
+def test_write_scene_refuses_bad_parts_before_writing_anything(tmp_path, kw, file, message):
+  """Checked before the first file: a bad meta or calib used to leave the views written."""
+  with pytest.raises(SljaxError, match=message) as e:
+    write_scene(tmp_path / "s", _scene(**{"disp0": np.ones((8, 10), np.float32),
+                                          "calib": CALIB, **kw}))
+  assert file in str(e.value) and str(tmp_path / "s") in str(e.value)
+  assert not (tmp_path / "s").exists()
+
+
+@pytest.mark.parametrize("baseline", [0.0, -10.0, float("nan")])
+def test_depth_from_disparity_and_depth_metrics_refuse_a_bad_baseline(baseline):
+  """Both used to return zero or negative depths, and the depth metrics averaged them."""
+  bad = Calib(cam0=np.eye(3) * 100, cam1=np.eye(3) * 100, doffs=0.0, baseline=baseline,
+              width=10, height=8, ndisp=4)
+  with pytest.raises(SljaxError, match="depth: calibration needs a positive focal length"):
+    depth_from_disparity(np.ones((8, 10)), bad)
+  with pytest.raises(SljaxError, match="scene s7: depth metrics: calibration needs"):
+    DisparityAccumulator().add(np.ones((8, 10)), np.ones((8, 10)), calib=bad, name="scene s7")
+
+
+# ---- sljax.data: sources and batches ---------------------------------------------------------
+
+
+@pytest.mark.parametrize("root", [None, ["a"], "", 3])
+def test_folder_source_names_a_root_that_is_not_a_path(root):
+  """Used to be a TypeError from pathlib ('' was the current folder)."""
+  with pytest.raises(SljaxError, match="dataset folder must be a folder path"):
+    FolderSource(root)
+
+
+@pytest.mark.parametrize("indices, message", [
+    ([0, 9], "scene index 9 is out of range for 3 scenes"),
+    ([0, 1.5], "scene indices must be integers, got 1.5"),
+    (["0"], "scene indices must be integers, got '0'"),
+])
+def test_iterate_batches_checks_the_indices_before_loading(indices, message):
+  """A bad index used to fail inside the loader, after earlier batches were yielded."""
+  source = synthetic.SyntheticSource(3, seed=0, config=synthetic.SynthConfig(size=16))
+  with pytest.raises(SljaxError, match=message):
+    next(iterate_batches(source, indices, 1, seed=0, epoch=0, shuffle=False))
+
+
+def test_sljax_data_exports_its_main_names():
+  import sljax.data  # pylint: disable=import-outside-toplevel
+  from sljax.data import dataset, scene  # pylint: disable=import-outside-toplevel
+  assert sljax.data.FolderSource is dataset.FolderSource and sljax.data.Scene is scene.Scene
+  assert all(getattr(sljax.data, name) is not None for name in sljax.data.__all__)
+  with pytest.raises(AttributeError):
+    sljax.data.NoSuchThing  # pylint: disable=pointless-statement

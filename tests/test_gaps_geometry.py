@@ -154,16 +154,19 @@ def test_calibration_without_a_positive_baseline_is_refused(baseline):
 
 
 def test_point_cloud_colours_from_gray_and_out_of_range_images():
-  """An HxW gray image is repeated into r = g = b; values outside [0, 1] are clipped."""
+  """An HxW gray image is repeated into r = g = b; values within rounding (0.01) of [0, 1] are
+  clipped, a float image in 0..255 is refused (clipped, it used to be a white cloud)."""
   disp = np.full((2, 3), 10.0, np.float32)
   calib = _calib(3, 2)
-  gray = np.array([[0.0, 0.5, 1.0], [1.3, -0.2, 0.25]], np.float32)
+  gray = np.array([[0.0, 0.5, 1.0], [1.004, -0.003, 0.25]], np.float32)
   _, rgb = geometry.point_cloud(disp, calib, gray)
   want = np.array([0, 128, 255, 255, 0, 64], np.uint8)
   np.testing.assert_array_equal(rgb, np.stack([want] * 3, 1))
   _, rgb3 = geometry.point_cloud(disp, calib, np.stack([gray, gray * 0, gray], -1))
   np.testing.assert_array_equal(rgb3[:, 1], 0)
   np.testing.assert_array_equal(rgb3[:, 0], want)
+  with pytest.raises(SljaxError, match=r"point cloud: image must be scaled to \[0, 1\]"):
+    geometry.point_cloud(disp, calib, gray * 255)
 
 
 @pytest.mark.parametrize("focal", [0.0, -80.0, float("nan")])

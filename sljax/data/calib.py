@@ -103,26 +103,45 @@ def read_calib(path: str | os.PathLike) -> Calib:
       vmax=number("vmax") if "vmax" in values else None)
 
 
+def calib_text(calib: Calib, where: str = "calib") -> str:
+  """calib.txt's text in Middlebury 2014 syntax (vmin/vmax only when set); SljaxError for
+  intrinsics that are not 3x3 or for values that are not numbers."""
+  try:
+    cams = [np.asarray(m, dtype=np.float64) for m in (calib.cam0, calib.cam1)]
+    if any(m.shape != (3, 3) for m in cams):
+      raise ValueError(f"cam0 and cam1 must be 3x3, got {cams[0].shape} and {cams[1].shape}")
+    lines = [f"cam0={_format_matrix(cams[0])}", f"cam1={_format_matrix(cams[1])}",
+             f"doffs={_format_number(float(calib.doffs))}",
+             f"baseline={_format_number(float(calib.baseline))}",
+             f"width={int(calib.width)}", f"height={int(calib.height)}",
+             f"ndisp={int(calib.ndisp)}"]
+    lines += [f"{k}={_format_number(float(v))}" for k, v in
+              (("vmin", calib.vmin), ("vmax", calib.vmax)) if v is not None]
+  except (TypeError, ValueError, AttributeError) as e:
+    raise SljaxError(f"{where}: cannot be written: {e}") from None
+  return "\n".join(lines) + "\n"
+
+
 def write_calib(path: str | os.PathLike, calib: Calib) -> None:
   """Writes calib.txt in Middlebury 2014 syntax (vmin/vmax only when set)."""
-  lines = [
-      f"cam0={_format_matrix(calib.cam0)}",
-      f"cam1={_format_matrix(calib.cam1)}",
-      f"doffs={_format_number(calib.doffs)}",
-      f"baseline={_format_number(calib.baseline)}",
-      f"width={int(calib.width)}",
-      f"height={int(calib.height)}",
-      f"ndisp={int(calib.ndisp)}",
-  ]
-  if calib.vmin is not None:
-    lines.append(f"vmin={_format_number(calib.vmin)}")
-  if calib.vmax is not None:
-    lines.append(f"vmax={_format_number(calib.vmax)}")
-  files.write_text(path, "\n".join(lines) + "\n")
+  files.write_text(path, calib_text(calib, os.fspath(path)))
 
 
-def depth_from_disparity(disp: np.ndarray, calib: Calib) -> np.ndarray:
+def check_calib(calib: Calib, where: str) -> None:
+  """SljaxError unless calib is a Calib with positive, finite focal lengths and baseline."""
+  if not isinstance(calib, Calib):
+    raise SljaxError(f"{where}: calib must be a sljax.data.calib.Calib (read_calib reads "
+                     f"calib.txt), got {type(calib).__name__}")
+  fy = float(np.asarray(calib.cam0, dtype=np.float64)[1, 1])
+  # A zero or negative f, fy or baseline gives zero, negative or infinite depths, not an error.
+  if not all(np.isfinite(v) and v > 0 for v in (calib.focal, fy, calib.baseline)):
+    raise SljaxError(f"{where}: calibration needs a positive focal length and baseline, got "
+                     f"f = {calib.focal:g}, fy = {fy:g}, baseline = {calib.baseline:g}")
+
+
+def depth_from_disparity(disp: np.ndarray, calib: Calib, where: str = "depth") -> np.ndarray:
   """Depth in mm, Z = f * B / (d + doffs); unknown or non-positive d + doffs gives inf."""
+  check_calib(calib, where)
   d = np.asarray(disp, dtype=np.float64) + calib.doffs
   valid = np.isfinite(d) & (d > 0)
   z = np.full(d.shape, np.inf, dtype=np.float64)

@@ -6,6 +6,7 @@ reads scene folders lazily, the synthetic generator provides another.
 
 import fractions
 import hashlib
+import operator
 import os
 from collections.abc import Iterator, Sequence
 from pathlib import Path
@@ -61,7 +62,7 @@ class FolderSource:
   """Scenes below a root folder, loaded on access; reads the optional dataset.json."""
 
   def __init__(self, root: str | os.PathLike, gray: bool | None = None):
-    self.root = Path(root)
+    self.root = files.require_folder(root, "dataset folder")
     self.gray = gray
     self.paths = find_scenes(self.root)
     self._names = [p.relative_to(self.root).as_posix() for p in self.paths]
@@ -359,12 +360,26 @@ def epoch_order(indices: Sequence[int], seed: int, epoch: int) -> list[int]:
   return [int(indices[k]) for k in perm]
 
 
+def scene_indices(indices: Sequence[int], n: int) -> list[int]:
+  """indices as ints, each within a source of n scenes; SljaxError naming the first bad one (a
+  float or a string used to be truncated or fail inside the loader, mid-epoch)."""
+  out = []
+  for i in indices:
+    try:
+      out.append(operator.index(i))
+    except TypeError:
+      raise SljaxError(f"scene indices must be integers, got {i!r}") from None
+    if not -n <= out[-1] < n:
+      raise SljaxError(f"scene index {out[-1]} is out of range for {n} scenes")
+  return out
+
+
 def iterate_batches(source, indices: Sequence[int], batch_size: int, *, seed: int, epoch: int,
                     size: int | Sequence[int] | None = None, mode: str = "resize",
                     gray: bool = False, drop_last: bool = True, shuffle: bool = True,
                     parts: Sequence[str] = DEFAULT_PARTS) -> Iterator[dict[str, np.ndarray]]:
   """Batches over indices; with shuffle the order is a permutation drawn from (seed, epoch)."""
-  indices = [int(i) for i in indices]
+  indices = scene_indices(indices, len(source))
   if not indices:
     raise SljaxError("no scenes to iterate over (empty dataset or split)")
   if batch_size <= 0:

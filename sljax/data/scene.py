@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 
 from sljax import files
-from sljax.data.calib import Calib, read_calib, write_calib
+from sljax.data.calib import Calib, calib_text, read_calib
 from sljax.data.pfm import read_pfm, write_pfm
 from sljax.errors import SljaxError
 
@@ -85,6 +85,28 @@ def read_image(path: str | os.PathLike, gray: bool | None = None) -> np.ndarray:
   return np.ascontiguousarray(img)
 
 
+def unit_image(image: Any, what: str, allow_nan: bool = False) -> np.ndarray:
+  """An in-memory image as float32 in [0, 1]: uint8 / uint16 scaled, floats checked (finite, or
+  NaN where allow_nan; within [0, 1] up to 0.01, then clipped); SljaxError naming `what`."""
+  a = np.asarray(image)
+  if a.dtype == np.uint8:
+    return a.astype(np.float32) / np.float32(255.0)
+  if a.dtype == np.uint16:
+    return a.astype(np.float32) / np.float32(65535.0)
+  if a.dtype.kind != "f":
+    raise SljaxError(f"{what} must be uint8, uint16 or float in [0, 1], got "
+                     f"{type(image).__name__} of dtype {a.dtype}")
+  a = a.astype(np.float32)
+  if np.isinf(a).any() or (not allow_nan and np.isnan(a).any()):
+    raise SljaxError(f"{what} holds {'infinite' if allow_nan else 'NaN or infinite'} values")
+  finite = a[np.isfinite(a)]
+  # 0..255 held as floats, clipped to [0, 1], would be a white image (or a meaningless one).
+  if finite.size and (finite.min() < -0.01 or finite.max() > 1.01):
+    raise SljaxError(f"{what} must be scaled to [0, 1], got values in "
+                     f"[{finite.min():g}, {finite.max():g}]")
+  return np.clip(a, 0.0, 1.0)
+
+
 def image_to_float(raw: np.ndarray, where: str = "image") -> np.ndarray:
   """An OpenCV-decoded 8/16-bit array (HxW or BGR(A)) -> float32 HxWxC RGB in [0, 1]."""
   if raw.dtype == np.uint8:
@@ -104,22 +126,26 @@ def image_to_float(raw: np.ndarray, where: str = "image") -> np.ndarray:
   return img.astype(np.float32) / np.float32(scale)
 
 
-def write_image(path: str | os.PathLike, image: np.ndarray, bit_depth: int = 8) -> None:
-  """Writes a float image in [0, 1] (HxW, HxWx1 or HxWx3 RGB) as an 8- or 16-bit PNG."""
+def png_pixels(path: str | os.PathLike, image: Any, bit_depth: int = 8) -> np.ndarray:
+  """The 8- or 16-bit pixels (BGR for OpenCV) that write_image stores for an image: float in
+  [0, 1], uint8 or uint16; HxW, HxWx1 or HxWx3 RGB. SljaxError naming path otherwise."""
   path = os.fspath(path)
   if bit_depth not in (8, 16):
     raise SljaxError(f"{path}: bit depth must be 8 or 16, got {bit_depth}")
-  img = np.asarray(image, dtype=np.float32)
+  img = unit_image(image, path)
   if img.ndim == 3 and img.shape[2] == 1:
     img = img[..., 0]
   if not (img.ndim == 2 or (img.ndim == 3 and img.shape[2] == 3)):
     raise SljaxError(f"{path}: cannot write an image of shape {img.shape}")
-  maxval = 255 if bit_depth == 8 else 65535
-  q = np.round(np.clip(np.nan_to_num(img, nan=0.0), 0.0, 1.0) * maxval)
+  q = np.round(img * (255 if bit_depth == 8 else 65535))
   q = q.astype(np.uint8 if bit_depth == 8 else np.uint16)
-  if q.ndim == 3:
-    q = np.ascontiguousarray(q[..., ::-1])  # RGB -> BGR for OpenCV
-  files.write_png(path, q)  # a full disk keeps the earlier file, never half of one
+  return np.ascontiguousarray(q[..., ::-1]) if q.ndim == 3 else q  # RGB -> BGR
+
+
+def write_image(path: str | os.PathLike, image: Any, bit_depth: int = 8) -> None:
+  """Writes an image (float in [0, 1], uint8 or uint16; HxW, HxWx1 or HxWx3 RGB) as an 8- or
+  16-bit PNG."""
+  files.write_png(path, png_pixels(path, image, bit_depth))  # whole, or the earlier file kept
 
 
 def patterns_to_png(patterns: np.ndarray) -> np.ndarray:
@@ -234,10 +260,11 @@ def write_raw(folder: str | os.PathLike, raw: dict[str, np.ndarray], bit_depth: 
   existing = _numbered_files(folder, _RAW_FILE) if folder.is_dir() else []
   if existing and not overwrite:
     raise SljaxError(f"{existing[0]}: exists (use --overwrite / overwrite=True to replace it)")
-  folder.mkdir(parents=True, exist_ok=True)
   paths = [folder / f"{key}.png" for key in raw]
-  for path, img in zip(paths, raw.values()):  # each written whole; stale captures go last
-    write_image(path, img, bit_depth)
+  pixels = [png_pixels(path, img, bit_depth) for path, img in zip(paths, raw.values())]
+  folder.mkdir(parents=True, exist_ok=True)
+  for path, q in zip(paths, pixels):  # each written whole; stale captures go last
+    files.write_png(path, q)
   for old in set(existing) - set(paths):
     old.unlink()
 
@@ -358,7 +385,11 @@ def write_scene(path: str | os.PathLike, scene: Scene, overwrite: bool = False,
   Nothing is written when any target file exists and overwrite is False.
   """
   scene_dir = Path(path)
-  hw = tuple(scene.im0.shape[:2])
+  for name in ("im0", "im1"):
+    if np.ndim(getattr(scene, name)) not in (2, 3):
+      raise _fail(scene_dir, name, f"must be an HxW or HxWxC image, got "
+                  f"{type(getattr(scene, name)).__name__} of shape {np.shape(getattr(scene, name))}")
+  hw = tuple(np.shape(scene.im0)[:2])
   _check_size(scene_dir, "im1", np.asarray(scene.im1), hw)
   for name in ("disp0", "disp1", "mask0", "sl0", "sl1"):
     value = getattr(scene, name)
@@ -383,9 +414,17 @@ def write_scene(path: str | os.PathLike, scene: Scene, overwrite: bool = False,
         if existing:
           raise _fail(scene_dir, f"{folder}/{existing[0].name}", "exists (use --overwrite / overwrite=True to replace it)")
 
+  # Everything that can be refused is checked before the first file is written.
+  views = [png_pixels(scene_dir / f"{v}.png", getattr(scene, v), bit_depth) for v in ("im0", "im1")]
+  for folder in ("raw0", "raw1"):
+    for key, capture in (getattr(scene, folder) or {}).items():
+      png_pixels(scene_dir / folder / f"{key}.png", capture, bit_depth)
+  calib = None if scene.calib is None else calib_text(scene.calib, str(scene_dir / "calib.txt"))
+  meta = _meta_text(scene_dir, scene.meta) if scene.meta else None
+
   scene_dir.mkdir(parents=True, exist_ok=True)
-  write_image(scene_dir / "im0.png", scene.im0, bit_depth)
-  write_image(scene_dir / "im1.png", scene.im1, bit_depth)
+  files.write_png(scene_dir / "im0.png", views[0])
+  files.write_png(scene_dir / "im1.png", views[1])
   if scene.disp0 is not None:
     write_pfm(scene_dir / "disp0.pfm", scene.disp0)
   if scene.disp1 is not None:
@@ -401,8 +440,15 @@ def write_scene(path: str | os.PathLike, scene: Scene, overwrite: bool = False,
     write_raw(scene_dir / "raw0", scene.raw0, bit_depth, overwrite=True)
   if scene.raw1 is not None:
     write_raw(scene_dir / "raw1", scene.raw1, bit_depth, overwrite=True)
-  if scene.calib is not None:
-    write_calib(scene_dir / "calib.txt", scene.calib)
-  if scene.meta:
-    files.write_text(scene_dir / "meta.json", json.dumps(
-        scene.meta, indent=2, sort_keys=True, default=_json_default) + "\n")
+  if calib is not None:
+    files.write_text(scene_dir / "calib.txt", calib)
+  if meta is not None:
+    files.write_text(scene_dir / "meta.json", meta)
+
+
+def _meta_text(scene_dir: Path, meta: dict[str, Any]) -> str:
+  """meta.json's text; SljaxError naming the scene when a value has no JSON form."""
+  try:
+    return json.dumps(meta, indent=2, sort_keys=True, default=_json_default) + "\n"
+  except (TypeError, ValueError) as e:
+    raise _fail(scene_dir, "meta.json", f"cannot be written: {e}") from None

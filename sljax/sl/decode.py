@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from sljax.data.scene import unit_image
 from sljax.errors import SljaxError, require
 from sljax.sl import codes
 
@@ -78,21 +79,9 @@ def column_from_bits(bits: np.ndarray, code: str, threshold: float = 0.5) -> np.
 
 
 def _capture(value: Any, key: str, where: str) -> np.ndarray:
-  """One capture as float32 in [0, 1]; uint8 / uint16 are scaled (the thresholds are in [0, 1])."""
-  a = np.asarray(value)
-  if a.dtype == np.uint8:
-    return a.astype(np.float32) / np.float32(255.0)
-  if a.dtype == np.uint16:
-    return a.astype(np.float32) / np.float32(65535.0)
-  require(a.dtype.kind == "f", f"{where}: capture '{key}' must be uint8, uint16 or float in "
-          f"[0, 1], got {type(value).__name__} of dtype {a.dtype}")
-  a = a.astype(np.float32)
-  finite = a[np.isfinite(a)]
-  # Captures in 0..255 as floats would make every threshold (1/255 scale) meaningless.
-  if finite.size and (finite.min() < -0.01 or finite.max() > 1.01):
-    raise SljaxError(f"{where}: capture '{key}' must be scaled to [0, 1], got values in "
-                     f"[{finite.min():g}, {finite.max():g}]")
-  return a
+  """One capture as float32 in [0, 1], NaN = unknown; uint8 / uint16 are scaled (the thresholds
+  are in [0, 1])."""
+  return unit_image(value, f"{where}: capture '{key}'", allow_nan=True)
 
 
 def decode_captures(raw: dict[str, np.ndarray], code: str, t: int | None = None,

@@ -10,6 +10,9 @@
 #   train: the real training step and loop (bench_train, paper preset, the twin, fp32 and
 #          bf16: is the data pipeline hidden behind a GPU step?). The main job at the paper
 #          preset was timed on 2026-11-25 (README, Benchmarks).
+#   next:  the second session's single call (15 min of device time): check's files at
+#          `highest` without the bitwise tests, the bitwise tests under deterministic GPU
+#          operations (with and without autotuning), then the bf16 twin step alone.
 #
 # From the device tool (the machine's image has jax with CUDA, flax, optax, orbax, OpenCV and
 # a CUDA torch; nothing is installed, sljax runs from the checkout):
@@ -17,12 +20,13 @@
 #   run(command="bash benchmarks/gpu_session.sh check", timeout_s=600)
 #   run(command="bash benchmarks/gpu_session.sh speed", carry=[".ref"], timeout_s=600)
 #   run(command="bash benchmarks/gpu_session.sh train", timeout_s=600)
+#   run(command="bash benchmarks/gpu_session.sh next", timeout_s=480)
 # Logs and the benchmarks' records come back under $OUT (session.log first); copy the records'
 # lines into benchmarks/results/ and the figures into the README. On a CPU (a dry run) each
 # part does the same at a tiny size: `OUT=/tmp/out bash benchmarks/gpu_session.sh check dry`.
 set -uo pipefail
 cd "$(dirname "$0")/.."
-part=${1:?check, speed or train}
+part=${1:?check, speed, train or next}
 dry=${2:-}
 OUT=${OUT:-/tmp/gpu_session}
 mkdir -p "$OUT"
@@ -68,7 +72,45 @@ elif [ "$part" = train ]; then
       > "$OUT/bench_train-psmnet-mtl-$precision.log" 2>&1
     ran; grep -v cuda_timer "$OUT/bench_train-psmnet-mtl-$precision.log" | tail -8 | tee -a "$OUT/session.log"
   done
+elif [ "$part" = next ]; then
+  # The second session's one call (15 min of device time in all): the nine files at `highest`
+  # without the four bitwise tests, beside those four under XLA's deterministic GPU operations,
+  # alone and with autotuning off (each compilation picks convolution kernels by timing them);
+  # then the bf16 twin step, alone on the GPU so that its timing is clean.
+  export XLA_PYTHON_CLIENT_PREALLOCATE=false
+  xd=""; $PY -c "import xdist" 2>/dev/null && xd="-n 8"; xb=""; [ -n "$xd" ] && xb="-n 4"
+  tests="tests/test_psmnet.py tests/test_psmnet_mtl.py tests/test_unet.py tests/test_correlation.py
+         tests/test_losses.py tests/test_weighting.py tests/test_step.py tests/test_inference.py
+         tests/test_loop.py"
+  bitwise="tests/test_loop.py::test_exact_resume_after_kill_mid_epoch_and_during_a_save
+           tests/test_inference.py::test_twin_in_two_programs_equals_one"
+  args="--preset paper --steps 20 --epochs 2"; limit=200; blimit=220
+  if [ -n "$dry" ]; then
+    tests="tests/test_correlation.py tests/test_losses.py"; bitwise="tests/test_losses.py"
+    args="--preset quick --steps 2 --epochs 2"; limit=120; blimit=120
+  fi
+  deselect=""; for t in $bitwise; do deselect="$deselect --deselect $t"; done
+  log "tests at 'highest' (tests/conftest.py) without the bitwise ones, $xd; beside them the bitwise tests"
+  timeout $limit $PY -m pytest $xd -q -p no:cacheprovider -o addopts="-ra" --tb=line $tests $deselect \
+    > "$OUT/tests-highest.log" 2>&1 &
+  a=$!
+  XLA_FLAGS="${XLA_FLAGS:-} --xla_gpu_deterministic_ops=true" timeout $limit $PY -m pytest $xb -q \
+    -p no:cacheprovider -o addopts="-ra" --tb=line $bitwise > "$OUT/tests-deterministic.log" 2>&1 &
+  b=$!
+  XLA_FLAGS="${XLA_FLAGS:-} --xla_gpu_deterministic_ops=true --xla_gpu_autotune_level=0" \
+    timeout $limit $PY -m pytest $xb -q -p no:cacheprovider -o addopts="-ra" --tb=line $bitwise \
+    > "$OUT/tests-deterministic-noautotune.log" 2>&1 &
+  c=$!
+  for job in "$a highest" "$b deterministic" "$c deterministic-noautotune"; do
+    set -- $job; wait $1; rc=$?
+    log "$2: exit code $rc$([ $rc = 124 ] && echo ' (timed out)')"
+    grep -E "^(FAILED|ERROR)|passed|failed" "$OUT/tests-$2.log" | tail -25 | tee -a "$OUT/session.log"
+  done
+  log "bench_train $args --net psmnet-mtl --precision bf16 (alone on the GPU)"
+  timeout $blimit $PY benchmarks/bench_train.py $args --net psmnet-mtl --precision bf16 \
+    > "$OUT/bench_train-psmnet-mtl-bf16.log" 2>&1
+  ran; grep -v cuda_timer "$OUT/bench_train-psmnet-mtl-bf16.log" | tail -8 | tee -a "$OUT/session.log"
 else
-  echo "usage: gpu_session.sh check|speed|train [dry]" >&2; exit 2
+  echo "usage: gpu_session.sh check|speed|train|next [dry]" >&2; exit 2
 fi
 log "done"

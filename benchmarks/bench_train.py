@@ -11,9 +11,11 @@ compiles, and validation are left out). Prints where it ran (CPU, devices, versi
   python benchmarks/bench_train.py                          # quick preset, psmnet-mtl
   python benchmarks/bench_train.py --preset paper --batch 2 --steps 2
   python benchmarks/bench_train.py --net unet-sl --precision bf16
+  python benchmarks/bench_train.py --preset paper --step-only --precision fp32,bf16
 """
 
 import argparse
+import concurrent.futures
 import dataclasses
 import json
 import os
@@ -55,8 +57,8 @@ def subset(config: TrainConfig, n_train: int, steps: int) -> TrainConfig:
   return dataclasses.replace(config, fraction=f"{steps * config.batch_size}/{n_train}")
 
 
-def time_step(config: TrainConfig, steps: int) -> float:
-  """(a): steps/s of the compiled step on one fixed batch."""
+def compiled_step(config: TrainConfig):
+  """The compiled step, a state and one fixed device batch for (a); compiles before returning."""
   source = loop.open_source(config)
   info = loop.check_source(source, config)
   mesh = stp.make_mesh()
@@ -70,11 +72,37 @@ def time_step(config: TrainConfig, steps: int) -> float:
   w = jnp.asarray(step_weights(config.strategy, []))
   state, m = step(state, batch, w)  # compiles
   jax.block_until_ready(m)
+  return step, state, batch, w
+
+
+def time_compiled(prepared, steps: int):
+  """Steps/s of a prepared step on its fixed batch, and the prepared step with the new state
+  (the step donates its state)."""
+  step, state, batch, w = prepared
   t0 = time.perf_counter()
   for _ in range(steps):
     state, m = step(state, batch, w)
   jax.block_until_ready((state, m))
-  return steps / (time.perf_counter() - t0)
+  return steps / (time.perf_counter() - t0), (step, state, batch, w)
+
+
+def time_step(config: TrainConfig, steps: int) -> float:
+  """(a): steps/s of the compiled step on one fixed batch."""
+  return time_compiled(compiled_step(config), steps)[0]
+
+
+def time_precisions(config: TrainConfig, precisions, steps: int, rounds: int = 2) -> dict:
+  """(a) for each precision, side by side: compiled together (threads overlap the compilers),
+  then timed in alternation, the best of `rounds` each."""
+  configs = [dataclasses.replace(config, precision=p) for p in precisions]
+  with concurrent.futures.ThreadPoolExecutor(len(configs)) as pool:
+    prepared = list(pool.map(compiled_step, configs))
+  best = dict.fromkeys(precisions, 0.0)
+  for _ in range(rounds):
+    for i, p in enumerate(precisions):
+      sps, prepared[i] = time_compiled(prepared[i], steps)
+      best[p] = max(best[p], sps)
+  return best
 
 
 def time_loop(config: TrainConfig, workdir: Path) -> float:
@@ -102,20 +130,27 @@ def main() -> None:
   p.add_argument("--steps", type=int, default=10, help="steps per epoch (and for (a))")
   p.add_argument("--epochs", type=int, default=3,
                  help="loop epochs (at least 2); the first is not timed")
-  p.add_argument("--precision", choices=("fp32", "bf16"), default="fp32")
+  p.add_argument("--precision", default="fp32",
+                 help="fp32 or bf16; 'fp32,bf16' times (a) for both side by side (with --step-only)")
+  p.add_argument("--step-only", action="store_true", help="only (a): no loop, no folder")
   p.add_argument("--folder-size", type=int, default=256, help="PNG scene size for (c)")
   args = p.parse_args()
+  precisions = args.precision.split(",")
+  if any(q not in ("fp32", "bf16") for q in precisions) or (len(precisions) > 1
+                                                            and not args.step_only):
+    p.error("--precision is fp32, bf16, or fp32,bf16 with --step-only")
+  args.precision = precisions[0]
   config = config_for(args)
   n_train = len(split_indices(loop.open_source(config), config.test_fraction, config.seed)[0])
   print(f"{machine()}")
   print(f"preset {config.preset}: {config.net}/{config.strategy}, {config.size[0]}x"
         f"{config.size[1]}, maxdisp {config.maxdisp}, batch {config.batch_size}, "
-        f"{config.precision}, {args.steps} steps per epoch\n")
+        f"{'/'.join(precisions)}, {args.steps} steps per epoch\n")
   print("| what | steps/s | samples/s | ratio to (a) |")
   print("| --- | --- | --- | --- |", flush=True)
   rows = []
 
-  def add(name, sps):  # printed and recorded as measured: a run cut short keeps its rows
+  def add(name, sps, precision=config.precision):  # printed and recorded as measured
     rows.append((name, sps))
     print(f"| {name} | {sps:.3f} | {sps * config.batch_size:.2f} | {sps / rows[0][1]:.3f} |",
           flush=True)
@@ -123,7 +158,12 @@ def main() -> None:
                                    "samples_per_s": sps * config.batch_size,
                                    "ratio_to_a": sps / rows[0][1]}],
                   quiet=True, preset=config.preset, net=config.net, batch=config.batch_size,
-                  precision=config.precision)
+                  precision=precision)
+  if args.step_only:
+    for q, sps in time_precisions(config, precisions, args.steps).items():
+      path = add(f"(a) compiled step, fixed batch, {q}", sps, q)
+    print(f"\nrecorded in {os.path.relpath(path)}")
+    return
   add("(a) compiled step, fixed batch", time_step(config, args.steps))
   with tempfile.TemporaryDirectory() as tmp:
     tmp = Path(tmp)

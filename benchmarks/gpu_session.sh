@@ -12,7 +12,7 @@
 #          preset was timed on 2026-11-25 (README, Benchmarks).
 #   next:  the second session's single call (15 min of device time): check's files at
 #          `highest` without the bitwise tests, the bitwise tests under deterministic GPU
-#          operations (with and without autotuning), then the bf16 twin step alone.
+#          operations (with and without autotuning), then the twin's step in fp32 and bf16.
 #
 # From the device tool (the machine's image has jax with CUDA, flax, optax, orbax, OpenCV and
 # a CUDA torch; nothing is installed, sljax runs from the checkout):
@@ -76,7 +76,8 @@ elif [ "$part" = next ]; then
   # The second session's one call (15 min of device time in all): the nine files at `highest`
   # without the four bitwise tests, beside those four under XLA's deterministic GPU operations,
   # alone and with autotuning off (each compilation picks convolution kernels by timing them);
-  # then the bf16 twin step, alone on the GPU so that its timing is clean.
+  # then the twin's step in float32 and bf16 side by side, alone on the GPU so that the timing
+  # is clean (compiled together, then timed in alternation).
   export XLA_PYTHON_CLIENT_PREALLOCATE=false
   xd=""; $PY -c "import xdist" 2>/dev/null && xd="-n 8"; xb=""; [ -n "$xd" ] && xb="-n 4"
   tests="tests/test_psmnet.py tests/test_psmnet_mtl.py tests/test_unet.py tests/test_correlation.py
@@ -84,10 +85,10 @@ elif [ "$part" = next ]; then
          tests/test_loop.py"
   bitwise="tests/test_loop.py::test_exact_resume_after_kill_mid_epoch_and_during_a_save
            tests/test_inference.py::test_twin_in_two_programs_equals_one"
-  args="--preset paper --steps 20 --epochs 2"; limit=200; blimit=220
+  args="--preset paper --steps 20"; limit=200; blimit=240
   if [ -n "$dry" ]; then
     tests="tests/test_correlation.py tests/test_losses.py"; bitwise="tests/test_losses.py"
-    args="--preset quick --steps 2 --epochs 2"; limit=120; blimit=120
+    args="--preset quick --steps 2"; limit=120; blimit=120
   fi
   deselect=""; for t in $bitwise; do deselect="$deselect --deselect $t"; done
   log "tests at 'highest' (tests/conftest.py) without the bitwise ones, $xd; beside them the bitwise tests"
@@ -106,10 +107,10 @@ elif [ "$part" = next ]; then
     log "$2: exit code $rc$([ $rc = 124 ] && echo ' (timed out)')"
     grep -E "^(FAILED|ERROR)|passed|failed" "$OUT/tests-$2.log" | tail -25 | tee -a "$OUT/session.log"
   done
-  log "bench_train $args --net psmnet-mtl --precision bf16 (alone on the GPU)"
-  timeout $blimit $PY benchmarks/bench_train.py $args --net psmnet-mtl --precision bf16 \
-    > "$OUT/bench_train-psmnet-mtl-bf16.log" 2>&1
-  ran; grep -v cuda_timer "$OUT/bench_train-psmnet-mtl-bf16.log" | tail -8 | tee -a "$OUT/session.log"
+  log "bench_train $args --net psmnet-mtl --step-only --precision fp32,bf16 (alone on the GPU)"
+  timeout $blimit $PY benchmarks/bench_train.py $args --net psmnet-mtl --step-only \
+    --precision fp32,bf16 > "$OUT/bench_train-psmnet-mtl-precisions.log" 2>&1
+  ran; grep -v cuda_timer "$OUT/bench_train-psmnet-mtl-precisions.log" | tail -8 | tee -a "$OUT/session.log"
 else
   echo "usage: gpu_session.sh check|speed|train|next [dry]" >&2; exit 2
 fi

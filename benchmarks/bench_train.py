@@ -95,8 +95,15 @@ def time_precisions(config: TrainConfig, precisions, steps: int, rounds: int = 2
   """(a) for each precision, side by side: compiled together (threads overlap the compilers),
   then timed in alternation, the best of `rounds` each."""
   configs = [dataclasses.replace(config, precision=p) for p in precisions]
+  t0 = time.perf_counter()
+
+  def compile_one(c):  # says when each is compiled: a run cut short still tells how long it took
+    prepared = compiled_step(c)
+    print(f"{c.precision}: compiled, the first step run, {time.perf_counter() - t0:.0f} s after "
+          f"the start", flush=True)
+    return prepared
   with concurrent.futures.ThreadPoolExecutor(len(configs)) as pool:
-    prepared = list(pool.map(compiled_step, configs))
+    prepared = list(pool.map(compile_one, configs))
   best = dict.fromkeys(precisions, 0.0)
   for _ in range(rounds):
     for i, p in enumerate(precisions):

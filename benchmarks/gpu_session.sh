@@ -26,7 +26,7 @@
 # part does the same at a tiny size: `OUT=/tmp/out bash benchmarks/gpu_session.sh check dry`.
 set -uo pipefail
 cd "$(dirname "$0")/.."
-part=${1:?check, speed, train or next}
+part=${1:?check, speed, train, next or resume}
 dry=${2:-}
 OUT=${OUT:-/tmp/gpu_session}
 mkdir -p "$OUT"
@@ -111,7 +111,33 @@ elif [ "$part" = next ]; then
   timeout $blimit $PY benchmarks/bench_train.py $args --net psmnet-mtl --step-only \
     --precision fp32,bf16 > "$OUT/bench_train-psmnet-mtl-precisions.log" 2>&1
   ran; grep -v cuda_timer "$OUT/bench_train-psmnet-mtl-precisions.log" | tail -8 | tee -a "$OUT/session.log"
+elif [ "$part" = resume ]; then
+  # Exact resume with the killed child on the parent's device (it ran on the CPU before
+  # 2026-11-26), at XLA's GPU settings as they are and with deterministic operations; then the
+  # twin's step in both precisions, alone on the GPU.
+  export XLA_PYTHON_CLIENT_PREALLOCATE=false
+  xb=""; $PY -c "import xdist" 2>/dev/null && xb="-n 4"
+  bitwise="tests/test_loop.py::test_exact_resume_after_kill_mid_epoch_and_during_a_save
+           tests/test_loop.py::test_ctrl_c_stops_after_the_step_and_resumes_exactly"
+  args="--preset paper --steps 20"; limit=150; blimit=300
+  [ -n "$dry" ] && args="--preset quick --steps 2" && limit=200 && blimit=150
+  log "exact resume, the child on the parent's device: as is, and with deterministic GPU operations"
+  timeout $limit $PY -m pytest $xb -q -p no:cacheprovider -o addopts="-ra" --tb=line $bitwise \
+    > "$OUT/tests-resume.log" 2>&1 &
+  a=$!
+  XLA_FLAGS="${XLA_FLAGS:-} --xla_gpu_deterministic_ops=true" timeout $limit $PY -m pytest $xb -q \
+    -p no:cacheprovider -o addopts="-ra" --tb=line $bitwise > "$OUT/tests-resume-deterministic.log" 2>&1 &
+  b=$!
+  for job in "$a resume" "$b resume-deterministic"; do
+    set -- $job; wait $1; rc=$?
+    log "$2: exit code $rc$([ $rc = 124 ] && echo ' (timed out)')"
+    grep -E "^(FAILED|ERROR)|passed|failed" "$OUT/tests-$2.log" | tail -10 | tee -a "$OUT/session.log"
+  done
+  log "bench_train $args --net psmnet-mtl --step-only --precision fp32,bf16 (alone on the GPU)"
+  timeout $blimit $PY benchmarks/bench_train.py $args --net psmnet-mtl --step-only \
+    --precision fp32,bf16 > "$OUT/bench_train-psmnet-mtl-precisions.log" 2>&1
+  ran; grep -v cuda_timer "$OUT/bench_train-psmnet-mtl-precisions.log" | tail -9 | tee -a "$OUT/session.log"
 else
-  echo "usage: gpu_session.sh check|speed|train|next [dry]" >&2; exit 2
+  echo "usage: gpu_session.sh check|speed|train|next|resume [dry]" >&2; exit 2
 fi
 log "done"

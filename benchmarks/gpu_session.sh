@@ -119,7 +119,7 @@ elif [ "$part" = resume ]; then
   xb=""; $PY -c "import xdist" 2>/dev/null && xb="-n 4"
   bitwise="tests/test_loop.py::test_exact_resume_after_kill_mid_epoch_and_during_a_save
            tests/test_loop.py::test_ctrl_c_stops_after_the_step_and_resumes_exactly"
-  args="--preset paper --steps 20"; limit=150; blimit=300
+  args="--preset paper --steps 20"; limit=120; blimit=270
   [ -n "$dry" ] && args="--preset quick --steps 2" && limit=200 && blimit=150
   log "exact resume, the child on the parent's device: as is, and with deterministic GPU operations"
   timeout $limit $PY -m pytest $xb -q -p no:cacheprovider -o addopts="-ra" --tb=line $bitwise \

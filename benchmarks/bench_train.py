@@ -138,7 +138,7 @@ def main() -> None:
   p.add_argument("--epochs", type=int, default=3,
                  help="loop epochs (at least 2); the first is not timed")
   p.add_argument("--precision", default="fp32",
-                 help="fp32 or bf16; 'fp32,bf16' times (a) for both side by side (with --step-only)")
+                 help="fp32 or bf16; 'fp32,bf16' times (a) of both side by side (--step-only)")
   p.add_argument("--step-only", action="store_true", help="only (a): no loop, no folder")
   p.add_argument("--folder-size", type=int, default=256, help="PNG scene size for (c)")
   args = p.parse_args()

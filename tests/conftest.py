@@ -10,12 +10,19 @@ tolerances by design: 13 tests did on an H100 (docs/testing.md, "On a GPU"). How
 networks is measured by benchmarks/bench_gpu.py, not asserted here.
 SLJAX_TEST_PRECISION=default runs the suite at XLA's default instead.
 
+On a GPU the suite also asks XLA for deterministic operations: a second program (a resumed run,
+an exported file) is compiled again, and XLA:GPU picks convolution kernels by timing them at
+each compilation and sums with atomics in some backward passes, so bitwise comparisons of two
+runs fail by about 1e-5 relative without it (two of the four exact-resume tests on an H200; all
+four passed with it, docs/testing.md).
+
 On a CPU the suite compiles without XLA's LLVM backend optimisations (the options the training
 loop already uses for initialisers): compiling dominates these tests (small inputs, many
 networks), and the whole suite took about 0.8x the time on a Zen 3 (inference tests 0.76x,
 training tests 0.88x, measured side by side). The HLO passes, YNNPACK fusions included, still
 run; values change only by float rounding, which the tolerances and the bitwise comparisons of
-two runs of one program do not see. SLJAX_TEST_XLA=default compiles as a user's run does."""
+two runs of one program do not see. SLJAX_TEST_XLA=default compiles as a user's run does
+(on a GPU too: no deterministic operations)."""
 
 import atexit
 import importlib.metadata
@@ -24,22 +31,27 @@ import shutil
 import tempfile
 
 FAST_COMPILE = "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"
+GPU_DETERMINISTIC = "--xla_gpu_deterministic_ops=true"
 
 
-def _cpu_only() -> bool:
-  """Whether JAX can only use the CPU here (no GPU plugin installed, or JAX_PLATFORMS=cpu)."""
+def _accelerators() -> set:
+  """The accelerator kinds JAX may use here ('gpu', 'tpu'): its plugins installed, unless
+  JAX_PLATFORMS=cpu."""
   if os.environ.get("JAX_PLATFORMS", "").strip().lower() == "cpu":
-    return True
-  names = (str(d.metadata["Name"] or "").lower().replace("_", "-")
-           for d in importlib.metadata.distributions())
-  return not any(n.startswith(("jax-cuda", "jax-rocm", "jax-tpu", "libtpu")) for n in names)
+    return set()
+  names = [str(d.metadata["Name"] or "").lower().replace("_", "-")
+           for d in importlib.metadata.distributions()]
+  return ({"gpu"} if any(n.startswith(("jax-cuda", "jax-rocm")) for n in names) else set()) | (
+      {"tpu"} if any(n.startswith(("jax-tpu", "libtpu")) for n in names) else set())
 
 
 os.environ.setdefault("SLJAX_TUNE", "0")
 if os.environ.get("SLJAX_TEST_PRECISION", "highest") != "default":  # inherited by subprocesses
   os.environ["JAX_DEFAULT_MATMUL_PRECISION"] = "highest"
-if os.environ.get("SLJAX_TEST_XLA", "fast") != "default" and _cpu_only():  # subprocesses too
+if os.environ.get("SLJAX_TEST_XLA", "fast") != "default" and not _accelerators():  # subprocs too
   os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {FAST_COMPILE}".strip()
+if os.environ.get("SLJAX_TEST_XLA", "fast") != "default" and "gpu" in _accelerators():
+  os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {GPU_DETERMINISTIC}".strip()
 if "SLJAX_COMPILE_CACHE" not in os.environ:
   os.environ["SLJAX_COMPILE_CACHE"] = tempfile.mkdtemp(prefix="sljax-xla-")
   atexit.register(shutil.rmtree, os.environ["SLJAX_COMPILE_CACHE"], ignore_errors=True)

@@ -215,3 +215,15 @@ def test_training_stops_before_its_first_step(tmp_path, monkeypatch):
   with pytest.raises(SljaxError, match=f"{victim}: truncated"):
     loop.train(cfg, tmp_path / "w", log=lambda line: None, progress=False)
   assert not (tmp_path / "w" / loop.METRICS_FILE).exists()
+
+
+def test_one_pattern_rule_for_info_and_the_preflight_check():
+  """dataset.json's count where it declares one (0 included), else the first scene's; `sljax
+  info` flags exactly the datasets the pre-flight check refuses."""
+  from sljax.commands.info import _pattern_problems
+  assert preflight.expected_patterns(None, [4, 6, 4]) == 4
+  assert preflight.expected_patterns(6, [4]) == 6 and preflight.expected_patterns(0, [4]) == 0
+  assert preflight.expected_patterns(None, []) is None
+  for declared, counts in ((None, [4, 4]), (None, [4, 5]), (6, [6, 6]), (6, [6, 4]), (4, [])):
+    refused = any(t != preflight.expected_patterns(declared, counts) for t in counts)
+    assert bool(_pattern_problems(counts, declared)) == refused, (declared, counts)

@@ -145,15 +145,17 @@ def _table(rows: list[list[str]]) -> str:
   return "\n".join("  " + "  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in rows)
 
 
-def _pattern_problems(counts: collections.Counter, declared: Any) -> list[str]:
-  """Scenes whose pattern counts disagree with each other or with dataset.json's "patterns":
-  one training batch stacks them, so a mixed dataset fails there, later and less clearly."""
-  found = ", ".join(f"{t} ({_plural(v, 'scene')})" for t, v in sorted(counts.items()))
-  if len(counts) > 1:
-    return [f"scenes hold different pattern counts: {found}"]
-  if declared is not None and counts and set(counts) != {int(declared)}:
+def _pattern_problems(counts: list[int], declared: Any) -> list[str]:
+  """The pre-flight check's pattern rule (preflight.expected_patterns), summarised: a mixed
+  dataset would fail in its first training batch, later and less clearly."""
+  expected = preflight.expected_patterns(declared, counts)
+  if all(t == expected for t in counts):
+    return []
+  found = ", ".join(f"{t} ({_plural(v, 'scene')})"
+                    for t, v in sorted(collections.Counter(counts).items()))
+  if declared is not None:
     return [f"dataset.json declares {declared} patterns; the scenes hold {found}"]
-  return []
+  return [f"scenes hold different pattern counts: {found}"]
 
 
 def run(args: argparse.Namespace) -> int:
@@ -177,8 +179,8 @@ def run(args: argparse.Namespace) -> int:
   print("files:   im0.png " + f"{len(rows)}/{n}, " +
         ", ".join(f"{f} {counts[f]}/{n}" for f in _FILES if counts[f]))
 
-  patterns = collections.Counter(r.get("sl0") for r in rows if "sl0" in r)
-  problems += _pattern_problems(patterns, src.info.get("patterns"))
+  problems += _pattern_problems([r["sl0"] for r in rows if "sl0" in r], src.info.get("patterns"))
+  patterns = collections.Counter(r["sl0"] for r in rows if "sl0" in r)
   if patterns or src.num_patterns:
     found = ", ".join(f"{t} patterns ({_plural(v, 'scene')})" for t, v in sorted(patterns.items()))
     print(f"patterns: code {src.code or 'unknown'}; {found or f'{src.num_patterns} declared'}")

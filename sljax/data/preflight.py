@@ -312,19 +312,25 @@ def scan(source, jobs: Sequence[tuple[Iterable[int], Iterable[str]]], *,
   if use_cache and todo:
     cache.update({key(i): r for i, r in results.items()})
     _save_cache(path, root, cache)
-  # Every scene must hold as many patterns as dataset.json declares, else as the first (the
-  # network is built for them; the experiment plans size it by dataset.json).
   counted = [(i, r["t"]) for i, r in sorted(results.items()) if r.get("t") is not None]
   declared = getattr(source, "info", {}).get("patterns")  # not num_patterns: a glob of scene 0
-  expected, whose = ((declared, f"{root / 'dataset.json'} declares") if declared else
-                     (counted[0][1], f"scene {source.name(counted[0][0])} holds") if counted
-                     else (None, ""))
+  expected = expected_patterns(declared, [t for _, t in counted])
+  whose = (f"{root / 'dataset.json'} declares" if declared is not None else
+           f"scene {source.name(counted[0][0])} holds" if counted else "")
   for i, t in counted:
     if t != expected:
       problems.setdefault(i, f"{source.paths[i] / 'sl0'}: holds {t} patterns, {whose} "
                              f"{expected}")
   return ([problems[i] for i in sorted(problems)],
           {"scenes": len(wanted), "cached": len(wanted) - len(todo)})
+
+
+def expected_patterns(declared: Any, counts: Sequence[int]) -> int | None:
+  """The pattern count every scene must hold: dataset.json's "patterns" where it declares them,
+  else the first scene's (one network and one batch take one count); None with neither."""
+  if declared is not None:
+    return int(declared)
+  return counts[0] if counts else None
 
 
 def check(source, jobs: Sequence[tuple[Iterable[int], Iterable[str]]], *,

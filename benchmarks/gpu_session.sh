@@ -13,6 +13,10 @@
 #   next:  the second session's single call (15 min of device time): check's files at
 #          `highest` without the bitwise tests, the bitwise tests under deterministic GPU
 #          operations (with and without autotuning), then the twin's step in fp32 and bf16.
+#   resume: the exact-resume tests with the killed child on the GPU, as is and under
+#          deterministic operations; then the same step benchmark. (2026-11-26, H200: exact
+#          resume held bitwise under deterministic operations; neither step compiled in 4.5 min
+#          when the two precisions compiled in two threads: next time one at a time.)
 #
 # From the device tool (the machine's image has jax with CUDA, flax, optax, orbax, OpenCV and
 # a CUDA torch; nothing is installed, sljax runs from the checkout):
@@ -21,6 +25,7 @@
 #   run(command="bash benchmarks/gpu_session.sh speed", carry=[".ref"], timeout_s=600)
 #   run(command="bash benchmarks/gpu_session.sh train", timeout_s=600)
 #   run(command="bash benchmarks/gpu_session.sh next", timeout_s=480)
+#   run(command="bash benchmarks/gpu_session.sh resume", timeout_s=410)
 # Logs and the benchmarks' records come back under $OUT (session.log first); copy the records'
 # lines into benchmarks/results/ and the figures into the README. On a CPU (a dry run) each
 # part does the same at a tiny size: `OUT=/tmp/out bash benchmarks/gpu_session.sh check dry`.

@@ -8,6 +8,7 @@ import math
 
 import pytest
 
+from sljax import cli
 from sljax.experiment import plans, report, runner, stats
 
 T975_DF2 = 4.302653  # Student t, 0.975 quantile, 2 degrees of freedom
@@ -259,3 +260,21 @@ def test_training_time_per_arm_and_cpu_by_hand(fake):
   text = report.write_report(out).read_text()
   assert "| stl | 1/16 | 2 | 15.0 (10.0-20.0) | CPU A | forward-off, on |" in text
   assert "| stl | 1/16 | 1 | 60.0 (60.0-60.0) | not recorded | not recorded |" in text
+
+
+def test_report_of_named_plans_only(fake, capsys):
+  """`report --plans table2-v2` leaves out a plan that runs in the same folder (fig7-v2 here,
+  registered, nothing finished); a plan not run there is refused, naming those that were."""
+  out, _ = fake
+  runner.register(out, plans.build_plan("fig7-v2", "smoke", 1))
+  assert cli.main(["experiment", "report", str(out)]) == 0
+  both = (out / "report.md").read_text()
+  assert report.TITLES["table2-v2"] in both and report.TITLES["fig7-v2"] in both
+  assert cli.main(["experiment", "report", str(out), "--plans", "table2-v2"]) == 0
+  one = (out / "report.md").read_text()
+  assert report.TITLES["table2-v2"] in one and report.TITLES["fig7-v2"] not in one
+  assert set(json.loads((out / "report.json").read_text())) == {"table2-v2"}
+  capsys.readouterr()
+  assert cli.main(["experiment", "report", str(out), "--plans", "table3-v2"]) == 2
+  err = capsys.readouterr().err
+  assert "no plan table3-v2 was run here (plans run: fig7-v2, table2-v2)" in err

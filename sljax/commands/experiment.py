@@ -39,6 +39,9 @@ def register(subparsers) -> None:
                        description="Reports every plan run under OUT (cells not finished yet "
                                    "are listed as missing).")
   rep.add_argument("out", metavar="OUT", help="experiment folder")
+  rep.add_argument("--plans", default=None, metavar="NAMES",
+                   help="only these plans of those run under OUT, comma-separated "
+                        "(e.g. table2-v2 while fig7-v2 runs in the same folder)")
   rep.set_defaults(func=report)
   s = sub.add_parser("status", help="finished, training and waiting cells, times, time left",
                      description="Where the plans run under OUT stand (safe beside a running "
@@ -91,7 +94,7 @@ def calibrate(args: argparse.Namespace) -> int:
 
 def report(args: argparse.Namespace) -> int:
   """Writes the report and prints where."""
-  path = rep.write_report(args.out)
+  path = rep.write_report(args.out, args.plans.split(",") if args.plans else None)
   print(f"wrote {path} (+ report.json, figures/)")
   return 0
 

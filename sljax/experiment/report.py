@@ -22,12 +22,13 @@ excluded are exploratory (no test was pre-registered for them).
 
 import math
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 from matplotlib.figure import Figure
 
 from sljax import files
+from sljax.errors import SljaxError
 from sljax.evaluate import json_safe
 from sljax.experiment import stats
 from sljax.experiment.claims import ALPHA, PAPER, POWER, claims
@@ -409,10 +410,17 @@ def _rank_table(plan: Plan, agg: dict[str, Any]) -> list[str]:
   return lines
 
 
-def write_report(out: str | Path) -> Path:
-  """Writes OUT/report.md, OUT/report.json and OUT/figures/; returns the report.md path."""
+def write_report(out: str | Path, only: Sequence[str] | None = None) -> Path:
+  """Writes OUT/report.md, OUT/report.json and OUT/figures/ for the plans registered under OUT
+  (or the named ones of them); returns the report.md path."""
   out = Path(out)
   registered = {plan.name: plan for plan in registered_plans(out)}
+  unknown = sorted(set(only or ()) - set(registered))
+  if unknown:
+    raise SljaxError(f"{out}: no plan {', '.join(unknown)} was run here (plans run: "
+                     f"{', '.join(sorted(registered)) or 'none'})")
+  if only:
+    registered = {name: plan for name, plan in registered.items() if name in only}
   lines = ["# Experiment report", "",
            "Every cell is scored with its final checkpoint, through sljax's one metrics "
            "function: v1 plans on the cell's held-out split (which training also validated "

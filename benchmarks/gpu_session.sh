@@ -40,6 +40,33 @@ PY=${PYTHON:-python3}
 log() { echo "== $(date -u +%H:%M:%S) $*" | tee -a "$OUT/session.log"; }
 ran() { local rc=$?; log "exit code $rc$([ $rc = 124 ] && echo ' (timed out)')"; }
 
+det="--xla_gpu_deterministic_ops=true"
+pids=""
+# pytest NAME "XLA flags" ARGS...: in the background, into $OUT/tests-NAME.log, within $limit s.
+pytest_bg() {
+  local name=$1 flags=$2; shift 2
+  XLA_FLAGS="${XLA_FLAGS:-} $flags" timeout "$limit" $PY -m pytest -q -p no:cacheprovider \
+    -o addopts="-ra" --tb=line "$@" > "$OUT/tests-$name.log" 2>&1 &
+  pids="$pids $!:$name"
+}
+# Waits for each pytest_bg run and logs its exit code and summary.
+wait_tests() {
+  local job rc
+  for job in $pids; do
+    wait "${job%%:*}"; rc=$?
+    log "${job#*:}: exit code $rc$([ $rc = 124 ] && echo ' (timed out)')"
+    grep -E "^(FAILED|ERROR)|passed|failed" "$OUT/tests-${job#*:}.log" | tail -25 | tee -a "$OUT/session.log"
+  done
+  pids=""
+}
+# The twin's compiled step in float32 and bf16 side by side, alone on the GPU, within $blimit s.
+bench_precisions() {
+  log "bench_train $args --net psmnet-mtl --step-only --precision fp32,bf16 (alone on the GPU)"
+  timeout "$blimit" $PY benchmarks/bench_train.py $args --net psmnet-mtl --step-only \
+    --precision fp32,bf16 > "$OUT/bench_train-psmnet-mtl-precisions.log" 2>&1
+  ran; grep -v cuda_timer "$OUT/bench_train-psmnet-mtl-precisions.log" | tail -9 | tee -a "$OUT/session.log"
+}
+
 log "part $part ${dry:+(dry run)}"
 { nvidia-smi -L 2>/dev/null || echo "no nvidia-smi"; $PY -c "import jax, flax, optax; print(jax.__version__, jax.devices(), flax.__version__, optax.__version__)"; } \
   2>&1 | tee -a "$OUT/session.log"
@@ -97,25 +124,11 @@ elif [ "$part" = next ]; then
   fi
   deselect=""; for t in $bitwise; do deselect="$deselect --deselect $t"; done
   log "tests at 'highest' (tests/conftest.py) without the bitwise ones, $xd; beside them the bitwise tests"
-  timeout $limit $PY -m pytest $xd -q -p no:cacheprovider -o addopts="-ra" --tb=line $tests $deselect \
-    > "$OUT/tests-highest.log" 2>&1 &
-  a=$!
-  XLA_FLAGS="${XLA_FLAGS:-} --xla_gpu_deterministic_ops=true" timeout $limit $PY -m pytest $xb -q \
-    -p no:cacheprovider -o addopts="-ra" --tb=line $bitwise > "$OUT/tests-deterministic.log" 2>&1 &
-  b=$!
-  XLA_FLAGS="${XLA_FLAGS:-} --xla_gpu_deterministic_ops=true --xla_gpu_autotune_level=0" \
-    timeout $limit $PY -m pytest $xb -q -p no:cacheprovider -o addopts="-ra" --tb=line $bitwise \
-    > "$OUT/tests-deterministic-noautotune.log" 2>&1 &
-  c=$!
-  for job in "$a highest" "$b deterministic" "$c deterministic-noautotune"; do
-    set -- $job; wait $1; rc=$?
-    log "$2: exit code $rc$([ $rc = 124 ] && echo ' (timed out)')"
-    grep -E "^(FAILED|ERROR)|passed|failed" "$OUT/tests-$2.log" | tail -25 | tee -a "$OUT/session.log"
-  done
-  log "bench_train $args --net psmnet-mtl --step-only --precision fp32,bf16 (alone on the GPU)"
-  timeout $blimit $PY benchmarks/bench_train.py $args --net psmnet-mtl --step-only \
-    --precision fp32,bf16 > "$OUT/bench_train-psmnet-mtl-precisions.log" 2>&1
-  ran; grep -v cuda_timer "$OUT/bench_train-psmnet-mtl-precisions.log" | tail -8 | tee -a "$OUT/session.log"
+  pytest_bg highest "" $xd $tests $deselect
+  pytest_bg deterministic "$det" $xb $bitwise
+  pytest_bg deterministic-noautotune "$det --xla_gpu_autotune_level=0" $xb $bitwise
+  wait_tests
+  bench_precisions
 elif [ "$part" = resume ]; then
   # Exact resume with the killed child on the parent's device (it ran on the CPU before
   # 2026-11-26), at XLA's GPU settings as they are and with deterministic operations; then the
@@ -127,21 +140,10 @@ elif [ "$part" = resume ]; then
   args="--preset paper --steps 20"; limit=120; blimit=270
   [ -n "$dry" ] && args="--preset quick --steps 2" && limit=200 && blimit=150
   log "exact resume, the child on the parent's device: as is, and with deterministic GPU operations"
-  timeout $limit $PY -m pytest $xb -q -p no:cacheprovider -o addopts="-ra" --tb=line $bitwise \
-    > "$OUT/tests-resume.log" 2>&1 &
-  a=$!
-  XLA_FLAGS="${XLA_FLAGS:-} --xla_gpu_deterministic_ops=true" timeout $limit $PY -m pytest $xb -q \
-    -p no:cacheprovider -o addopts="-ra" --tb=line $bitwise > "$OUT/tests-resume-deterministic.log" 2>&1 &
-  b=$!
-  for job in "$a resume" "$b resume-deterministic"; do
-    set -- $job; wait $1; rc=$?
-    log "$2: exit code $rc$([ $rc = 124 ] && echo ' (timed out)')"
-    grep -E "^(FAILED|ERROR)|passed|failed" "$OUT/tests-$2.log" | tail -10 | tee -a "$OUT/session.log"
-  done
-  log "bench_train $args --net psmnet-mtl --step-only --precision fp32,bf16 (alone on the GPU)"
-  timeout $blimit $PY benchmarks/bench_train.py $args --net psmnet-mtl --step-only \
-    --precision fp32,bf16 > "$OUT/bench_train-psmnet-mtl-precisions.log" 2>&1
-  ran; grep -v cuda_timer "$OUT/bench_train-psmnet-mtl-precisions.log" | tail -9 | tee -a "$OUT/session.log"
+  pytest_bg resume "" $xb $bitwise
+  pytest_bg resume-deterministic "$det" $xb $bitwise
+  wait_tests
+  bench_precisions
 else
   echo "usage: gpu_session.sh check|speed|train|next|resume [dry]" >&2; exit 2
 fi

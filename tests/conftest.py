@@ -45,12 +45,13 @@ def _accelerators() -> set:
       {"tpu"} if any(n.startswith(("jax-tpu", "libtpu")) for n in names) else set())
 
 
+ACCELERATORS = _accelerators()
 os.environ.setdefault("SLJAX_TUNE", "0")
 if os.environ.get("SLJAX_TEST_PRECISION", "highest") != "default":  # inherited by subprocesses
   os.environ["JAX_DEFAULT_MATMUL_PRECISION"] = "highest"
-if os.environ.get("SLJAX_TEST_XLA", "fast") != "default" and not _accelerators():  # subprocs too
+if os.environ.get("SLJAX_TEST_XLA", "fast") != "default" and not ACCELERATORS:  # subprocesses too
   os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {FAST_COMPILE}".strip()
-if os.environ.get("SLJAX_TEST_XLA", "fast") != "default" and "gpu" in _accelerators():
+if os.environ.get("SLJAX_TEST_XLA", "fast") != "default" and "gpu" in ACCELERATORS:
   os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {GPU_DETERMINISTIC}".strip()
 if "SLJAX_COMPILE_CACHE" not in os.environ:
   os.environ["SLJAX_COMPILE_CACHE"] = tempfile.mkdtemp(prefix="sljax-xla-")

@@ -35,6 +35,7 @@ from sljax.data import scared
 from sljax.data.pfm import read_pfm, write_pfm
 from sljax.data.scene import present_parts
 from sljax.errors import SljaxError
+from sljax.geometry import check_calib_size
 from sljax.viz import Panel, save_panels
 
 REGIONS = ("full", "seg")
@@ -159,6 +160,8 @@ def evaluate(predictor, source, indices: list[int] | None = None, *, out_dir: Pa
     if scene.im0.shape[:2] != scene.im1.shape[:2]:
       raise SljaxError(f"{where}: im0 is {scene.im0.shape[1]}x{scene.im0.shape[0]} but im1 is "
                        f"{scene.im1.shape[1]}x{scene.im1.shape[0]}; the views must have one size")
+    if scene.calib is not None:  # another resolution's calib.txt gives wrong depth metrics
+      check_calib_size(scene.calib, scene.im0.shape[:2], f"{where}: calib.txt")
     try:
       out = predictor(scene.im0, scene.im1, calib=scene.calib)
     except SljaxError as e:

@@ -1,3 +1,5 @@
+import re
+
 import numpy as np
 import pytest
 
@@ -60,6 +62,15 @@ def test_malformed_matrix(tmp_path):
   (tmp_path / "calib.txt").write_text(MIDDLEBURY.replace("0 0 1]\ncam1", "0 1]\ncam1", 1))
   with pytest.raises(SljaxError, match="cam0"):
     read_calib(tmp_path / "calib.txt")
+
+
+def test_binary_file_names_file_and_problem(tmp_path):
+  # A damaged or foreign file in calib.txt's place: one line, not a UnicodeDecodeError.
+  path = tmp_path / "calib.txt"
+  path.write_bytes(b"cam0=[1 0 0; 0 1 0; 0 0 1]\n\xff\xfe\x00garbage\n")
+  with pytest.raises(SljaxError, match=re.escape(f"{path}: not a text calibration file (the byte "
+                                                "at offset 27 is not UTF-8 text")):
+    read_calib(path)
 
 
 def test_depth_from_disparity_matches_float64_formula():

@@ -146,3 +146,18 @@ def test_storage_errno_finds_the_cause():
   assert ckpt.storage_errno(group)[0] == errno.EDQUOT
   assert ckpt.storage_errno(ValueError("shape mismatch")) is None
   assert ckpt.storage_errno(OSError(errno.ENOENT, "No such file")) is None
+
+
+def test_resume_drops_damaged_log_lines(tmp_path):
+  """Lines of metrics.jsonl / epochs.jsonl that are not a JSON object (a torn write, a list, a
+  number, undecodable bytes) are dropped on resume, as are rows after the checkpoint; the rest is
+  kept byte for byte."""
+  from sljax.train import workdir
+  good = [b'{"step": 1, "loss": 0.5}', b'{"step": 2, "loss": 0.25}']
+  bad = [b"[1, 2]", b"3", b'"text"', b'{"step": 3, "lo\xff\xfess": 1}', b'{"step": 4, "lo']
+  (tmp_path / workdir.METRICS_FILE).write_bytes(
+      b"\n".join([good[0], bad[0], bad[1], good[1], bad[2], bad[3], b'{"step": 9}', bad[4]]))
+  (tmp_path / workdir.EPOCHS_FILE).write_bytes(b'{"epoch": 1}\n[0]\n{"epoch": 5}\n')
+  workdir.restart_logs(tmp_path, step=3, steps_per_epoch=2)
+  assert (tmp_path / workdir.METRICS_FILE).read_bytes() == b"".join(g + b"\n" for g in good)
+  assert (tmp_path / workdir.EPOCHS_FILE).read_text() == '{"epoch": 1}\n'

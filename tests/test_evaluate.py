@@ -124,6 +124,21 @@ def test_image_pair_of_different_sizes_names_the_file(tmp_path, capsys):
   assert rc == 2 and "im1.png" in err
 
 
+def test_calibration_of_another_image_size_names_the_file(tmp_path, capsys):
+  # The depth metrics used to be computed with it; `sljax predict` already refused it.
+  root = tmp_path / "bad"
+  write_scene(root / "x", textured_scene("x", seed=6))
+  calib = root / "x" / "calib.txt"
+  calib.write_text(calib.read_text().replace("width=80", "width=160"))
+  out = tmp_path / "o"
+  rc = cli.main(["evaluate", "sgbm", str(root), "--out", str(out)])
+  err = capsys.readouterr().err
+  assert rc == 2 and err == (
+      f"sljax evaluate: error: scene {root / 'x'}: calib.txt: calibration is for 160x48 images, "
+      "the pair is 80x48 (depth would be wrong; give the calib.txt of these images)\n"), err
+  assert not (out / "metrics.json").exists()
+
+
 def test_missing_checkpoint_is_an_error(dataset, tmp_path, capsys):
   rc = cli.main(["evaluate", str(tmp_path / "nope"), str(dataset), "--out", str(tmp_path / "o")])
   assert rc == 2 and "nope" in capsys.readouterr().err

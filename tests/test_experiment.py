@@ -145,6 +145,22 @@ def test_bad_plan_arguments(capsys, tmp_path):
   assert "not an experiment folder" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("record", [{}, {"plans": [], "cells": {}},
+                                    {"plans": {"table2": {"scale": "smoke"}}, "cells": {}}],
+                         ids=["empty object", "plans a list", "no seeds"])
+def test_foreign_plan_json_is_one_line_and_left_alone(record, capsys, tmp_path):
+  # Another program's plan.json in OUT ended run, status and report in a KeyError traceback.
+  path = tmp_path / runner.PLAN_FILE
+  path.write_text(json.dumps(record))
+  for argv in (["run", "table2", str(tmp_path), "--scale", "smoke"], ["status", str(tmp_path)],
+               ["report", str(tmp_path)]):
+    assert cli.main(["experiment", *argv]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"sljax experiment: error: {path}: not an sljax experiment record ("), err
+    assert err.count("\n") == 1, err
+  assert json.loads(path.read_text()) == record and os.listdir(tmp_path) == [runner.PLAN_FILE]
+
+
 def test_stl_and_unc_are_paired_within_a_seed(tmp_path):
   """At one seed, stl and unc train on the same scenes, split, subset and order (batches
   identical in what they share), and start from equal disparity-path weights; seeds differ."""

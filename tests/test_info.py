@@ -121,6 +121,10 @@ def _calib_without_ndisp(d):
                                        if not l.startswith("ndisp")))
 
 
+def _calib_binary(d):
+  (d / "calib.txt").write_bytes(b"\xff\xfe\x00garbage\n")  # was a UnicodeDecodeError traceback
+
+
 def _fewer_right_patterns(d):
   (d / "sl1" / "003.png").unlink()
 
@@ -128,8 +132,10 @@ def _fewer_right_patterns(d):
 # Issue 2, item 6: each bad input names the scene and the file, in the library and on the CLI.
 @pytest.mark.parametrize("damage, file", [
     (_drop_im1, "im1.png"), (_resize_im1, "im1.png"), (_bad_pfm_header, "disp0.pfm"),
-    (_calib_without_ndisp, "calib.txt"), (_fewer_right_patterns, "sl1"),
-], ids=["missing file", "view sizes", "pfm header", "calib key", "pattern counts"])
+    (_calib_without_ndisp, "calib.txt"), (_calib_binary, "calib.txt"),
+    (_fewer_right_patterns, "sl1"),
+], ids=["missing file", "view sizes", "pfm header", "calib key", "calib binary",
+        "pattern counts"])
 def test_bad_input_names_scene_and_file(tmp_path, capsys, damage, file):
   root = tmp_path / "data"
   write_scene(root / "good", _scene(0))

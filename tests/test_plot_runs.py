@@ -1,5 +1,7 @@
 import json
 
+import pytest
+
 from sljax import cli
 from sljax.commands import plot_runs
 
@@ -74,3 +76,17 @@ def test_existing_outputs_need_overwrite(tmp_path, capsys):
   assert cli.main(["plot-runs", str(a), "--out", str(png), "--overwrite"]) == 0
   assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and "psmnet/stl" in md.read_text()
   assert sorted(p.name for p in tmp_path.iterdir()) == ["a", "c.md", "c.png"]
+
+
+@pytest.mark.parametrize("line, problem", [
+    (b'{"epoch": 2, "val_mae": 1\xff}', "line 2 is not UTF-8 text (byte 26 of the line)"),
+    (b'{"epoch": 2, "val_', "line 2 is not JSON (Unterminated string"),
+    (b"[2]", "line 2 has no 'epoch' key")])
+def test_damaged_epochs_line_is_one_line_naming_file_and_line(tmp_path, capsys, line, problem):
+  run = tmp_path / "run"
+  run.mkdir()
+  (run / "epochs.jsonl").write_bytes(b'{"epoch": 1, "val_mae": 2.0}\n' + line + b"\n")
+  rc = cli.main(["plot-runs", str(run), "--out", str(tmp_path / "x.png")])
+  err = capsys.readouterr().err
+  assert rc == 2 and f"{run / 'epochs.jsonl'}: {problem}" in err and "Traceback" not in err
+  assert not (tmp_path / "x.png").exists()

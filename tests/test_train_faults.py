@@ -298,6 +298,24 @@ def test_bad_values_are_one_line_before_anything_is_written(flag, needle, base, 
   assert not Path("wd").exists()
 
 
+def test_one_group_says_why_nothing_is_held_out(tmp_path, capsys):
+  # Every scene of one object (one meta.json group): the line used to blame --max-val 2.
+  data = _dataset(tmp_path / "data")
+  for meta in data.glob("*/meta.json"):
+    meta.write_text(json.dumps({"group": "one"}))
+  code, _, err = _run([*_flags(data), "--workdir", str(tmp_path / "wd")], capsys)
+  assert code == 2 and err == (
+      f"train.py: error: {data}: the held-out split is empty (its 8 scene(s) form 1 group(s) "
+      "(meta.json 'group', else the scene's name) and whole groups are held out; give scenes of "
+      "at least 2 groups)\n"), err
+  assert not (tmp_path / "wd").exists()
+  every = [f"s{i:02d}" for i in range(8)]
+  (data / "dataset.json").write_text(json.dumps({"splits": {"train": every}}))
+  code, _, err = _run([*_flags(data), "--workdir", str(tmp_path / "wd")], capsys)
+  assert code == 2 and err.endswith(
+      "the held-out split is empty (dataset.json's 'splits' leave no test scene)\n"), err
+
+
 def test_failed_preflight_leaves_no_config_behind(base, tmp_path, capsys):
   data = tmp_path / "data"
   shutil.copytree(base[0], data)

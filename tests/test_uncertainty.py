@@ -121,6 +121,29 @@ def test_cli_bad_prediction_file_is_one_line_error(tmp_path, capsys):
   assert "p_right" in err and "bad.npz" in err
 
 
+@pytest.mark.parametrize("key, scale, shift, why", [
+    ("p_left", 10.0, -5.0, "got values in [-4.5, 4.5] (logits? apply a sigmoid first)"),
+    ("p_right", 255.0, 0.0, "got values in [12.75, 242.25] (8-bit values? divide by 255 first)"),
+])
+def test_cli_probabilities_outside_unit_range_are_one_line_error(tmp_path, capsys, key, scale,
+                                                                  shift, why):
+  # Logits or 0..255 pixels were analysed as probabilities: uncertainties below 0, no error.
+  pred, scene = _scene_and_pred(tmp_path, True)
+  with np.load(pred) as z:
+    arrays = dict(z)
+  arrays[key] = arrays[key] * scale + shift
+  arrays["p_left"][0, 0, 0] = np.nan  # an unknown pattern pixel stays allowed
+  np.savez(tmp_path / "scaled.npz", **arrays)
+  out = tmp_path / "o"
+  argv = ["uncertainty", "--pred", str(tmp_path / "scaled.npz"), "--gt", str(scene), "--out",
+          str(out)]
+  assert cli.main(argv) == 2
+  err = capsys.readouterr().err
+  assert err == (f"sljax uncertainty: error: {tmp_path / 'scaled.npz'}: '{key}' must hold "
+                 f"probabilities in [0, 1], {why}\n"), err
+  assert not out.exists()
+
+
 @pytest.mark.parametrize("flag, value", [("--window", "4"), ("--max-disp", "-1")])
 def test_cli_bad_option_is_one_line_error(tmp_path, capsys, flag, value):
   pred, scene = _scene_and_pred(tmp_path, False)

@@ -55,11 +55,14 @@ def read_run(workdir: str | os.PathLike) -> dict[str, Any]:
     raise SljaxError(f"{workdir}: no {EPOCHS_FILE} (not a training workdir, or no epoch "
                      "finished yet)")
   records = []
-  for n, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
-    if not line.strip():
+  for n, raw in enumerate(path.read_bytes().splitlines(), 1):
+    if not raw.strip():
       continue
     try:
-      rec = json.loads(line)
+      rec = json.loads(raw.decode("utf-8"))
+    except UnicodeDecodeError as e:
+      raise SljaxError(f"{path}: line {n} is not UTF-8 text (byte {e.start + 1} of the line)") \
+          from None
     except json.JSONDecodeError as e:
       raise SljaxError(f"{path}: line {n} is not JSON ({e.msg})") from None
     if not isinstance(rec, dict) or "epoch" not in rec:

@@ -9,7 +9,7 @@ import numpy as np
 from sljax import files
 from sljax.corr import correlation, uncertainty
 from sljax.data.scene import load_scene
-from sljax.errors import require
+from sljax.errors import SljaxError, require
 
 HIST_PNG = "uncertainty_hist.png"
 MAPS_PNG = "uncertainty_maps.png"
@@ -44,6 +44,17 @@ def register(subparsers) -> None:
   p.set_defaults(func=run)
 
 
+def _check_probabilities(path: Path, key: str, p: np.ndarray) -> None:
+  """SljaxError unless p holds numbers in [0, 1] (NaN, an unknown pattern, allowed)."""
+  require(p.dtype.kind in "fiub", f"{path}: '{key}' must be numeric, got dtype {p.dtype}")
+  known = p[~np.isnan(p)] if p.dtype.kind == "f" else p
+  # Logits or 0/255 pixels would give uncertainties outside [0, 1] and a meaningless analysis.
+  if known.size and (known.min() < 0 or known.max() > 1):
+    hint = "logits? apply a sigmoid" if known.min() < 0 else "8-bit values? divide by 255"
+    raise SljaxError(f"{path}: '{key}' must hold probabilities in [0, 1], got values in "
+                     f"[{known.min():g}, {known.max():g}] ({hint} first)")
+
+
 def _load_pred(path: Path) -> dict:
   """Reads and checks the prediction .npz."""
   require(path.is_file(), f"{path}: prediction file not found")
@@ -51,6 +62,7 @@ def _load_pred(path: Path) -> dict:
   for key in ("p_left", "p_right"):
     require(key in arrays, f"{path}: array '{key}' missing (found {sorted(arrays)})")
     require(arrays[key].ndim == 3, f"{path}: '{key}' must be HxWxt, got shape {arrays[key].shape}")
+    _check_probabilities(path, key, arrays[key])
   require(arrays["p_left"].shape == arrays["p_right"].shape,
           f"{path}: p_left {arrays['p_left'].shape} and p_right {arrays['p_right'].shape} differ")
   if "disparity" in arrays:

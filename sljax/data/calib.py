@@ -67,6 +67,9 @@ def read_calib(path: str | os.PathLike) -> Calib:
       lines = f.read().splitlines()
   except OSError as e:
     raise SljaxError(f"{path}: cannot read calibration ({e.strerror or e})") from None
+  except UnicodeDecodeError as e:  # a binary or damaged file in calib.txt's place
+    raise SljaxError(f"{path}: not a text calibration file (the byte at offset {e.start} is "
+                     "not UTF-8 text; expected Middlebury 'key=value' lines)") from None
   values: dict[str, str] = {}
   for n, line in enumerate(lines, 1):
     if not line.strip() or line.lstrip().startswith("#"):

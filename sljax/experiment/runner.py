@@ -73,12 +73,29 @@ def plan_args(plan: Plan) -> dict[str, Any]:
           "eval_data": list(plan.eval_data)}
 
 
+def read_record(out: Path) -> dict[str, Any] | None:
+  """OUT/plan.json as register writes it (plans by name with scale and seeds, cells by name), or
+  None when absent; SljaxError naming the file for any other JSON object."""
+  path = out / PLAN_FILE
+  record = read_json(path)
+  if record is None:
+    return None
+  by_plan, cells = record.get("plans"), record.get("cells")
+  # Another program's plan.json (or an edited one) would otherwise end in a KeyError.
+  ok = isinstance(by_plan, dict) and isinstance(cells, dict) and all(
+      isinstance(a, dict) and isinstance(a.get("scale"), str) and type(a.get("seeds")) is int
+      for a in by_plan.values())
+  require(ok, f"{path}: not an sljax experiment record (expected {{\"plans\": {{PLAN: "
+          f"{{\"scale\": ..., \"seeds\": N}}}}, \"cells\": {{...}}}}); use another OUT")
+  return record
+
+
 def register(out: Path, plan: Plan) -> dict[str, Any]:
   """Records the plan in OUT/plan.json; SljaxError when a cell's spec differs from the one
   already recorded there (a changed plan under an existing OUT)."""
   check_unique(plan)
   out.mkdir(parents=True, exist_ok=True)
-  record = read_json(out / PLAN_FILE) or {"version": FORMAT_VERSION, "plans": {}, "cells": {}}
+  record = read_record(out) or {"version": FORMAT_VERSION, "plans": {}, "cells": {}}
   for cell in plan.cells:
     old, new = record["cells"].get(cell.name), cell.spec()
     if old is not None and old != new:
@@ -103,7 +120,7 @@ def registered_plans(out: Path, seeds: int | None = None) -> list[Plan]:
   """The plans recorded in OUT/plan.json, rebuilt (with `seeds` seeds where more than were run,
   e.g. a grid's target while it runs seed by seed); SljaxError when OUT is not an experiment
   folder."""
-  record = read_json(out / PLAN_FILE)
+  record = read_record(out)
   require(record is not None, f"{out}: no {PLAN_FILE} (not an experiment folder; run "
           "`sljax experiment run PLAN OUT` first)")
   require(seeds is None or seeds >= 1, f"--seeds {seeds}: at least 1")

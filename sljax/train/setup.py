@@ -107,6 +107,17 @@ def resolve_ynn(config: TrainConfig, workdir: Path, resume: bool, overwrite: boo
   return dataclasses.replace(config, ynn=tune.choice(log=log).name)
 
 
+def _why_no_held_out(source: Any) -> str:
+  """Why split_indices held nothing out (--test-fraction is in (0, 1), --max-val >= 1): the
+  dataset's own splits, or fewer than two groups, as the split holds out whole groups."""
+  if getattr(source, "splits", None):
+    return "dataset.json's 'splits' leave no test scene"
+  n = len(source)
+  groups = {source.group(i) for i in range(n)}
+  return (f"its {n} scene(s) form {len(groups)} group(s) (meta.json 'group', else the scene's "
+          "name) and whole groups are held out; give scenes of at least 2 groups")
+
+
 def setup(config: TrainConfig, workdir: Path, resume: bool, overwrite: bool,
           log: Callable[[str], None], preset_note: str = "", source: Any = None) -> Setup:
   """Checks the options, data and workdir (SljaxError before anything compiles) and announces
@@ -129,7 +140,7 @@ def setup(config: TrainConfig, workdir: Path, resume: bool, overwrite: bool,
           f"--batch-size {config.batch_size}: larger than the {len(train_idx)} training scenes "
           f"(fraction {config.fraction} of {len(source)} scenes)")
   require(len(val_idx) > 0, f"{config.data or 'synthetic data'}: the held-out split is empty"
-          + (f" (--max-val {config.max_val})" if config.max_val is not None else ""))
+          f" ({_why_no_held_out(source)})")
   steps_per_epoch = len(train_idx) // config.batch_size
   log(announce(config, preset_note, steps_per_epoch, len(train_idx), len(val_idx)))
   config = resolve_ynn(config, workdir, resume, overwrite, log)  # may compile: after checks

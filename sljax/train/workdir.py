@@ -141,16 +141,18 @@ def write_config(workdir: Path, config_json: dict[str, Any]) -> None:
 
 
 def _truncate_jsonl(path: Path, keep: Callable[[dict[str, Any]], bool]) -> None:
-  """Drops lines written after the checkpoint a run resumes from (and a torn last line)."""
+  """Drops lines written after the checkpoint a run resumes from, and lines that are not a JSON
+  object (a torn last line, or outside damage)."""
   if not path.exists():
     return
   lines = []
-  for line in path.read_text().splitlines():
-    try:
+  for raw in path.read_bytes().splitlines():
+    try:  # line by line: damaged bytes drop their line, not the resume
+      line = raw.decode("utf-8")
       rec = json.loads(line)
-    except json.JSONDecodeError:
+    except (UnicodeDecodeError, json.JSONDecodeError):
       continue
-    if keep(rec):
+    if isinstance(rec, dict) and keep(rec):
       lines.append(line)
   files.write_text(path, "".join(l + "\n" for l in lines))  # a kill here keeps the old log
 

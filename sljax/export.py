@@ -33,6 +33,7 @@ and how to scale inputs and outputs.
 
 import json
 import os
+from numbers import Integral
 from pathlib import Path
 from typing import Any, Callable
 
@@ -54,6 +55,28 @@ SEPARABLE_TOLERANCE = 1e-5
 def parse_size(text: str) -> tuple[int, int]:
   """'480x640' (height x width) -> (480, 640); SljaxError for anything else."""
   return sizes.parse_size(text, "--size", square=False)  # an artifact's shape is spelt out
+
+
+def check_size(size: Any) -> tuple[int, int]:
+  """(H, W) as positive ints; SljaxError naming `size` for anything else (an int, a string, an
+  empty or fractional size), which jax.export would refuse with a traceback or trace silently."""
+  if isinstance(size, (str, bytes, Integral)) or not hasattr(size, "__len__") or len(size) != 2:
+    raise SljaxError(f"size must be (height, width) in pixels, e.g. (480, 640), got "
+                     f"{inference.short_repr(size)}")
+  if not all(isinstance(v, Integral) and not isinstance(v, (bool, np.bool_)) for v in size):
+    raise SljaxError(f"size must be two integers (height, width), got {inference.short_repr(size)}")
+  h, w = int(size[0]), int(size[1])
+  if h <= 0 or w <= 0:
+    raise SljaxError(f"size {h}x{w}: height and width must be positive")
+  return h, w
+
+
+def check_predictor(predictor: Any) -> None:
+  """SljaxError unless predictor is a sljax.inference.Predictor (else an AttributeError deep in
+  the tracing)."""
+  if not isinstance(predictor, inference.Predictor):
+    raise SljaxError("predictor must be a sljax.inference.Predictor (sljax.inference.load(RUN)), "
+                     f"got {type(predictor).__name__} {inference.short_repr(predictor)}")
 
 
 def sidecar_path(out: str | os.PathLike) -> Path:
@@ -112,7 +135,8 @@ def _resize_to(x, mh: np.ndarray, mw: np.ndarray):
 
 def inference_function(predictor, size: tuple[int, int]) -> Callable:
   """f(left, right) -> outputs dict for BxHxWxC float32 views of the given size (see above)."""
-  h, w = size
+  check_predictor(predictor)
+  h, w = check_size(size)
   model, variables, c = predictor.model, predictor.variables, predictor.channels
   variables = jax.tree_util.tree_map(jnp.asarray, variables)
   mode = predictor.mode
@@ -164,6 +188,8 @@ def inference_function(predictor, size: tuple[int, int]) -> Callable:
 
 def export_model(predictor, size: tuple[int, int]):
   """jax.export.Exported of the predictor's inference at size (H, W), batch symbolic."""
+  check_predictor(predictor)
+  size = check_size(size)
   h, w = size
   c = predictor.channels
   spec = jax.ShapeDtypeStruct(jex.symbolic_shape(f"b, {h}, {w}, {c}"), np.float32)
@@ -221,6 +247,8 @@ def sidecar(predictor, exported, size: tuple[int, int], source: str) -> dict[str
 def write_export(predictor, size: tuple[int, int], out: str | os.PathLike, source: str,
                  overwrite: bool = False) -> tuple[Path, Path]:
   """Exports and writes OUT (serialised artifact) and its JSON sidecar; returns both paths."""
+  check_predictor(predictor)  # before anything is checked on disk
+  size = check_size(size)
   out = Path(out)
   side = sidecar_path(out)
   files.refuse_existing([out, side], overwrite)

@@ -16,6 +16,8 @@ does not fit (rounds to 0 or above 65535 mm) is also written 0; the float PFM ke
 """
 
 import os
+from numbers import Real
+from typing import Any
 
 import numpy as np
 
@@ -36,8 +38,20 @@ def check_calib_size(calib: Calib, shape: tuple[int, int], where: str) -> None:
                      f"is {w}x{h} (depth would be wrong; give the calib.txt of these images)")
 
 
+def check_max_depth(max_depth: Any, what: str = "max_depth") -> None:
+  """SljaxError unless max_depth is None or a positive number of mm (0, a negative or NaN one
+  would silently mark every pixel unknown; a string fails inside numpy)."""
+  if max_depth is None:
+    return
+  if not isinstance(max_depth, Real) or isinstance(max_depth, (bool, np.bool_)):
+    raise SljaxError(f"{what} must be a number of mm or None, got {max_depth!r}")
+  if not max_depth > 0:
+    raise SljaxError(f"{what} must be positive (mm), got {max_depth!r}")
+
+
 def depth_mm(disp: np.ndarray, calib: Calib, max_depth: float | None = None) -> np.ndarray:
   """HxW float32 depth in mm; inf where unknown (see the module docstring) or beyond max_depth."""
+  check_max_depth(max_depth)
   d = np.asarray(disp)
   if d.ndim != 2:
     raise SljaxError(f"depth: disparity must be HxW, got shape {d.shape}")

@@ -113,7 +113,7 @@ def pad_pair(left: np.ndarray, right: np.ndarray, rule: PadRule
   return pad(left), pad(right), ph
 
 
-def _short(value: Any) -> str:
+def short_repr(value: Any) -> str:
   """repr of value cut to 60 characters, for messages."""
   r = repr(value)
   return r if len(r) <= 60 else r[:57] + "..."
@@ -125,9 +125,12 @@ def _as_batch(image: np.ndarray, what: str) -> tuple[np.ndarray, bool]:
     a = np.asarray(image)
   except ValueError:  # a ragged nested list
     a = np.empty((), object)
+  if a.dtype.kind == "V" and jnp.issubdtype(a.dtype, jnp.floating):
+    # bfloat16 (and other ml_dtypes floats) is numpy kind "V": an image, not a record array
+    a = a.astype(np.float32)
   if a.dtype.kind in "OUSV":  # a path, None or a ragged list: say what it was, not "shape ()"
     raise SljaxError(f"{what}: expected an image array (numpy HxW, HxWxC or BxHxWxC), got "
-                     f"{type(image).__name__} {_short(image)}")
+                     f"{type(image).__name__} {short_repr(image)}")
   if a.ndim == 2:
     a, batched = a[None, :, :, None], False
   elif a.ndim == 3:
@@ -342,7 +345,7 @@ class Predictor:
     if mode not in MODES:
       raise SljaxError(f"mode must be one of {MODES}, got {mode!r}")
     if not isinstance(kernels, tune.KernelChoice):  # else it fails only at the first call
-      raise SljaxError(f"kernels must be a sljax.tune.KernelChoice, got {_short(kernels)}")
+      raise SljaxError(f"kernels must be a sljax.tune.KernelChoice, got {short_repr(kernels)}")
     try:
       hash(model)  # the shared compiled function takes the model as a static argument
     except TypeError:
@@ -447,13 +450,14 @@ def load(checkpoint: str | os.PathLike, mode: str = "pad", maxdisp: int | None =
   """
   if not isinstance(checkpoint, (str, os.PathLike)) or not os.fspath(checkpoint):
     raise SljaxError(f"checkpoint must be a folder path (a training workdir, its checkpoints "
-                     f"folder or a converted PSMNet), got {_short(checkpoint)}")
+                     f"folder or a converted PSMNet), got {short_repr(checkpoint)}")
   if mode not in MODES:  # before the (slow) checkpoint read
     raise SljaxError(f"mode must be one of {MODES}, got {mode!r}")
   if tune_kernels is not None and not isinstance(tune_kernels, (bool, np.bool_)):
     raise SljaxError(f"tune_kernels must be True, False or None, got {tune_kernels!r}")
   if kernels is not None and not isinstance(kernels, tune.KernelChoice):
-    raise SljaxError(f"kernels must be a sljax.tune.KernelChoice or None, got {_short(kernels)}")
+    raise SljaxError("kernels must be a sljax.tune.KernelChoice or None, got "
+                     f"{short_repr(kernels)}")
   path = os.fspath(checkpoint)
   model_name, model_kwargs, variables, config = load_for_inference(path)
   config = dict(config or {})

@@ -59,6 +59,9 @@ def _read_calib(path: Path | None) -> Calib | None:
 
 def find_pairs(inputs: list[str], calib: str | None = None) -> list[Pair]:
   """The pairs named by the command line's inputs (see the module docstring)."""
+  if isinstance(inputs, (str, os.PathLike)):  # else each character would count as a path
+    raise SljaxError(f"inputs must be a list of paths, [LEFT, RIGHT] or [PAIRS_DIR], got the "
+                     f"single path {os.fspath(inputs)!r}; pass [{os.fspath(inputs)!r}]")
   if calib is not None and not Path(calib).is_file():
     raise SljaxError(f"--calib {calib}: no such file")
   explicit = Path(calib) if calib is not None else None
@@ -117,8 +120,9 @@ def _folder_pairs(root: Path, explicit: Path | None, given: Calib | None) -> lis
   return [Pair(Path(n).stem, left[n], right[n], calib, path) for n in left]
 
 
-def output_dir(out: Path, pair: Pair) -> Path:
+def output_dir(out: str | os.PathLike, pair: Pair) -> Path:
   """Where a pair's files go."""
+  out = Path(out)
   return out / pair.name if pair.name else out
 
 
@@ -161,9 +165,10 @@ def _colour_png(path: Path, values: np.ndarray, title: str, label: str, cmap: st
               ncols=1, tile_inches=max(3.0, min(8.0, 6.0 * w / max(h, w))))
 
 
-def write_outputs(folder: Path, pair: Pair, left: np.ndarray, out: dict[str, np.ndarray],
-                  max_depth: float | None = None) -> dict[str, Any]:
+def write_outputs(folder: str | os.PathLike, pair: Pair, left: np.ndarray,
+                  out: dict[str, np.ndarray], max_depth: float | None = None) -> dict[str, Any]:
   """Writes one pair's files (see the module docstring); returns a summary for the report."""
+  folder = Path(folder)
   folder.mkdir(parents=True, exist_ok=True)
   label = pair.name or pair.left.name
   disp = out["disparity"]
@@ -188,9 +193,16 @@ def write_outputs(folder: Path, pair: Pair, left: np.ndarray, out: dict[str, np.
   return summary
 
 
-def predict_pairs(predictor, pairs: list[Pair], out: Path, max_depth: float | None = None,
-                  progress: bool = True) -> list[dict[str, Any]]:
+def predict_pairs(predictor, pairs: list[Pair], out: str | os.PathLike,
+                  max_depth: float | None = None, progress: bool = True) -> list[dict[str, Any]]:
   """Runs the predictor on every pair (progress bar) and writes its files; returns summaries."""
+  # Checked before the first (slow) prediction, not after it.
+  if not callable(predictor):
+    raise SljaxError("predictor must be callable as predictor(left, right) (load_predictor or "
+                     f"sljax.inference.load), got {type(predictor).__name__} "
+                     f"{inference.short_repr(predictor)}")
+  geometry.check_max_depth(max_depth)
+  out = Path(out)  # a str works as it does on the command line
   summaries = []
   for pair in tqdm(pairs, desc="predict", unit="pair", disable=None if progress else True):
     left, right = read_pair(pair)

@@ -4,6 +4,7 @@ sljax.inference on the same pairs; the sidecar; bad input."""
 import errno
 import json
 import os
+import re
 import subprocess
 import sys
 
@@ -128,6 +129,42 @@ def test_export_cli_and_bad_inputs(tmp_path, capsys, unet_disp_vars):
   assert not (tmp_path / "b.jax").exists()
   with pytest.raises(SljaxError, match="HEIGHTxWIDTH"):
     export.parse_size("1x2x3")
+
+
+@pytest.mark.parametrize("size, message", [
+    ("24x40", "size must be (height, width) in pixels"),  # else ValueError: too many values
+    (24, "size must be (height, width) in pixels"),  # else TypeError: cannot unpack
+    ((24, 40, 1), "size must be (height, width) in pixels"),
+    ((24.0, 40), "size must be two integers"),  # else jax's symbolic-shape syntax error
+    ((0, 40), "size 0x40: height and width must be positive"),  # else an artifact for no pixels
+    ((-8, 40), "size -8x40: height and width must be positive"),
+])
+def test_export_names_a_bad_size_before_tracing(tmp_path, unet_disp_vars, size, message):
+  pred = inference.make_predictor("unet-disp", UNET_KW, unet_disp_vars, mode="pad")
+  for call in (lambda: export.export_model(pred, size),
+               lambda: export.inference_function(pred, size),
+               lambda: export.write_export(pred, size, tmp_path / "m.jax", "test")):
+    with pytest.raises(SljaxError, match=re.escape(message)):
+      call()
+  assert not list(tmp_path.iterdir())
+
+
+def test_export_names_a_predictor_that_is_not_one(tmp_path):
+  for call in (export.export_model, export.inference_function):
+    with pytest.raises(SljaxError, match="predictor must be a sljax.inference.Predictor .*got "
+                                         "str 'runs/x'"):
+      call("runs/x", (8, 8))  # a path instead of sljax.inference.load(path): no AttributeError
+  with pytest.raises(SljaxError, match="predictor must be a sljax.inference.Predictor"):
+    export.write_export("runs/x", (8, 8), tmp_path / "m.jax", "test")
+
+
+def test_export_size_of_numpy_ints_writes_a_json_sidecar(tmp_path, unet_disp_vars):
+  """np.int64 sizes (e.g. from an image's shape) are plain ints in the sidecar, which json
+  refused before."""
+  pred = inference.make_predictor("unet-disp", UNET_KW, unet_disp_vars, mode="pad")
+  _, side = export.write_export(pred, (np.int64(8), np.int64(12)), tmp_path / "m.jax", "test")
+  info = json.loads(side.read_text())
+  assert (info["input"]["height"], info["input"]["width"]) == (8, 12)
 
 
 @pytest.mark.parametrize("fail", ["artifact", "sidecar"])

@@ -181,6 +181,17 @@ def test_bad_inputs(pad_predictor):
     _toy("resize", train_size=None)
 
 
+def test_bfloat16_jax_views_are_float_images(pad_predictor):
+  """jax bfloat16 is numpy kind "V" (ml_dtypes): read as a float image, not refused as 'not an
+  image array'; the values are the bfloat16 ones, as a float32 copy of them gives."""
+  left, right = _pair(20, 30, seed=12)
+  bl, br = jnp.asarray(left, jnp.bfloat16), jnp.asarray(right, jnp.bfloat16)
+  want = pad_predictor(np.asarray(bl, np.float32), np.asarray(br, np.float32))["disparity"]
+  np.testing.assert_array_equal(pad_predictor(bl, br)["disparity"], want)
+  with pytest.raises(SljaxError, match=r"left view must be scaled to \[0, 1\]"):
+    pad_predictor(bl * 255, br * 255)  # still checked as any float image
+
+
 def test_checkpoint_that_does_not_match_the_model():
   with pytest.raises(SljaxError, match="do not match.*bias"):
     inference.Predictor(ToyDisp(), {"params": {"bias": jnp.zeros((2,))}}, model_name="toy",

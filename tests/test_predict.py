@@ -246,11 +246,48 @@ def test_predict_bad_inputs(tmp_path, capsys):
   write_image(pairs / "left" / "a.png", np.zeros((8, 8)))
   assert "right/a.png: missing" in _one_error(capsys, base + [str(pairs), "--out", out])
   assert "--maxdisp" in _one_error(capsys, base + [left, right, "--maxdisp", "0", "--out", out])
+  assert "--max-depth must be positive (mm), got -1.0" in _one_error(
+      capsys, base + [left, right, "--max-depth", "-1", "--out", out])
   psm = _converted_model(tmp_path / "psm", "psmnet", {"maxdisp": 16, "in_channels": 3},
                          hw=(32, 32))
   assert "multiple of 16" in _one_error(
       capsys, ["predict", str(psm), left, right, "--maxdisp", "20", "--out", out])
   assert not (tmp_path / "out").exists()  # no bad input left anything behind
+
+
+def test_predict_pairs_from_python_takes_a_str_out_and_checks_its_arguments_first(tmp_path):
+  scene = _scene(tmp_path / "s")
+  pairs = predict.find_pairs([str(scene / "im0.png"), str(scene / "im1.png")])
+  sgbm = predict.load_predictor("sgbm", maxdisp=16)
+  out = tmp_path / "out"
+  for bad in (0, -1.0, float("nan")):  # else every pixel silently unknown: an empty cloud
+    with pytest.raises(SljaxError, match="max_depth must be positive"):
+      predict.predict_pairs(sgbm, pairs, str(out), max_depth=bad, progress=False)
+  with pytest.raises(SljaxError, match="max_depth must be a number of mm or None, got '3000'"):
+    predict.predict_pairs(sgbm, pairs, str(out), max_depth="3000", progress=False)
+  with pytest.raises(SljaxError, match="predictor must be callable .* got str 'sgbm'"):
+    predict.predict_pairs("sgbm", pairs, str(out), progress=False)
+  assert not out.exists()  # refused before the first prediction
+  # A str folder, as on the command line (an AttributeError on str.mkdir before).
+  (summary,) = predict.predict_pairs(sgbm, pairs, str(out), max_depth=3000.0, progress=False)
+  assert summary["points"] > 0 and (out / "cloud.ply").is_file()
+
+
+def test_geometry_refuses_a_max_depth_that_would_drop_every_point():
+  disp = np.full((H, W), 10.0, np.float32)
+  for bad in (0.0, -5, float("nan")):
+    with pytest.raises(SljaxError, match="max_depth must be positive"):
+      geometry.depth_mm(disp, _calib(), bad)
+    with pytest.raises(SljaxError, match="max_depth must be positive"):
+      geometry.point_cloud(disp, _calib(), None, bad)
+  assert np.isfinite(geometry.depth_mm(disp, _calib(), float("inf"))).all()  # no limit
+
+
+def test_find_pairs_names_a_single_path_given_instead_of_a_list(tmp_path):
+  scene = _scene(tmp_path / "s")
+  with pytest.raises(SljaxError, match="inputs must be a list of paths.*got the single path"):
+    predict.find_pairs(str(scene))  # was "got 15 paths" (one per character)
+  assert len(predict.find_pairs([scene])) == 1
 
 
 def test_find_pairs_rejects_scene_without_right_view(tmp_path):

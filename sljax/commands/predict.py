@@ -3,7 +3,7 @@
 import argparse
 from pathlib import Path
 
-from sljax import predict
+from sljax import geometry, predict
 from sljax.errors import SljaxError
 
 
@@ -51,8 +51,7 @@ def run(args) -> int:
   """Finds the pairs, loads the model, predicts and prints one line per pair."""
   if args.maxdisp is not None and args.maxdisp <= 0:
     raise SljaxError(f"--maxdisp must be positive, got {args.maxdisp}")
-  if args.max_depth is not None and not args.max_depth > 0:
-    raise SljaxError(f"--max-depth must be positive, got {args.max_depth}")
+  geometry.check_max_depth(args.max_depth, "--max-depth")
   pairs = predict.find_pairs(args.inputs, args.calib)
   out = Path(args.out)
   predict.check_outputs(out, pairs, args.overwrite)  # before the (slow) model loading

@@ -64,6 +64,26 @@ def test_malformed_matrix(tmp_path):
     read_calib(tmp_path / "calib.txt")
 
 
+def test_byte_order_mark_is_read(tmp_path):
+  # Saved by a Windows editor: the mark glued onto "cam0" made it "lacks required key(s) cam0".
+  (tmp_path / "calib.txt").write_bytes(b"\xef\xbb\xbf" + MIDDLEBURY.replace("\n", "\r\n").encode())
+  c = read_calib(tmp_path / "calib.txt")
+  assert c.focal == 4161.221 and c.ndisp == 280
+
+
+@pytest.mark.parametrize("old, new, problem", [
+    ("ndisp=280", "ndisp=0", "key 'ndisp' must be positive, got '0'"),  # was SGBM's fallback
+    ("ndisp=280", "ndisp=-16", "key 'ndisp' must be positive, got '-16'"),
+    ("width=2880", "width=0", "key 'width' must be positive, got '0'"),
+    ("vmin=33", "vmin=300", "vmin=300 is not at most vmax=218"),
+])
+def test_out_of_range_value_names_file_and_key(tmp_path, old, new, problem):
+  path = tmp_path / "calib.txt"
+  path.write_text(MIDDLEBURY.replace(old, new))
+  with pytest.raises(SljaxError, match=re.escape(f"{path}: {problem}")):
+    read_calib(path)
+
+
 def test_binary_file_names_file_and_problem(tmp_path):
   # A damaged or foreign file in calib.txt's place: one line, not a UnicodeDecodeError.
   path = tmp_path / "calib.txt"

@@ -258,6 +258,40 @@ def test_cli_decode_errors(tmp_path, scene, capsys):
   assert not (root / "0ok" / "sl0").exists() and not (root / "0ok" / "disp0.pfm").exists()
 
 
+def test_cli_decode_checks_every_capture_before_writing(tmp_path, scene, capsys):
+  """A capture of another size in a later scene: one line naming it, and the earlier scene is
+  not written (it was, and a rerun after the fix refused it without --overwrite)."""
+  root = tmp_path / "ds"
+  _write_scene_folder(root, "0ok", scene, meta={"code": "gray"})
+  sdir = _write_scene_folder(root, "b", scene, meta={"code": "gray"})
+  bad = sdir / "raw1" / "p003.png"
+  assert cv2.imwrite(str(bad), np.zeros((H, W - 1), np.uint8))
+  assert cli.main(["decode", str(root)]) == 2
+  _one_line_error(capsys, f"{bad}: size {W - 1}x{H} differs from im0.png ({W}x{H})",
+                  "nothing was decoded")
+  assert not (root / "0ok" / "sl0").exists() and not (root / "0ok" / "disp0.pfm").exists()
+
+
+@pytest.mark.parametrize("damage, why", [
+    ("swapped", "black.png is the brighter one: are the two swapped?"),
+    ("same", "the projector off, or the same picture twice?"),
+])
+def test_cli_decode_refuses_captures_without_projector_contrast(tmp_path, scene, capsys,
+                                                                damage, why):
+  """white.png nowhere brighter than black.png: every pixel would be shadow, and the
+  all-unknown sl0/ and disp0.pfm were written (and then kept as existing results)."""
+  root = tmp_path / "ds"
+  views = [dict(v, raw=dict(v["raw"])) for v in scene]
+  raw = views[1]["raw"]
+  raw["white"], raw["black"] = ((raw["black"], raw["white"]) if damage == "swapped"
+                                else (raw["black"], raw["black"]))
+  sdir = _write_scene_folder(root, "a", views, meta={"code": "gray"})
+  assert cli.main(["decode", str(root)]) == 2
+  _one_line_error(capsys, f"{sdir / 'raw1'}: white.png is nowhere brighter than black.png by 10 "
+                  "grey levels (--shadow-threshold)", why)
+  assert not (sdir / "sl0").exists() and not (sdir / "disp0.pfm").exists()
+
+
 def test_cli_defaults_mirror_decode_config():
   from sljax.commands import decode as decode_cmd
   assert decode_cmd._DEFAULT_SHADOW / 255.0 == DecodeConfig().shadow_threshold

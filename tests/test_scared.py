@@ -290,26 +290,69 @@ def test_evaluate_scores_keyframes_in_the_original_frame(keyframe, tmp_path):
   assert "scared_depth_mae_mm" in (tmp_path / "eval" / "per_scene.csv").read_text()
 
 
+def _with_matrix(yaml, name, m):
+  """The calibration YAML with matrix `name` replaced by m."""
+  start = yaml.index(f"{name}: !!opencv-matrix")
+  end = yaml.index("\n", yaml.index("data:", start)) + 1
+  return yaml[:start] + _matrix_yaml(name, m) + yaml[end:]
+
+
+def _copy_keyframe(kf, tmp_path):
+  broken = tmp_path / "kf"
+  broken.mkdir()
+  for p in kf.iterdir():
+    (broken / p.name).write_bytes(p.read_bytes())
+  return broken
+
+
 @pytest.mark.parametrize("damage, why", [
     ("garbage", "not readable as an OpenCV FileStorage YAML with the matrices M1 D1 M2 D2 R T "
                 "(damaged or half-written? OpenCV: "),  # was SystemError from cv2.FileStorage
     ("empty", "empty file (0 bytes); expected an OpenCV FileStorage YAML"),  # SystemError
     ("half", "lacks the matrices R T (absent, cut off"),  # cv2.error (-215) !dt.empty()
     ("scalar", "lacks the matrix M1 (absent, cut off or not an !!opencv-matrix"),  # cv2.error
-])
+    ("short_d1", "D1 has 3 values, expected 4, 5, 8, 12 or 14"),  # cv2.error in stereoRectify
+    ("nan_t", "T holds NaN or infinite values"),  # cv2.error (-215) nt > 0.0
+    ("zero_focal", "M2 has focal lengths fx = 0, fy = 0; both must be positive"),  # NaN calib.txt
+    ("swapped", "T = [4.5, -0.15, -0.1] puts the right camera to the left of the left one"),
+])  # swapped: was imported with positive disparities where the true ones are negative
 def test_damaged_calibration_is_one_line_error(keyframe, tmp_path, capsys, damage, why):
   kf, _, _ = keyframe
-  broken = tmp_path / "kf"
-  broken.mkdir()
-  for p in kf.iterdir():
-    (broken / p.name).write_bytes(p.read_bytes())
+  broken = _copy_keyframe(kf, tmp_path)
   yaml = broken / "endoscope_calibration.yaml"
   good = yaml.read_text()
   yaml.write_text({"garbage": "garbage {{{ : :\n", "empty": "",
                    "half": good[:good.index("dt:", good.index("R: "))],  # R cut off
-                   "scalar": good.replace("M1: !!opencv-matrix", "M1: 3\nM0: !!opencv-matrix")
+                   "scalar": good.replace("M1: !!opencv-matrix", "M1: 3\nM0: !!opencv-matrix"),
+                   "short_d1": _with_matrix(good, "D1", np.zeros((1, 3))),
+                   "nan_t": _with_matrix(good, "T", np.array([[1.0], [0], [0]])).replace(
+                       "data: [ 1.0", "data: [ .nan"),  # OpenCV's spelling of NaN
+                   "zero_focal": _with_matrix(good, "M2", np.zeros((3, 3))),
+                   "swapped": _with_matrix(good, "T", -T[:, None]),
                    }[damage])
   assert cli.main(["import-scared", str(broken), str(tmp_path / "o")]) == 2
   err = capsys.readouterr().err.strip().splitlines()
   assert len(err) == 1 and err[0].startswith(f"sljax import-scared: error: {yaml}: {why}"), err
+  assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("damage, why", [
+    # An 8-bit picture of the depth: was read as x, y, z of 0..255 mm, imported as ground truth.
+    ("uint8", "expected a 3-channel float TIFF of x, y, z (mm), got 3 channel(s) of uint8"),
+    # Points in metres: was imported with disparities 1000x too large.
+    ("metres", "median depth z = 0.06"),
+])
+def test_depth_map_that_is_no_point_map_in_mm(keyframe, tmp_path, capsys, damage, why):
+  kf, _, xyz = keyframe
+  broken = _copy_keyframe(kf, tmp_path)
+  tiff = broken / "left_depth_map.tiff"
+  if damage == "uint8":
+    assert cv2.imwrite(str(tiff), np.full((H, W, 3), 60, np.uint8))
+  else:
+    _write_float_tiff(tiff, (xyz / 1000.0).astype(np.float32))
+  assert cli.main(["import-scared", str(broken), str(tmp_path / "o")]) == 2
+  err = capsys.readouterr().err.strip().splitlines()
+  assert len(err) == 1 and err[0].startswith(f"sljax import-scared: error: {tiff}: {why}"), err
+  if damage == "metres":
+    assert "more than the image width (80 px); x, y, z must be in mm (metres?)" in err[0]
   assert not (tmp_path / "o").exists()

@@ -2,13 +2,15 @@
 
 import argparse
 import sys
+from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
+from sljax.data import preflight
 from sljax.data.dataset import FolderSource
 from sljax.data.pfm import write_pfm
-from sljax.data.scene import write_patterns
+from sljax.data.scene import read_image, write_patterns
 from sljax.errors import SljaxError, require
 from sljax.sl.decode import DecodeConfig, count_patterns, decode_captures
 from sljax.sl.match import disparity_from_codes
@@ -82,6 +84,10 @@ def run(args: argparse.Namespace) -> int:
         if existing:
           raise SljaxError(f"scene {src.paths[i]}: {folder}/{existing[0].name} exists "
                            "(use --overwrite to replace it)")
+  _check_capture_files(src, todo)
+  for i in todo:
+    for cam in (0, 1):
+      _check_contrast(src.paths[i] / f"raw{cam}", config.shadow_threshold)
 
   written_disp, kept_disp, coverage, disp_known = 0, [], [], []
   for i in tqdm(todo, desc="decode", unit="scene", file=sys.stderr, disable=None):
@@ -113,3 +119,29 @@ def run(args: argparse.Namespace) -> int:
     print(f"disparity files written: {written_disp}{known}; kept existing: {len(kept_disp)}"
           + (f" (e.g. {kept_disp[0]}; delete to recompute)" if kept_disp else ""))
   return 0
+
+
+def _check_capture_files(src: FolderSource, todo: list[int]) -> None:
+  """SljaxError naming the first damaged capture or view, or one of another size, of any scene."""
+  # The pre-flight check reads PNG headers and CRCs, not pixels: cheap next to decoding, and a
+  # bad file in a later scene no longer stops the run after earlier scenes were written (a rerun
+  # would then refuse them without --overwrite).
+  problems, _ = preflight.scan(src, [(todo, {"raw"})], progress=False, use_cache=False)
+  if problems:
+    more = f" (and {len(problems) - 1} more bad scene(s))" if len(problems) > 1 else ""
+    raise SljaxError(f"{problems[0]}{more}; nothing was decoded")
+
+
+def _check_contrast(folder: Path, threshold: float) -> None:
+  """SljaxError when no pixel of a view is brighter under white.png than under black.png by the
+  shadow threshold (in [0, 1]): every bit would be unknown, and the all-unknown sl0/ and
+  disp0.pfm written would be kept as if they were results."""
+  white = read_image(folder / "white.png", gray=True)[..., 0]
+  black = read_image(folder / "black.png", gray=True)[..., 0]
+  if np.any(white - black >= threshold):  # as decode_captures tells shadow from lit
+    return
+  why = ("black.png is the brighter one: are the two swapped?"
+         if np.any(black - white >= threshold) else "the projector off, or the same picture twice?")
+  raise SljaxError(f"{folder}: white.png is nowhere brighter than black.png by "
+                   f"{threshold * 255:g} grey levels (--shadow-threshold), so no pixel can be "
+                   f"decoded; {why}")

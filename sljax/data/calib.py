@@ -63,7 +63,8 @@ def read_calib(path: str | os.PathLike) -> Calib:
   """Reads a Middlebury 2014 calib.txt; unknown keys (isint, dyavg, dymax, ...) are ignored."""
   path = os.fspath(path)
   try:
-    with open(path, encoding="utf-8") as f:
+    # utf-8-sig: a byte-order mark (Windows editors) would otherwise glue onto "cam0".
+    with open(path, encoding="utf-8-sig") as f:
       lines = f.read().splitlines()
   except OSError as e:
     raise SljaxError(f"{path}: cannot read calibration ({e.strerror or e})") from None
@@ -94,6 +95,14 @@ def read_calib(path: str | os.PathLike) -> Calib:
       raise SljaxError(f"{path}: key {key!r} must be an integer, got {values[key]!r}")
     return int(v)
 
+  for key in ("width", "height", "ndisp"):
+    if integer(key) <= 0:
+      raise SljaxError(f"{path}: key {key!r} must be positive, got {values[key]!r}")
+  vmin = number("vmin") if "vmin" in values else None
+  vmax = number("vmax") if "vmax" in values else None
+  if vmin is not None and vmax is not None and not vmin <= vmax:
+    raise SljaxError(f"{path}: vmin={values['vmin']} is not at most vmax={values['vmax']} "
+                     "(they are the smallest and largest disparity present)")
   return Calib(
       cam0=_parse_matrix(values["cam0"], path, "cam0"),
       cam1=_parse_matrix(values["cam1"], path, "cam1"),
@@ -102,8 +111,8 @@ def read_calib(path: str | os.PathLike) -> Calib:
       width=integer("width"),
       height=integer("height"),
       ndisp=integer("ndisp"),
-      vmin=number("vmin") if "vmin" in values else None,
-      vmax=number("vmax") if "vmax" in values else None)
+      vmin=vmin,
+      vmax=vmax)
 
 
 def calib_text(calib: Calib, where: str = "calib") -> str:

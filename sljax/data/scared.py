@@ -44,6 +44,7 @@ MIN_COVERAGE = 0.1  # scared_toolkit: frames with less known ground truth are no
 
 
 CALIB_KEYS = ("M1", "D1", "M2", "D2", "R", "T")
+DIST_COUNTS = (4, 5, 8, 12, 14)  # the distortion models OpenCV's rectification accepts
 
 
 def _calib_matrix(fs, key: str) -> np.ndarray | None:
@@ -93,9 +94,29 @@ def read_scared_calibration(path: str | os.PathLike) -> dict[str, np.ndarray]:
   out["M1"], out["M2"], out["R"] = (out[k].reshape(3, 3) for k in ("M1", "M2", "R"))
   out["T"] = out["T"].reshape(3, 1)
   out["D1"], out["D2"] = out["D1"].reshape(1, -1), out["D2"].reshape(1, -1)
+  _check_calibration_values(out, path)
   if out["R"].shape != (3, 3) or abs(np.linalg.det(out["R"]) - 1) > 1e-3:
     raise SljaxError(f"{path}: R is not a rotation matrix")
   return out
+
+
+def _check_calibration_values(cal: dict[str, np.ndarray], path: str) -> None:
+  """SljaxError unless every value is finite, M1 and M2 have positive focal lengths and D1, D2
+  hold a distortion model OpenCV knows."""
+  # cv2.stereoRectify asserts on a bad distortion length or a NaN T (a traceback) and turns a
+  # NaN or zero intrinsic into NaN matrices, which would be written to calib.txt as is.
+  for key in CALIB_KEYS:
+    if not np.all(np.isfinite(cal[key])):
+      raise SljaxError(f"{path}: {key} holds NaN or infinite values")
+  for key in ("M1", "M2"):
+    fx, fy = cal[key][0, 0], cal[key][1, 1]
+    if not (fx > 0 and fy > 0):
+      raise SljaxError(f"{path}: {key} has focal lengths fx = {fx:g}, fy = {fy:g}; both must "
+                       "be positive")
+  for key in ("D1", "D2"):
+    if cal[key].size not in DIST_COUNTS:
+      raise SljaxError(f"{path}: {key} has {cal[key].size} values, expected 4, 5, 8, 12 or 14 "
+                       "(OpenCV's distortion models: k1 k2 p1 p2 [k3 [k4 k5 k6 [s1..s4 [tx ty]]]])")
 
 
 def read_scared_points(path: str | os.PathLike) -> np.ndarray:
@@ -104,8 +125,11 @@ def read_scared_points(path: str | os.PathLike) -> np.ndarray:
   if not os.path.exists(path):
     raise SljaxError(f"{path}: missing")
   raw = cv2.imread(path, cv2.IMREAD_UNCHANGED)
-  if raw is None or raw.ndim != 3 or raw.shape[2] != 3:
-    raise SljaxError(f"{path}: expected a 3-channel float TIFF of x, y, z (mm)")
+  # An 8/16-bit image (a depth picture, not the point map) would pass as x, y, z of 0..255 mm.
+  if raw is None or raw.ndim != 3 or raw.shape[2] != 3 or raw.dtype.kind != "f":
+    found = ("unreadable" if raw is None else
+             f"{raw.shape[2] if raw.ndim == 3 else 1} channel(s) of {raw.dtype}")
+    raise SljaxError(f"{path}: expected a 3-channel float TIFF of x, y, z (mm), got {found}")
   # OpenCV returns a 3-channel TIFF in BGR order; the file stores x, y, z.
   xyz = raw[..., ::-1].astype(np.float32)
   bad = ~np.all(np.isfinite(xyz), axis=2) | (xyz[..., 2] <= 0)
@@ -160,6 +184,28 @@ def rectified_disparity(xyz: np.ndarray, r1: np.ndarray, p1: np.ndarray, baselin
   return disp
 
 
+def _check_rig(t: np.ndarray, path: Path) -> None:
+  """SljaxError unless T (right camera from left) puts the right camera to the left one's right."""
+  if abs(t[0]) <= abs(t[1]):
+    raise SljaxError(f"{path}: T = {t.tolist()} is not a horizontal stereo rig")
+  # stereoRectify takes either order, but with T x > 0 the true disparity is negative and the
+  # f*B/Z written as disp0 would have the wrong sign.
+  if t[0] > 0:
+    raise SljaxError(f"{path}: T = {t.tolist()} puts the right camera to the left of the left "
+                     f"one (T x > 0, SCARED's rigs have T x < 0): are {LEFT} and {RIGHT}, or "
+                     "the cameras of the calibration, swapped?")
+
+
+def _check_depth_scale(known_disp: np.ndarray, xyz: np.ndarray, width: int, path: Path) -> None:
+  """SljaxError when most known disparities exceed the image width, which no pair can show:
+  depths in metres instead of mm make them 1000x too large."""
+  if known_disp.size and np.median(known_disp) > width:
+    z = float(np.nanmedian(xyz[..., 2]))
+    raise SljaxError(f"{path}: median depth z = {z:.4g} gives a median disparity of "
+                     f"{np.median(known_disp):.0f} px, more than the image width ({width} px); "
+                     "x, y, z must be in mm (metres?)")
+
+
 def import_scared(keyframe_dir: str | os.PathLike, out_dir: str | os.PathLike,
                   overwrite: bool = False) -> Path:
   """Converts one SCARED keyframe folder into a rectified scene folder; returns out_dir."""
@@ -175,9 +221,7 @@ def import_scared(keyframe_dir: str | os.PathLike, out_dir: str | os.PathLike,
     raise SljaxError(f"{kf / DEPTH}: size {xyz.shape[1]}x{xyz.shape[0]} differs from "
                      f"{LEFT} ({w}x{h})")
   cal = read_scared_calibration(kf / CALIB)
-  t = cal["T"].ravel()
-  if abs(t[0]) <= abs(t[1]):
-    raise SljaxError(f"{kf / CALIB}: T = {t.tolist()} is not a horizontal stereo rig")
+  _check_rig(cal["T"].ravel(), kf / CALIB)
 
   r1, r2, p1, p2, _, _, _ = cv2.stereoRectify(
       cal["M1"], cal["D1"], cal["M2"], cal["D2"], (w, h), cal["R"], cal["T"],
@@ -191,6 +235,7 @@ def import_scared(keyframe_dir: str | os.PathLike, out_dir: str | os.PathLike,
   disp = rectified_disparity(xyz, r1, p1, baseline, (h, w), lookup=maps0)
 
   finite = disp[np.isfinite(disp)]
+  _check_depth_scale(finite, xyz, w, kf / DEPTH)
   vmin = float(np.floor(finite.min())) if finite.size else None
   vmax = float(np.ceil(finite.max())) if finite.size else None
   ndisp = int(16 * np.ceil(max(vmax or 0.0, 1.0) / 16))

@@ -34,6 +34,7 @@ import os
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -274,13 +275,18 @@ def undecided_note(table: list[dict]) -> str:
           "(a busy machine?); run `sljax tune` on an idle machine to measure again")
 
 
+def _positive_number(x: Any) -> bool:
+  return isinstance(x, (int, float)) and not isinstance(x, bool) and x > 0
+
+
 def format_table(table: list[dict], best: KernelChoice) -> str:
   """The measurements as a Markdown table: each program's median time relative to the chosen
   setting, and with the fusions off the per-round off/on ratios' range. Rows that are no
   measurement (an entry written by hand: {"note": ...}) are shown as their note."""
   chosen = {"forward": best.forward_ynn, "train": best.train_ynn}
+  # A row edited by hand into something that is no measurement is shown as itself, a note.
   rows = [r for r in table if isinstance(r, dict) and r.get("kind") in chosen
-          and {"ynn", "seconds"} <= r.keys()]
+          and isinstance(r.get("ynn"), bool) and _positive_number(r.get("seconds"))]
   notes = [f"note: {r.get('note', r) if isinstance(r, dict) else r}" for r in table
            if not any(r is m for m in rows)]
   if not rows:

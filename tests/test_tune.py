@@ -277,6 +277,10 @@ def test_cli_show_a_hand_written_entry_shows_its_note(cache_dir, capsys):
   text = tune.format_table(table + [{"note": "checked by hand"}], best)
   assert text.startswith(tune.format_table(table, best)) and text.endswith("\n\nnote: checked "
                                                                             "by hand")
+  # A measurement edited into nonsense is shown as a note, not a TypeError.
+  bad = dict(table[0], seconds="fast")
+  text = tune.format_table([bad] + table[1:], best)
+  assert f"note: {bad}" in text and "| forward | on |" not in text
   path = tune.cache_path()
   path.write_text(json.dumps({tune.cache_key(): {"choice": "on", "table": []}}))
   assert cli.main(["tune", "--show"]) == 2

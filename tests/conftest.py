@@ -22,7 +22,12 @@ networks), and the whole suite took about 0.8x the time on a Zen 3 (inference te
 training tests 0.88x, measured side by side). The HLO passes, YNNPACK fusions included, still
 run; values change only by float rounding, which the tolerances and the bitwise comparisons of
 two runs of one program do not see. SLJAX_TEST_XLA=default compiles as a user's run does
-(on a GPU too: no deterministic operations)."""
+(on a GPU too: no deterministic operations).
+
+The suite runs in two worker processes (pytest-xdist; `-n auto --maxprocesses=2 --dist loadfile`
+in pyproject.toml; `pytest -n 0` runs in one). The workers share this session's compilation
+cache folder (set here before they start; jax locks it with filelock), and on an accelerator
+neither preallocates its memory."""
 
 import atexit
 import importlib.metadata
@@ -46,6 +51,8 @@ def _accelerators() -> set:
 
 
 ACCELERATORS = _accelerators()
+if ACCELERATORS:  # the suite runs in two processes (pyproject addopts); by default each would take
+  os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")  # 75% of the GPU up front
 os.environ.setdefault("SLJAX_TUNE", "0")
 if os.environ.get("SLJAX_TEST_PRECISION", "highest") != "default":  # inherited by subprocesses
   os.environ["JAX_DEFAULT_MATMUL_PRECISION"] = "highest"

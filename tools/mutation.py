@@ -62,7 +62,8 @@ KEEP = ("ReplaceBinaryOperator_(Add_Sub|Sub_Add|Mul_Div|Div_Mul|FloorDiv_Div|Mod
         "ReplaceTrueWithFalse", "ReplaceFalseWithTrue", "ReplaceAndWithOr", "ReplaceOrWithAnd",
         "ZeroIterationForLoop", "ReplaceBreakWithContinue", "ReplaceContinueWithBreak")
 EXCLUDE = "^(?!core/(" + "|".join(KEEP) + ")$)"
-PYTEST = "python -m pytest -x -q -p no:cacheprovider -p no:randomly"
+# one process: a mutant runs a few files, and two workers would cost more to start than they save
+PYTEST = "python -m pytest -x -q -n 0 -p no:cacheprovider -p no:randomly"
 
 
 def scratch_copy(work: Path, rev: str | None = None) -> Path:

@@ -9,6 +9,8 @@ hidden temporary file (.NAME.tmpPID.EXT) beside the output.
 import contextlib
 import os
 import re
+import socket
+import time
 import zipfile
 import zlib
 from pathlib import Path
@@ -18,6 +20,11 @@ import cv2
 import numpy as np
 
 from sljax.errors import SljaxError
+
+try:
+  import fcntl
+except ImportError:  # Windows: folders are not locked (see `exclusive`)
+  fcntl = None
 
 
 _TEMPORARY = re.compile(r"^\..+\.tmp\d+(\.[^.]*)?$")
@@ -62,6 +69,73 @@ def write_bytes(path: str | os.PathLike, data: bytes) -> None:
 def write_text(path: str | os.PathLike, text: str) -> None:
   """Writes UTF-8 text to path whole (see `replacing`)."""
   write_bytes(path, text.encode("utf-8"))
+
+
+LOCK_FILE = ".sljax.lock"
+
+
+@contextlib.contextmanager
+def exclusive(folder: str | os.PathLike, what: str, active: bool = True) -> Iterator[None]:
+  """Holds an advisory lock on folder/.sljax.lock for the block, so that a second sljax process
+  writing the same folder (a run started again while the first still goes on) stops with one
+  line naming the first, instead of mixing their files. The lock is the kernel's (flock): it
+  ends with its process, kill -9 included, so a stale one never needs removing. The lock file
+  is removed at the end, and so are folders this call created that the block left empty. Not
+  locked: active=False (processes other than the main one), Windows, and a folder where the
+  lock file cannot be created (the block's own writes then report the problem)."""
+  folder = Path(folder)
+  created = [d for d in (folder, *folder.parents) if not d.exists()]  # deepest first
+  fd = None
+  if active and fcntl is not None:
+    try:
+      folder.mkdir(parents=True, exist_ok=True)
+      fd = _lock(folder / LOCK_FILE, what)
+    except OSError:
+      fd = None
+  try:
+    yield
+  finally:
+    if fd is not None:
+      (folder / LOCK_FILE).unlink(missing_ok=True)  # before the unlock: see _lock
+      os.close(fd)
+    for d in created if fd is not None else ():
+      try:
+        d.rmdir()  # only when empty
+      except OSError:
+        break
+
+
+def _lock(path: Path, what: str) -> int:
+  """An open descriptor of path holding its flock, with `what` written in it; SljaxError naming
+  the holder when another process holds it. A holder removes the file before unlocking, so a
+  lock won on a file that is no longer at path is dropped and taken again on the new one."""
+  while True:
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+      fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+      holder = os.read(fd, 500).decode("utf-8", "replace").strip() or "another process"
+      os.close(fd)
+      raise SljaxError(f"{path.parent}: in use by {holder}; wait for it to end or stop it (its "
+                       "lock ends with it), or choose another folder") from None
+    except OSError:
+      os.close(fd)
+      raise
+    try:
+      same = os.stat(path).st_ino == os.fstat(fd).st_ino
+    except FileNotFoundError:
+      same = False
+    if same:
+      break
+    os.close(fd)
+  try:
+    os.ftruncate(fd, 0)
+    os.write(fd, (f"{what} (pid {os.getpid()} on {socket.gethostname()}, since "
+                  f"{time.strftime('%Y-%m-%d %H:%M:%S %Z')})").encode("utf-8"))
+  except OSError:
+    os.close(fd)
+    raise
+  return fd
 
 
 def encode_png(image: np.ndarray, path: str | os.PathLike) -> bytes:

@@ -22,6 +22,8 @@ from sljax.nets import build_model, detach_sl
 from sljax.train import loop
 from sljax.train import state as train_state
 
+import toys
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -252,3 +254,18 @@ def test_v2_plan_reuses_the_v1_cells_and_scores_them_on_the_fixed_test_sets(smok
   assert cli.main(["experiment", "report", str(out)]) == 0
   md = (out / "report.md").read_text()
   assert "(v2: fixed test sets)" in md and "Holm p" in md and "corr window" in md
+
+
+def test_a_second_runner_on_a_held_out_is_refused(capsys, tmp_path):
+  # Two runners in one OUT trained the same cells into the same folders.
+  out = tmp_path / "out"
+  proc = toys.hold(out, "sljax experiment run table2")
+  try:
+    code = cli.main(["experiment", "run", "table2", str(out), "--scale", "smoke"])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1, err
+    assert f"{out}: in use by sljax experiment run table2 (pid {proc.pid} on " in err
+    assert os.listdir(out) == [".sljax.lock"]  # no plan.json registered, no cell started
+  finally:
+    proc.kill()
+    proc.wait()

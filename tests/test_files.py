@@ -2,12 +2,15 @@
 errors. The other tests reach these through the commands; here each rule is checked alone."""
 
 import os
+import socket
 
 import numpy as np
 import pytest
 
 from sljax import files
 from sljax.errors import SljaxError
+
+import toys
 
 
 def test_replacing_keeps_the_old_files_when_the_block_fails(tmp_path):
@@ -92,3 +95,56 @@ def test_require_folder_tells_a_file_from_a_missing_folder(tmp_path):
     files.require_folder(tmp_path / "f", "keyframe folder")
   with pytest.raises(SljaxError, match=f"^{tmp_path / 'g'}: dataset folder does not exist$"):
     files.require_folder(tmp_path / "g", "dataset folder")
+
+
+def test_exclusive_refuses_a_second_process_until_the_first_ends(tmp_path):
+  folder = tmp_path / "run"
+  proc = toys.hold(folder, "sljax train (psmnet)")
+  try:
+    holder = (folder / files.LOCK_FILE).read_text()
+    assert holder.startswith(f"sljax train (psmnet) (pid {proc.pid} on {socket.gethostname()}, "
+                             "since ")
+    with pytest.raises(SljaxError) as e:
+      with files.exclusive(folder, "sljax train (unet)"):
+        pytest.fail("entered a held folder")
+    assert str(e.value) == (f"{folder}: in use by {holder}; wait for it to end or stop it (its "
+                            "lock ends with it), or choose another folder")
+    assert (folder / files.LOCK_FILE).read_text() == holder  # the holder's record kept
+  finally:
+    proc.kill()  # as kill -9: the lock ends with the process, its file stays behind
+    proc.wait()
+  assert os.listdir(folder) == [files.LOCK_FILE]
+  with files.exclusive(folder, "second"):
+    assert (folder / files.LOCK_FILE).read_text().startswith(f"second (pid {os.getpid()} ")
+  assert os.listdir(folder) == []  # the lock file goes; the folder existed before, it stays
+
+
+def test_exclusive_in_one_process_and_what_it_leaves(tmp_path):
+  new = tmp_path / "a" / "b"
+  with files.exclusive(new, "one"):
+    with pytest.raises(SljaxError, match=rf"^{new}: in use by one \(pid {os.getpid()} on "):
+      with files.exclusive(new, "two"):
+        pass
+    assert os.listdir(new) == [files.LOCK_FILE]
+  assert not (tmp_path / "a").exists()  # created and left empty: removed, parents included
+  with files.exclusive(new, "one"):
+    (new / "config.json").write_text("{}")
+  assert os.listdir(new) == ["config.json"]
+  with files.exclusive(new, "again"):  # a run that wrote nothing leaves the folder as it was
+    pass
+  assert os.listdir(new) == ["config.json"]
+  with files.exclusive(tmp_path / "c", "x", active=False):  # not the main process: no lock
+    assert not (tmp_path / "c").exists()
+  with pytest.raises(RuntimeError):
+    with files.exclusive(tmp_path / "d", "x"):
+      raise RuntimeError("the block failed")
+  assert sorted(os.listdir(tmp_path)) == ["a"]
+
+
+def test_exclusive_on_a_folder_it_cannot_write_leaves_the_error_to_the_block(tmp_path):
+  a_file = tmp_path / "a_file"
+  a_file.write_text("x")
+  with files.exclusive(a_file, "x"):  # the block's own write will name the problem
+    with pytest.raises(OSError):
+      (a_file / "config.json").write_text("{}")
+  assert a_file.read_text() == "x"

@@ -413,3 +413,28 @@ def test_a_restore_failing_for_another_reason_keeps_its_error(base, tmp_path, mo
     ckpt.load_params(wd, 6)
   assert "checkpoint 6 cannot be read: Permission denied" in str(e.value)
   assert "delete" not in str(e.value)
+
+
+def test_a_run_started_again_while_the_first_goes_on_is_refused(base, tmp_path, capsys):
+  # Two processes in one workdir interleaved their logs and checkpoints; the second now stops.
+  wd = _copy(base, tmp_path)
+  proc = toys.hold(wd, "sljax train (psmnet-mtl)")
+  try:
+    before = _digest(wd)
+    code, _, err = _run(["--workdir", str(wd), "--resume", "--no-progress"], capsys)
+    assert code == 2 and err.count("\n") == 1, err
+    assert (f"{wd}: in use by sljax train (psmnet-mtl) (pid {proc.pid} on ") in err
+    assert "wait for it to end or stop it (its lock ends with it)" in err
+    code, _, err = _run([*_flags(base[0]), "--workdir", str(wd), "--overwrite"], capsys)
+    assert code == 2 and f"(pid {proc.pid} on " in err  # --overwrite deletes nothing either
+    assert _digest(wd) == before
+  finally:
+    proc.kill()
+    proc.wait()
+  # Once the holder is gone (killed: no stale lock to remove), the run resumes.
+  code, _, err = _run(["--workdir", str(wd), "--resume", "--epochs", "3", "--no-progress"],
+                      capsys)
+  assert code == 0, err
+  assert not (wd / ".sljax.lock").exists()
+  assert [json.loads(x)["epoch"] for x in (wd / "epochs.jsonl").read_text().splitlines()] == [
+      1, 2, 3]

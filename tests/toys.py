@@ -1,6 +1,11 @@
-"""Tiny stand-in models shared by the tests (inference, evaluation, the training loop)."""
+"""Tiny stand-in models shared by the tests (inference, evaluation, the training loop), and
+another process holding a folder."""
 
 import functools
+import os
+import subprocess
+import sys
+from pathlib import Path
 
 import flax.linen as nn
 import jax.numpy as jnp
@@ -46,3 +51,20 @@ def tiny_steps(model_config, disp_loss, lr, lr_drop_step, mesh, ynn="on"):
           stp.make_train_step(model, model_config, disp_loss=disp_loss, tx=tx, mesh=mesh,
                               compiler_options=opts),
           stp.make_eval_step(model, model_config, mesh=mesh, compiler_options=opts))
+
+
+_HOLD = """import sys, time
+from sljax import files
+with files.exclusive(sys.argv[1], sys.argv[2]):
+  print("held", flush=True)
+  time.sleep(600)
+"""
+
+
+def hold(folder, what: str) -> subprocess.Popen:
+  """Another process holding folder with sljax.files.exclusive (kill it to end the hold)."""
+  root = Path(__file__).resolve().parents[1]
+  proc = subprocess.Popen([sys.executable, "-c", _HOLD, str(folder), what], text=True,
+                          stdout=subprocess.PIPE, env=dict(os.environ, PYTHONPATH=str(root)))
+  assert proc.stdout.readline() == "held\n"
+  return proc

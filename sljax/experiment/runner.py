@@ -334,6 +334,14 @@ def run(plan: Plan, out: str | os.PathLike, *, progress: bool = True,
   """Trains and scores every unfinished cell of the plan under OUT; returns {'trained',
   'evaluated', 'seconds'}."""
   out = Path(out)
+  # One runner per folder: a second (the grid started again while it still runs) would train
+  # the same cells into the same folders.
+  with files.exclusive(out, f"sljax experiment run {plan.name}"):
+    return _run(plan, out, progress, log)
+
+
+def _run(plan: Plan, out: Path, progress: bool, log: Callable[[str], None]) -> dict[str, Any]:
+  """run() once OUT is held."""
   register(out, plan)
   todo = pending(out, plan)
   log(describe(plan) + f"; {len(plan.cells) - len(todo)} cell(s) already finished under {out}")

@@ -32,7 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
-from sljax import tune
+from sljax import files, tune
 from sljax.data import preflight
 from sljax.errors import SljaxError, require
 from sljax.losses import weighting
@@ -170,6 +170,17 @@ def train(config: TrainConfig, workdir: str | os.PathLike | None = None, *, resu
   tqdm's update(steps), set_postfix(**kw) and write(line), e.g. the experiment runner's.
   """
   workdir = Path(workdir if workdir is not None else default_workdir(config)).absolute()
+  # One run per workdir: a second process (the run started again while it still goes on)
+  # would interleave the logs and checkpoints of both.
+  with files.exclusive(workdir, f"sljax train ({config.net})", jax.process_index() == 0):
+    return _train(config, workdir, resume, overwrite, stop_after, preset_note, profile_dir, log,
+                  progress)
+
+
+def _train(config: TrainConfig, workdir: Path, resume: bool, overwrite: bool,
+           stop_after: int | None, preset_note: str, profile_dir: str | None,
+           log: Callable[[str], None], progress: bool | Any | None) -> RunResult:
+  """train() once its workdir is held."""
   config = with_absolute_paths(config)  # config.json names the folders from anywhere
   check_profile_dir(profile_dir)
   run = setup(config, workdir, resume, overwrite, log, preset_note, source=open_source(config))

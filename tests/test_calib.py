@@ -102,3 +102,15 @@ def test_depth_from_disparity_matches_float64_formula():
   np.testing.assert_allclose(z[0, :2], [4161.221 * 176.252 / (100 + 209.059),
                                         4161.221 * 176.252 / (33.5 + 209.059)], rtol=1e-6)
   assert np.all(np.isinf(z[0, 2])) and np.all(np.isinf(z[1]))
+
+
+def test_a_key_given_twice_with_two_values_is_refused(tmp_path):
+  # Two files pasted together: the last value used to win without a word.
+  path = tmp_path / "calib.txt"
+  path.write_text(MIDDLEBURY + "baseline=193.001\n")
+  with pytest.raises(SljaxError, match=re.escape(
+      f"{path}: line 13 gives 'baseline' again with another value ('193.001'; line 4: "
+      "'176.252')")):
+    read_calib(path)
+  path.write_text(MIDDLEBURY + "baseline = 176.252\n")  # the same value again is harmless
+  assert read_calib(path).baseline == 176.252

@@ -72,13 +72,19 @@ def read_calib(path: str | os.PathLike) -> Calib:
     raise SljaxError(f"{path}: not a text calibration file (the byte at offset {e.start} is "
                      "not UTF-8 text; expected Middlebury 'key=value' lines)") from None
   values: dict[str, str] = {}
+  first_line: dict[str, int] = {}
   for n, line in enumerate(lines, 1):
     if not line.strip() or line.lstrip().startswith("#"):
       continue
     key, sep, value = line.partition("=")
     if not sep:
       raise SljaxError(f"{path}: line {n} is not 'key=value': {line.strip()!r}")
-    values[key.strip()] = value.strip()
+    key, value = key.strip(), value.strip()
+    if key in values and values[key] != value:  # two files pasted together: which one is meant?
+      raise SljaxError(f"{path}: line {n} gives {key!r} again with another value ({value!r}; "
+                       f"line {first_line[key]}: {values[key]!r})")
+    values[key] = value
+    first_line.setdefault(key, n)
   missing = [k for k in _REQUIRED if k not in values]
   if missing:
     raise SljaxError(f"{path}: calibration lacks required key(s) {', '.join(missing)}")

@@ -1,6 +1,7 @@
 import errno
 import json
 import os
+import re
 import struct
 from pathlib import Path
 
@@ -220,6 +221,22 @@ def test_disparity_shape_mismatch(middlebury):
   (d / "disp0.pfm").write_bytes(_pfm_bytes(np.ones((H - 1, W), np.float32)))
   with pytest.raises(SljaxError, match=r"Toy-perfect.*disp0\.pfm"):
     load_scene(d)
+
+
+def test_mostly_negative_disparity_is_refused_a_few_are_kept(middlebury):
+  # A flipped sign (x_right - x_left): training ignored every pixel, evaluation scored them.
+  d, _, _, disp = middlebury
+  flipped = -disp
+  flipped[1, :2] = np.nan  # unknown pixels do not count
+  (d / "disp1.pfm").write_bytes(_pfm_bytes(flipped))
+  with pytest.raises(SljaxError, match=re.escape(
+      f"scene {d}: disp1.pfm: 100% of its known disparities are negative; disparities are "
+      "x_left - x_right >= 0 in both views, unknown pixels inf or NaN (is the sign flipped?)")):
+    load_scene(d)
+  few = disp.copy()
+  few.flat[1:24] = -0.25  # 23 of the 47 known ((0, 0) is inf): noise near 0, not a flip
+  (d / "disp1.pfm").write_bytes(_pfm_bytes(few))
+  np.testing.assert_array_equal(load_scene(d).disp1, few)
 
 
 def test_bad_pfm_header_in_scene(middlebury):

@@ -335,6 +335,12 @@ def load_scene(path: str | os.PathLike, gray: bool | None = None,
         if d.ndim != 2:
           raise _fail(scene_dir, f, f"disparity must have one channel, got shape {d.shape}")
         _check_size(scene_dir, f, d, hw)
+        known = d[np.isfinite(d)]
+        negative = np.count_nonzero(known < 0)
+        if negative * 2 > known.size:  # training would ignore them all, evaluation score them
+          raise _fail(scene_dir, f, f"{negative / known.size:.0%} of its known disparities are "
+                      "negative; disparities are x_left - x_right >= 0 in both views, unknown "
+                      "pixels inf or NaN (is the sign flipped?)")
         setattr(scene, f[:5], d)
   if "mask" in parts and need("mask0.png"):
     m = cv2.imread(os.fspath(scene_dir / "mask0.png"), cv2.IMREAD_UNCHANGED)

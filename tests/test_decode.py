@@ -172,6 +172,16 @@ def test_bad_captures():
   with pytest.raises(SljaxError, match="shape"):
     decode_captures({"white": np.ones((4, 4)), "black": np.ones((4, 5)), "p000": np.ones((4, 4))},
                     "gray")
+  four = {"white": np.ones((4, 4)), "black": np.zeros((4, 4)),
+          **{f"{c}{k:04d}": np.ones((4, 4)) for c in "pi" for k in range(5)}}
+  with pytest.raises(SljaxError) as e:  # was the bare "no pattern captures"
+    decode_captures(four, "gray", where="scene x/raw0")
+  assert str(e.value) == ("scene x/raw0: no pattern captures (expected p000, p001, ...); found "
+                          "p0000, p0001, p0002, ...: a capture's number takes exactly three "
+                          "digits")
+  with pytest.raises(SljaxError) as e:
+    decode_captures({"white": np.ones((4, 4)), "black": np.zeros((4, 4))}, "gray", where="x")
+  assert str(e.value) == "x: no pattern captures (expected p000, p001, ...)"
 
 
 # --- sljax decode -------------------------------------------------------------------------

@@ -105,6 +105,26 @@ def exclusive(folder: str | os.PathLike, what: str, active: bool = True) -> Iter
         break
 
 
+def holder(folder: str | os.PathLike) -> str | None:
+  """Who holds folder through `exclusive` now (its record: what, pid, host, since), or None."""
+  path = Path(folder) / LOCK_FILE
+  if fcntl is None:
+    return None
+  try:
+    fd = os.open(path, os.O_RDONLY)
+  except OSError:
+    return None
+  try:
+    fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)  # taken (and dropped at close) if unheld
+    return None
+  except BlockingIOError:
+    return os.read(fd, 500).decode("utf-8", "replace").strip() or "another process"
+  except OSError:
+    return None
+  finally:
+    os.close(fd)
+
+
 def _lock(path: Path, what: str) -> int:
   """An open descriptor of path holding its flock, with `what` written in it; SljaxError naming
   the holder when another process holds it. A holder removes the file before unlocking, so a

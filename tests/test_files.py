@@ -148,3 +148,22 @@ def test_exclusive_on_a_folder_it_cannot_write_leaves_the_error_to_the_block(tmp
     with pytest.raises(OSError):
       (a_file / "config.json").write_text("{}")
   assert a_file.read_text() == "x"
+
+
+def test_holder_names_the_process_holding_a_folder_and_leaves_it_held(tmp_path):
+  folder = tmp_path / "out"
+  assert files.holder(folder) is None  # no folder
+  folder.mkdir()
+  assert files.holder(folder) is None  # no lock file
+  proc = toys.hold(folder, "sljax experiment run fig7-v2")
+  try:
+    record = files.holder(folder)
+    assert record.startswith(f"sljax experiment run fig7-v2 (pid {proc.pid} on ")
+    assert files.holder(folder) == record  # asking twice changes nothing
+    with pytest.raises(SljaxError, match="in use by sljax experiment run fig7-v2"):
+      with files.exclusive(folder, "x"):  # still held after the probes
+        pass
+  finally:
+    proc.kill()
+    proc.wait()
+  assert (folder / files.LOCK_FILE).exists() and files.holder(folder) is None  # a stale file

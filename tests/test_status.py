@@ -8,6 +8,8 @@ import pytest
 from sljax import cli
 from sljax.experiment import plans, runner, status
 
+import toys
+
 X, Y = "CPU X", "CPU Y"
 
 
@@ -100,3 +102,27 @@ def test_fewer_seeds_than_were_run_keep_every_cell(grid, capsys):
   assert len(runner.registered_plans(grid, 4)[0].cells) == 40
   assert cli.main(["experiment", "status", str(grid), "--seeds", "0"]) == 2
   assert "--seeds 0: at least 1" in capsys.readouterr().err
+
+
+def test_says_whether_a_runner_holds_the_folder(grid, capsys):
+  # After a dropped connection the files alone cannot tell a running grid from a stopped one.
+  assert cli.main(["experiment", "status", str(grid), "--seeds", "3"]) == 0
+  text = capsys.readouterr().out
+  assert text.endswith("\n\nNo `sljax experiment run` holds this folder now: run it again to go "
+                       "on (finished cells are kept; a cell in training continues from its last "
+                       "checkpoint).\n"), text[-300:]
+  proc = toys.hold(grid, "sljax experiment run table2")
+  try:
+    assert cli.main(["experiment", "status", str(grid), "--seeds", "3"]) == 0
+    text = capsys.readouterr().out
+    assert f"\n\nRunning here now: sljax experiment run table2 (pid {proc.pid} on " in text
+  finally:
+    proc.kill()
+    proc.wait()
+  plan = plans.build_plan("table2", "smoke", 2)  # the seeds registered
+  for cell in plan.cells:  # every cell finished: nothing to say about a runner
+    if not (runner.cell_dir(grid, cell.name) / runner.DONE_FILE).exists():
+      _done(grid, cell.name, 60.0, X)
+  assert cli.main(["experiment", "status", str(grid)]) == 0
+  text = capsys.readouterr().out
+  assert "holds this folder" not in text and "Running here" not in text

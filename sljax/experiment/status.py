@@ -1,8 +1,9 @@
 """Where a grid stands: which cells are finished, training or waiting, how long the finished
 ones took, and about how long the rest will take.
 
-Reads only what the runner writes (plan.json, each cell's done.json, eval/ and epochs.jsonl),
-so it can be run beside a grid that is training. Estimates come from finished cells of the
+Reads only what the runner writes (plan.json, each cell's done.json, eval/ and epochs.jsonl)
+and whether a runner holds the folder now (sljax.files.holder), so it can be run beside a grid
+that is training. Estimates come from finished cells of the
 same arm and factors, preferring those finished on this CPU kind (a mean over two CPUs times
 neither); a group with no finished cell has no estimate and is counted as such.
 """
@@ -11,7 +12,7 @@ import dataclasses
 import json
 from pathlib import Path
 
-from sljax import machine
+from sljax import files, machine
 from sljax.experiment.plans import Cell, Plan
 from sljax.experiment.runner import DONE_FILE, EVAL_DIR, cell_dir, read_json, registered_plans
 from sljax.train.checkpoint import CHECKPOINT_DIR
@@ -132,5 +133,13 @@ def format_status(plan: Plan, states: list[CellState], here: str) -> str:
 def grid_status(out: str | Path, seeds: int | None = None) -> str:
   """The status of every plan run under OUT (with `seeds` seeds where given)."""
   out, here = Path(out), machine.cpu_description()
-  return "\n\n".join(format_status(plan, plan_status(out, plan), here)
-                     for plan in registered_plans(out, seeds))
+  states = [(plan, plan_status(out, plan)) for plan in registered_plans(out, seeds)]
+  text = "\n\n".join(format_status(plan, s, here) for plan, s in states)
+  running = files.holder(out)
+  if running:
+    return text + f"\n\nRunning here now: {running}."
+  if any(c.state in (TRAINING, WAITING) for _, s in states for c in s):
+    return text + ("\n\nNo `sljax experiment run` holds this folder now: run it again to go "
+                   "on (finished cells are kept; a cell in training continues from its last "
+                   "checkpoint).")
+  return text

@@ -1,6 +1,6 @@
 """Main renders the scenes the committed v2 grids trained and were scored on: a few scenes of
-each plan's training data and of every fixed test set, fingerprinted by the code the grids ran
-on (tests/data/v2_scenes.json, written by tools/scene_fingerprints.py at that commit). A
+each plan's training data (and its training subset and validation split) and of every fixed
+test set, fingerprinted by the code the grids ran on (tests/data/v2_scenes.json, written by tools/scene_fingerprints.py at that commit). A
 renderer or split change that moved the test sets under the committed records fails here."""
 
 import json
@@ -22,13 +22,18 @@ RECORD = json.loads((ROOT / "tests" / "data" / "v2_scenes.json").read_text())
 STORED = RECORD["scenes"]
 
 
-def _scene(where):
-  """The scene at `where`, rendered by main's code from the grid's plan.json."""
+def _cell(where):
+  """The cell at `where`, built by main's code from the grid's plan.json."""
   args = json.loads((ROOT / "docs" / "results" / where["grid"] / "plan.json").read_text())[
       "plans"][where["plan"]]
   plan = build_plan(where["plan"], args["scale"], args["seeds"], args["data"],
                     tuple(args["eval_data"]))
-  cell = next(c for c in plan.cells if c.name == where["cell"])
+  return next(c for c in plan.cells if c.name == where["cell"])
+
+
+def _scene(where):
+  """The scene at `where`, rendered by main's code."""
+  cell = _cell(where)
   if where["set"] == "train":
     return open_source(cell.config)[where["index"]]
   evalset = next(e for e in cell.evals if e.name == where["set"])
@@ -47,6 +52,8 @@ def test_every_grid_and_fixed_test_set_is_fingerprinted_by_the_grids_code():
 @pytest.mark.parametrize("where", STORED, ids=lambda w: f"{w['grid']}-{w['cell']}-{w['set']}-"
                                                        f"{w['index']}")
 def test_main_renders_the_grids_scenes(where):
+  if where["set"] == "train":  # the same scenes train and validate, in the same order
+    assert scene_fingerprints.split(_cell(where).config) == where["split"]
   got = scene_fingerprints.fingerprint(_scene(where))
   assert sorted(got) == sorted(where["parts"])
   stats = {k: v for k, v in where["parts"].items() if not k.endswith("_patch")}

@@ -16,6 +16,7 @@ Run it with the code the grids ran on (docs/plan-v2.md names the commit); the te
 every entry with main's code.
 """
 
+import hashlib
 import json
 import subprocess
 import sys
@@ -51,9 +52,22 @@ def fingerprint(scene: Any) -> dict[str, list]:
   return out
 
 
+def split(config: Any) -> dict[str, Any]:
+  """The training subset and the validation split a cell's training used (as setup does):
+  their sizes and a SHA-256 of each index list (order included)."""
+  from sljax.data.dataset import split_indices, take_fraction
+  from sljax.train.loop import open_source
+
+  train, val = split_indices(open_source(config), config.test_fraction, seed=config.seed)
+  train = take_fraction(train, config.fraction, seed=config.seed)
+  digest = lambda v: hashlib.sha256(json.dumps([int(i) for i in v]).encode()).hexdigest()
+  return {"n_train": len(train), "train": digest(train), "n_val": len(val), "val": digest(val)}
+
+
 def scenes() -> Iterator[tuple[dict[str, Any], Any]]:
   """(where, scene) for a few scenes of every grid's plans: the first training scene of each
-  plan's first and last cell, and the first and last scene of each fixed test set."""
+  plan's first and last cell (with its split), and the first and last scene of each fixed test
+  set."""
   from sljax.experiment import runner
   from sljax.experiment.plans import FIXED, build_plan
   from sljax.train.loop import open_source
@@ -65,7 +79,8 @@ def scenes() -> Iterator[tuple[dict[str, Any], Any]]:
       plan = build_plan(name, args["scale"], args["seeds"], args["data"],
                         tuple(args["eval_data"]))
       for cell in (plan.cells[0], plan.cells[-1]):
-        where = dict(grid=grid.name, plan=name, cell=cell.name, set="train", index=0)
+        where = dict(grid=grid.name, plan=name, cell=cell.name, set="train", index=0,
+                     split=split(cell.config))
         yield where, open_source(cell.config)[0]
         for evalset in cell.evals:
           if evalset.kind != FIXED:

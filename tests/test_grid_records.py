@@ -1,13 +1,16 @@
 """The committed v2 grid records (docs/results/v2-*) were produced by code frozen at one
 commit; the report that turns them into docs/results.md runs on main's code. These tests
 guard that main still builds the same cells (a changed default, budget or scale would make
-the report read the records as another plan) and that every committed cell is complete."""
+the report read the records as another plan), that every committed cell is complete, and that
+main writes the committed reports (which docs/results.md quotes) byte for byte."""
 
 import json
+import shutil
 from pathlib import Path
 
 import pytest
 
+from sljax.experiment import report
 from sljax.experiment.plans import build_plan
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -37,3 +40,17 @@ def test_every_committed_cell_is_complete_and_named_by_its_plan(grid):
     config = json.loads((cell / "config.json").read_text())
     assert config["seed"] == record["cells"][cell.name]["config"]["seed"], cell
     assert list((cell / "eval").glob("*.json")), cell  # scored
+
+
+@pytest.mark.parametrize("grid", [g for g in GRIDS if (g / "report.json").exists()],
+                         ids=lambda p: p.name)
+def test_main_writes_the_committed_report_byte_for_byte(grid, tmp_path):
+  """docs/results.md quotes these reports: a change to the metrics, statistics or report code
+  that would move a published number fails here (regenerate the report on purpose and say
+  so in docs/results.md)."""
+  out = tmp_path / grid.name
+  shutil.copytree(grid, out, ignore=shutil.ignore_patterns("figures"))
+  plans = list(json.loads((grid / "report.json").read_text()))
+  report.write_report(out, plans)
+  for name in ("report.md", "report.json"):
+    assert (out / name).read_bytes() == (grid / name).read_bytes(), (grid.name, name)

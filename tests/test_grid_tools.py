@@ -1,0 +1,54 @@
+"""tools/grid_records.py: copying finished cells' records from a running grid's folder into
+the committed results, checked on a hand-made experiment folder."""
+
+import json
+import os
+import sys
+from pathlib import Path
+
+from sljax.experiment import plans, runner
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+import grid_records  # noqa: E402  (tools/ is on the path above)
+
+
+def _cell(out, name, done=None, evals=("heldout",)):
+  wd = runner.cell_dir(out, name)
+  (wd / runner.EVAL_DIR).mkdir(parents=True)
+  (wd / "checkpoints" / "8").mkdir(parents=True)
+  for f in ("config.json", "epochs.jsonl", "train.log", "metrics.jsonl"):
+    (wd / f).write_text(f"{name} {f}")
+  if done is not None:
+    runner.write_json(wd / runner.DONE_FILE, done)
+  for e in evals:
+    runner.write_json(wd / runner.EVAL_DIR / f"{e}.json", {"pooled": {}})
+
+
+def test_copies_finished_cells_and_then_only_what_is_new(tmp_path, monkeypatch):
+  monkeypatch.setattr(grid_records, "cpu_description", lambda: "CPU X")
+  src, dst = tmp_path / "runs" / "g", tmp_path / "docs" / "g"
+  runner.register(src, plans.build_plan("table2", "smoke", 1))
+  _cell(src, "psmnet-stl-objects-s0", {"step": 8, "machine": "CPU Y"})
+  _cell(src, "psmnet-unc-objects-s0", {"step": 8})                    # no CPU recorded
+  _cell(src, "psmnet-epr-objects-s0", {"step": 8}, evals=())          # trained, not scored
+  _cell(src, "psmnet-cg_a-objects-s0")                                # training
+  assert grid_records.copy_finished(src, dst) == ["psmnet-stl-objects-s0",
+                                                  "psmnet-unc-objects-s0"]
+  assert (dst / runner.PLAN_FILE).read_bytes() == (src / runner.PLAN_FILE).read_bytes()
+  stl = runner.cell_dir(dst, "psmnet-stl-objects-s0")
+  assert sorted(os.listdir(stl)) == ["config.json", "done.json", "epochs.jsonl", "eval",
+                                     "train.log"]  # no checkpoints, no metrics.jsonl
+  assert (stl / "train.log").read_text() == "psmnet-stl-objects-s0 train.log"
+  assert json.loads((stl / "done.json").read_text())["machine"] == "CPU Y"  # kept
+  for root in (src, dst):  # the CPU is named, in both folders
+    done = json.loads((runner.cell_dir(root, "psmnet-unc-objects-s0") / "done.json").read_text())
+    assert done == {"step": 8, "machine": "CPU X"}
+  assert not runner.cell_dir(dst, "psmnet-epr-objects-s0").exists()
+  assert grid_records.copy_finished(src, dst) == []  # nothing new
+  # More scores of a copied cell (another plan's test set) come over alone.
+  runner.write_json(runner.cell_dir(src, "psmnet-stl-objects-s0") / runner.EVAL_DIR
+                    / "test-tissue.json", {"pooled": {"full": {"mae": 1.0}}})
+  (runner.cell_dir(src, "psmnet-stl-objects-s0") / "train.log").write_text("changed")
+  assert grid_records.copy_finished(src, dst) == ["psmnet-stl-objects-s0: eval/test-tissue.json"]
+  assert json.loads((stl / "eval" / "test-tissue.json").read_text())["pooled"]["full"]["mae"] == 1
+  assert (stl / "train.log").read_text() == "psmnet-stl-objects-s0 train.log"  # not recopied

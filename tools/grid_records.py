@@ -1,0 +1,77 @@
+"""Copies the records of finished experiment cells from a running grid's folder into the
+committed results folder (what docs/results.md is written from), and optionally commits them.
+
+    python tools/grid_records.py runs/v2-cpu docs/results/v2-cpu [--commit "message"]
+
+Per finished cell (done.json present and nothing left to score): config.json, epochs.jsonl,
+train.log, notes.txt and eval/*.json, and done.json with the CPU it ran on added (`machine`,
+when the runner did not record it; written back to the grid's folder too). Checkpoints and
+metrics.jsonl stay behind. A cell already copied gets only its new evaluation files (a plan
+that scores trained cells on more test sets, e.g. table3-v2 after fig7-v2). plan.json is
+copied as it is. Safe beside the running grid: it reads finished cells only.
+"""
+
+import argparse
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+from sljax.experiment import runner
+from sljax.machine import cpu_description
+
+KEPT = ("config.json", "epochs.jsonl", "train.log", "notes.txt")
+
+
+def copy_finished(src: Path, dst: Path) -> list[str]:
+  """Copies what is new of every finished cell of the plans registered in src; returns
+  'cell' (a new cell) or 'cell: eval/x.json' (new scores of a copied cell) per change."""
+  changes = []
+  dst.mkdir(parents=True, exist_ok=True)
+  shutil.copy(src / runner.PLAN_FILE, dst / runner.PLAN_FILE)
+  seen = set()
+  for plan in runner.registered_plans(src):
+    waiting = {cell.name for cell, _, _ in runner.pending(src, plan)}
+    for cell in plan.cells:
+      s, d = runner.cell_dir(src, cell.name), runner.cell_dir(dst, cell.name)
+      if cell.name in seen or cell.name in waiting or not (s / runner.DONE_FILE).exists():
+        continue
+      seen.add(cell.name)
+      if not (d / runner.DONE_FILE).exists():
+        d.mkdir(parents=True, exist_ok=True)
+        for name in KEPT:
+          if (s / name).exists():
+            shutil.copy(s / name, d / name)
+        done = json.loads((s / runner.DONE_FILE).read_text())
+        if not done.get("machine"):
+          done["machine"] = cpu_description()
+          (s / runner.DONE_FILE).write_text(json.dumps(done, indent=1))
+        (d / runner.DONE_FILE).write_text(json.dumps(done, indent=1))
+        changes.append(cell.name)
+      (d / runner.EVAL_DIR).mkdir(exist_ok=True)
+      for f in sorted((s / runner.EVAL_DIR).glob("*.json")):
+        if not (d / runner.EVAL_DIR / f.name).exists():
+          shutil.copy(f, d / runner.EVAL_DIR / f.name)
+          if changes[-1:] != [cell.name]:
+            changes.append(f"{cell.name}: {runner.EVAL_DIR}/{f.name}")
+  return changes
+
+
+def main(argv: list[str] | None = None) -> int:
+  """Copies, prints what changed, and commits the results folder when asked."""
+  p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+  p.add_argument("src", type=Path, help="the grid's experiment folder (runs/...)")
+  p.add_argument("dst", type=Path, help="the committed records (docs/results/...)")
+  p.add_argument("--commit", metavar="MESSAGE", help="git add DST and commit with MESSAGE")
+  args = p.parse_args(argv)
+  changes = copy_finished(args.src, args.dst)
+  print("\n".join(changes) if changes else "nothing new")
+  if changes and args.commit:
+    subprocess.run(["git", "add", str(args.dst)], check=True)
+    subprocess.run(["git", "commit", "-qm", args.commit], check=True)
+  return 0
+
+
+if __name__ == "__main__":
+  sys.exit(main())

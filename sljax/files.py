@@ -10,6 +10,7 @@ import contextlib
 import os
 import re
 import socket
+import sys
 import time
 import zipfile
 import zlib
@@ -81,28 +82,53 @@ def exclusive(folder: str | os.PathLike, what: str, active: bool = True) -> Iter
   line naming the first, instead of mixing their files. The lock is the kernel's (flock): it
   ends with its process, kill -9 included, so a stale one never needs removing. The lock file
   is removed at the end, and so are folders this call created that the block left empty. Not
-  locked: active=False (processes other than the main one), Windows, and a folder where the
-  lock file cannot be created (the block's own writes then report the problem)."""
+  locked: active=False (processes other than the main one) and Windows; where the lock cannot
+  be taken (no lock support, another user's lock file) one line on stderr says so, and a
+  folder that cannot be written is left to the block's own writes to report."""
   folder = Path(folder)
   created = [d for d in (folder, *folder.parents) if not d.exists()]  # deepest first
   fd = None
   if active and fcntl is not None:
     try:
       folder.mkdir(parents=True, exist_ok=True)
-      fd = _lock(folder / LOCK_FILE, what)
     except OSError:
-      fd = None
+      pass  # the block's first write names the problem
+    else:
+      fd = _lock(folder / LOCK_FILE, what)
   try:
     yield
   finally:
     if fd is not None:
-      (folder / LOCK_FILE).unlink(missing_ok=True)  # before the unlock: see _lock
-      os.close(fd)
+      _release(folder / LOCK_FILE, fd)
     for d in created if fd is not None else ():
       try:
         d.rmdir()  # only when empty
       except OSError:
         break
+
+
+def _release(path: Path, fd: int) -> None:
+  """Removes the lock file (if it is still this lock's: someone may have deleted it and
+  another process locked a new one) and then unlocks."""
+  try:
+    if _same_file(path, fd):
+      path.unlink(missing_ok=True)  # before the unlock: see _lock
+  finally:
+    os.close(fd)
+
+
+def _same_file(path: Path, fd: int) -> bool:
+  """Whether path names the file open as fd."""
+  try:
+    st, fst = os.stat(path), os.fstat(fd)
+  except FileNotFoundError:
+    return False
+  return (st.st_dev, st.st_ino) == (fst.st_dev, fst.st_ino)
+
+
+def _record(fd: int) -> str:
+  """The holder's record in an open lock file."""
+  return os.read(fd, 500).decode("utf-8", "replace").strip() or "another process"
 
 
 def holder(folder: str | os.PathLike) -> str | None:
@@ -118,44 +144,66 @@ def holder(folder: str | os.PathLike) -> str | None:
     fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)  # taken (and dropped at close) if unheld
     return None
   except BlockingIOError:
-    return os.read(fd, 500).decode("utf-8", "replace").strip() or "another process"
+    return _record(fd)
   except OSError:
     return None
   finally:
     os.close(fd)
 
 
-def _lock(path: Path, what: str) -> int:
+def _lock(path: Path, what: str) -> int | None:
   """An open descriptor of path holding its flock, with `what` written in it; SljaxError naming
-  the holder when another process holds it. A holder removes the file before unlocking, so a
-  lock won on a file that is no longer at path is dropped and taken again on the new one."""
-  while True:
-    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+  the holder when another process holds it; None (and a line on stderr) where no lock can be
+  taken. A holder removes the file before unlocking, so a lock won on a file that is no longer
+  at path is dropped and taken again on the new one. A refusal is retried for 0.2 s: a
+  `holder` probe holds the lock shared for a moment."""
+  for attempt in range(1000):
     try:
-      fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-      holder = os.read(fd, 500).decode("utf-8", "replace").strip() or "another process"
-      os.close(fd)
-      raise SljaxError(f"{path.parent}: in use by {holder}; wait for it to end or stop it (its "
-                       "lock ends with it), or choose another folder") from None
+      fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    except PermissionError:  # another user's lock file: refuse if it is held, else go on
+      busy = holder(path.parent)
+      if busy:
+        raise _in_use(path.parent, busy) from None
+      return _unlocked(path, "cannot open the lock file for writing")
     except OSError:
+      return None  # a folder that cannot be written: the block's own writes say so
+    try:
+      try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+      except BlockingIOError:
+        if attempt < 4:
+          os.close(fd)
+          time.sleep(0.05)
+          continue
+        raise _in_use(path.parent, _record(fd)) from None
+      except OSError as e:  # e.g. a network file system without flock
+        os.close(fd)
+        return _unlocked(path, e.strerror or type(e).__name__)
+      if _same_file(path, fd):
+        try:
+          os.ftruncate(fd, 0)
+          os.write(fd, (f"{what} (pid {os.getpid()} on {socket.gethostname()}, since "
+                        f"{time.strftime('%Y-%m-%d %H:%M:%S %Z')})").encode("utf-8"))
+        except OSError:  # a full disk: the lock holds, a refused process reads no record
+          pass
+        return fd
+    except BaseException:
       os.close(fd)
       raise
-    try:
-      same = os.stat(path).st_ino == os.fstat(fd).st_ino
-    except FileNotFoundError:
-      same = False
-    if same:
-      break
     os.close(fd)
-  try:
-    os.ftruncate(fd, 0)
-    os.write(fd, (f"{what} (pid {os.getpid()} on {socket.gethostname()}, since "
-                  f"{time.strftime('%Y-%m-%d %H:%M:%S %Z')})").encode("utf-8"))
-  except OSError:
-    os.close(fd)
-    raise
-  return fd
+  raise SljaxError(f"{path}: could not be locked (it is replaced again and again)")
+
+
+def _in_use(folder: Path, record: str) -> SljaxError:
+  return SljaxError(f"{folder}: in use by {record}; wait for it to end or stop it (its lock "
+                    "ends with it), or choose another folder")
+
+
+def _unlocked(path: Path, why: str) -> None:
+  """Says on stderr that the folder goes unlocked."""
+  print(f"sljax: {path}: not locked ({why}); a second process writing {path.parent} would not "
+        "be refused", file=sys.stderr)
+  return None
 
 
 def encode_png(image: np.ndarray, path: str | os.PathLike) -> bytes:

@@ -67,3 +67,8 @@ if "SLJAX_COMPILE_CACHE" not in os.environ:
 from sljax.cache import enable_compile_cache  # noqa: E402  (after the settings above)
 
 enable_compile_cache()
+
+
+def pytest_xdist_auto_num_workers(config):
+  """One worker on a TPU (libtpu lets a single process open the chip); else xdist's count."""
+  return 1 if "tpu" in ACCELERATORS else None

@@ -112,5 +112,6 @@ def test_a_key_given_twice_with_two_values_is_refused(tmp_path):
       f"{path}: line 13 gives 'baseline' again with another value ('193.001'; line 4: "
       "'176.252')")):
     read_calib(path)
-  path.write_text(MIDDLEBURY + "baseline = 176.252\n")  # the same value again is harmless
+  path.write_text(MIDDLEBURY + "baseline = 176.2520\n"  # the same value again is harmless
+                  "cam1=[4161.221  0 1654.636;  0 4161.221 984.686; 0 0 1]\n")
   assert read_calib(path).baseline == 176.252

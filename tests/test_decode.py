@@ -182,6 +182,16 @@ def test_bad_captures():
   with pytest.raises(SljaxError) as e:
     decode_captures({"white": np.ones((4, 4)), "black": np.zeros((4, 4))}, "gray", where="x")
   assert str(e.value) == "x: no pattern captures (expected p000, p001, ...)"
+  with pytest.raises(SljaxError) as e:  # three digits, but inverses only
+    decode_captures({"white": np.ones((4, 4)), "black": np.zeros((4, 4)), "i000": np.ones((4, 4)),
+                     "i0001": np.ones((4, 4))}, "gray", where="x")
+  assert str(e.value) == ("x: no pattern captures (expected p000, p001, ...); found i0001: a "
+                          "capture's number takes exactly three digits")
+  with pytest.raises(SljaxError) as e:
+    decode_captures({"white": np.ones((4, 4)), "black": np.zeros((4, 4)), "i000": np.ones((4, 4))},
+                    "gray", where="x")
+  assert str(e.value) == ("x: no pattern captures (expected p000, p001, ...); only inverse "
+                          "captures (i000, ...)")
 
 
 # --- sljax decode -------------------------------------------------------------------------

@@ -1,8 +1,11 @@
 """sljax.files: outputs written whole, output folders checked, .npz files read with one-line
 errors. The other tests reach these through the commands; here each rule is checked alone."""
 
+import errno
+import fcntl
 import os
 import socket
+import threading
 
 import numpy as np
 import pytest
@@ -167,3 +170,59 @@ def test_holder_names_the_process_holding_a_folder_and_leaves_it_held(tmp_path):
     proc.kill()
     proc.wait()
   assert (folder / files.LOCK_FILE).exists() and files.holder(folder) is None  # a stale file
+
+
+def test_exclusive_waits_out_a_holder_probe_and_keeps_anothers_lock_file(tmp_path):
+  folder = tmp_path / "out"
+  folder.mkdir()
+  probe = os.open(folder / files.LOCK_FILE, os.O_RDWR | os.O_CREAT)
+  fcntl.flock(probe, fcntl.LOCK_SH)  # as files.holder holds it, for a moment
+  threading.Timer(0.08, os.close, [probe]).start()
+  with files.exclusive(folder, "after the probe"):  # retried, not refused
+    assert files.holder(folder).startswith("after the probe (pid ")
+    # Someone deletes the lock file by hand and another process locks a new one: leaving,
+    # this holder must not remove that process's file.
+    (folder / files.LOCK_FILE).unlink()
+    proc = toys.hold(folder, "the newer run")
+  try:
+    assert files.holder(folder).startswith(f"the newer run (pid {proc.pid} ")
+  finally:
+    proc.kill()
+    proc.wait()
+
+
+def test_exclusive_where_no_lock_can_be_taken_says_so(tmp_path, monkeypatch, capsys):
+  folder = tmp_path / "out"
+  real_open = os.open
+
+  def no_write_open(path, flags, *mode):  # another user's lock file (root cannot chmod this)
+    if flags & os.O_RDWR:
+      raise PermissionError(13, "Permission denied", str(path))
+    return real_open(path, flags, *mode)
+
+  proc = toys.hold(folder, "another user's run")
+  try:
+    with monkeypatch.context() as m:
+      m.setattr(files.os, "open", no_write_open)
+      with pytest.raises(SljaxError, match="in use by another user's run"):
+        with files.exclusive(folder, "x"):
+          pass
+  finally:
+    proc.kill()
+    proc.wait()
+  with monkeypatch.context() as m:  # the holder is gone: go on, unlocked, and say so
+    m.setattr(files.os, "open", no_write_open)
+    with files.exclusive(folder, "x"):
+      pass
+  assert capsys.readouterr().err == (
+      f"sljax: {folder / files.LOCK_FILE}: not locked (cannot open the lock file for writing); "
+      f"a second process writing {folder} would not be refused\n")
+
+  def no_locks(fd, op):
+    raise OSError(errno.ENOLCK, "No locks available")
+
+  with monkeypatch.context() as m:  # a file system without flock
+    m.setattr(files.fcntl, "flock", no_locks)
+    with files.exclusive(tmp_path / "nfs", "x"):
+      pass
+  assert "not locked (No locks available)" in capsys.readouterr().err

@@ -7,6 +7,7 @@ import json
 import sys
 from pathlib import Path
 
+import jax
 import numpy as np
 import pytest
 
@@ -32,7 +33,13 @@ def _cell(where):
 
 
 def _scene(where):
-  """The scene at `where`, rendered by main's code."""
+  """The scene at `where`, rendered by main's code on the CPU (as the grids ran; a GPU's
+  transcendental functions differ in the last bits)."""
+  with jax.default_device(jax.devices("cpu")[0]):
+    return _render(where)
+
+
+def _render(where):
   cell = _cell(where)
   if where["set"] == "train":
     return open_source(cell.config)[where["index"]]
@@ -61,11 +68,15 @@ def test_main_renders_the_grids_scenes(where):
     # XLA's compiler options and the CPU's vector width move float32 renders in the last bit,
     # and the 8-bit sensor quantisation turns a few of those into one grey level (this suite
     # compiles with fewer optimisations: up to 1.4e-5 here; with XLA's defaults the frozen
-    # and main code agree exactly, Intel Xeon f6 m167). A changed scene moves them far more.
-    assert abs(got[part][0] - n) <= max(2, n // 1000), (part, got[part][0], n)
-    np.testing.assert_allclose(got[part][1:], [mean, std], rtol=0, atol=1e-4, err_msg=part)
+    # and main code agree exactly, Intel Xeon f6 m167); a pixel becoming known or unknown moves
+    # the statistics by about its value over n. A changed scene moves them far more.
+    dn = abs(got[part][0] - n)
+    assert dn <= max(2, n // 1000), (part, got[part][0], n)
+    tol = 1e-4 + 2 * dn * (abs(mean) + 4 * std) / n
+    np.testing.assert_allclose(got[part][1:], [mean, std], rtol=0, atol=tol, err_msg=part)
   for view in ("im0_patch", "im1_patch"):
-    # Rounding moves a pixel by at most one level and rarely; a change of the sensor noise
-    # (0.002 -> 0.003) moves about a fifth of them.
+    # Rounding moves a pixel by at most one level and rarely (2 of 256 at most, seen with
+    # AVX2-only and fast-compiled renders); a change of the sensor noise (0.002 -> 0.003)
+    # moves about a fifth of them.
     diff = np.abs(np.subtract(got[view], where["parts"][view]))
-    assert diff.max() <= 1 and np.count_nonzero(diff) <= 3, (view, np.count_nonzero(diff))
+    assert diff.max() <= 1 and np.count_nonzero(diff) <= 4, (view, np.count_nonzero(diff))

@@ -47,6 +47,14 @@ def _parse_matrix(text: str, path: str, key: str) -> np.ndarray:
   return np.array(rows, dtype=np.float64)
 
 
+def _same_number(a: str, b: str) -> bool:
+  """Whether two value texts are one number however written (176.252 and 176.2520)."""
+  try:
+    return float(a) == float(b)
+  except ValueError:
+    return False
+
+
 def _format_number(value: float) -> str:
   """Writes integers without a decimal point and other numbers with full precision."""
   value = float(value)
@@ -80,7 +88,8 @@ def read_calib(path: str | os.PathLike) -> Calib:
     if not sep:
       raise SljaxError(f"{path}: line {n} is not 'key=value': {line.strip()!r}")
     key, value = key.strip(), value.strip()
-    if key in values and values[key] != value:  # two files pasted together: which one is meant?
+    if key in values and values[key].split() != value.split() and not _same_number(
+        values[key], value):  # two files pasted together: which one is meant?
       raise SljaxError(f"{path}: line {n} gives {key!r} again with another value ({value!r}; "
                        f"line {first_line[key]}: {values[key]!r})")
     values[key] = value

@@ -55,9 +55,11 @@ def count_patterns(raw: dict[str, np.ndarray], where: str = "raw captures") -> i
       indices.setdefault(m.group(1), set()).add(int(m.group(2)))
   ps = indices.get("p", set())
   if not ps:
-    near = sorted((k for k in raw if re.fullmatch(r"[pi]\d+", k)), key=lambda k: (k[0] != "p", k))
-    hint = (f"; found {', '.join(near[:3])}{', ...' if len(near) > 3 else ''}: a capture's "
-            "number takes exactly three digits" if near else "")
+    odd = sorted((k for k in raw if re.fullmatch(r"[pi]\d+", k) and not _PATTERN_KEY.match(k)),
+                 key=lambda k: (k[0] != "p", k))
+    hint = (f"; found {', '.join(odd[:3])}{', ...' if len(odd) > 3 else ''}: a capture's "
+            "number takes exactly three digits" if odd else
+            "; only inverse captures (i000, ...)" if indices.get("i") else "")
     raise SljaxError(f"{where}: no pattern captures (expected p000, p001, ...){hint}")
   t = max(ps) + 1
   for k in range(t):

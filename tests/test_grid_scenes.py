@@ -1,7 +1,8 @@
 """Main renders the scenes the committed v2 grids trained and were scored on: a few scenes of
 each plan's training data (and its training subset and validation split) and of every fixed
-test set, fingerprinted by the code the grids ran on (tests/data/v2_scenes.json, written by tools/scene_fingerprints.py at that commit). A
-renderer or split change that moved the test sets under the committed records fails here."""
+test set, fingerprinted by the code the grids ran on (tests/data/v2_scenes.json, written by
+tools/scene_fingerprints.py at that commit). A renderer or split change that moved the test
+sets under the committed records fails here."""
 
 import json
 import sys

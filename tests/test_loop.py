@@ -15,6 +15,7 @@ import jax
 import numpy as np
 import pytest
 
+from sljax import files
 from sljax.data.scene import Scene
 from sljax.nets import ModelConfig
 from sljax.train import checkpoint as ckpt
@@ -428,3 +429,30 @@ def test_a_ctrl_c_during_cleanup_still_interrupts_and_an_ignored_sigint_stays_ig
     assert not flag.asked and signal.getsignal(signal.SIGINT) is signal.SIG_IGN
   finally:
     signal.signal(signal.SIGINT, previous)
+
+
+def test_a_held_workdir_stops_every_process_of_a_multi_process_run(tmp_path):
+  """Only process 0 takes the workdir's lock; when it is refused, process 1 must stop too
+  (it waited for process 0 at the next sync until the coordinator gave up)."""
+  import socket  # pylint: disable=import-outside-toplevel
+  with socket.socket() as s:
+    s.bind(("localhost", 0))
+    port = s.getsockname()[1]
+  cfg = json.dumps(_config("unc", epochs=2, batch_size=4, log_every=2).to_json())
+  env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(ROOT))
+  env.pop("XLA_FLAGS", None)  # one device per process
+  holder = toys.hold(tmp_path / "two", "sljax train (the first run)")
+  try:
+    procs = [subprocess.Popen(
+        [sys.executable, "-c", _PROCESS, cfg, str(tmp_path / "two"), "2", str(i), str(port),
+         str(TESTS)], env=env, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        text=True) for i in (0, 1)]
+    errs = [p.communicate(timeout=120)[1] for p in procs]
+  finally:
+    holder.kill()
+    holder.wait()
+  assert [p.returncode for p in procs] == [1, 1], errs
+  assert f"in use by sljax train (the first run) (pid {holder.pid} on " in errs[0], errs[0][-2000:]
+  assert (f"{tmp_path / 'two'}: in use by another run (process 0 found it held and names it)"
+          in errs[1]), errs[1][-2000:]
+  assert os.listdir(tmp_path / "two") == [files.LOCK_FILE]  # nothing written by either

@@ -32,7 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
-from sljax import files, tune
+from sljax import tune
 from sljax.data import preflight
 from sljax.errors import SljaxError, require
 from sljax.losses import weighting
@@ -51,7 +51,7 @@ from sljax.train.setup import Setup, merge_init, model_config, resolve_ynn, setu
 from sljax.train.state import LoopState
 from sljax.train.validate import validate_split
 from sljax.train.workdir import (EPOCHS_FILE, METRICS_FILE, MetricWriter, clear_run,
-                                 default_workdir, restart_logs, write_config)
+                                 default_workdir, held, restart_logs, write_config)
 
 # Re-exported: the loop's public names predate its rooms (tests and benchmarks use them).
 __all__ = ["EPOCHS_FILE", "LOADER_THREADS", "METRICS_FILE", "PREFETCH", "LoopState", "RowCache",
@@ -172,7 +172,7 @@ def train(config: TrainConfig, workdir: str | os.PathLike | None = None, *, resu
   workdir = Path(workdir if workdir is not None else default_workdir(config)).absolute()
   # One run per workdir: a second process (the run started again while it still goes on)
   # would interleave the logs and checkpoints of both.
-  with files.exclusive(workdir, f"sljax train ({config.net})", jax.process_index() == 0):
+  with held(workdir, f"sljax train ({config.net})"):
     return _train(config, workdir, resume, overwrite, stop_after, preset_note, profile_dir, log,
                   progress)
 

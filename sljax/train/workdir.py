@@ -8,13 +8,15 @@
 Writes happen on the main process only; every process checks the directory first.
 """
 
+import contextlib
 import json
 import shutil
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
 import jax
+import numpy as np
 from jax.experimental import multihost_utils
 
 from sljax import files
@@ -28,7 +30,7 @@ METRICS_FILE = "metrics.jsonl"
 EPOCHS_FILE = "epochs.jsonl"
 
 __all__ = ["CHECKPOINT_DIR", "CONFIG_FILE", "EPOCHS_FILE", "METRICS_FILE", "MetricWriter",
-           "check_config_kept", "clear_run", "default_workdir", "has_checkpoints",
+           "check_config_kept", "clear_run", "default_workdir", "has_checkpoints", "held",
            "prepare_workdir", "read_config", "restart_logs", "sync", "write_config"]
 
 
@@ -44,6 +46,29 @@ def sync(name: str) -> None:
   """Waits for every process (multi-process runs), e.g. between workdir checks and writes."""
   if jax.process_count() > 1:
     multihost_utils.sync_global_devices(name)
+
+
+@contextlib.contextmanager
+def held(workdir: Path, what: str) -> Iterator[None]:
+  """The workdir held for one run (sljax.files.exclusive on the main process): a second run
+  there stops with one line naming the first, on every process of a multi-process run (the
+  others would otherwise wait for the main one at the next sync until the coordinator gave
+  up)."""
+  if jax.process_count() == 1:
+    with files.exclusive(workdir, what):
+      yield
+    return
+  with contextlib.ExitStack() as stack:
+    refusal = None
+    if jax.process_index() == 0:
+      try:
+        stack.enter_context(files.exclusive(workdir, what))
+      except SljaxError as e:
+        refusal = e
+    if int(multihost_utils.broadcast_one_to_all(np.int32(refusal is not None))):
+      raise refusal or SljaxError(f"{workdir}: in use by another run (process 0 found it "
+                                  "held and names it)")
+    yield
 
 
 def _relative_note(value: Any) -> str:

@@ -3,9 +3,9 @@ ones took, and about how long the rest will take.
 
 Reads only what the runner writes (plan.json, each cell's done.json, eval/ and epochs.jsonl)
 and whether a runner holds the folder now (sljax.files.holder), so it can be run beside a grid
-that is training. Estimates come from finished cells of the
-same arm and factors, preferring those finished on this CPU kind (a mean over two CPUs times
-neither); a group with no finished cell has no estimate and is counted as such.
+that is training. Estimates come from finished cells of the same arm and factors, preferring
+those finished on this CPU kind (a mean over two CPUs times neither); a group with no finished
+cell has no estimate and is counted as such.
 """
 
 import dataclasses

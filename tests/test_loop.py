@@ -262,10 +262,9 @@ _PROCESS = textwrap.dedent("""
 """)
 
 
-def test_two_processes_equal_one(tmp_path):
-  """Two CPU processes joined by jax.distributed (gloo collectives), each loading its half of
-  every global batch, end with the parameters of one process training on the same global
-  batch (up to the order of the cross-process sums)."""
+def _launcher(tmp_path):
+  """run(workdir name, processes, index) -> a child training the unc twin (2 epochs) there,
+  joined with the other processes of its run through one coordinator port."""
   import socket  # pylint: disable=import-outside-toplevel
   with socket.socket() as s:
     s.bind(("localhost", 0))
@@ -273,10 +272,17 @@ def test_two_processes_equal_one(tmp_path):
   cfg = json.dumps(_config("unc", epochs=2, batch_size=4, log_every=2).to_json())
   env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(ROOT))
   env.pop("XLA_FLAGS", None)  # one device per process
-  run = lambda wd, n, i: subprocess.Popen(  # noqa: E731
+  return lambda wd, n, i: subprocess.Popen(
       [sys.executable, "-c", _PROCESS, cfg, str(tmp_path / wd), str(n), str(i), str(port),
        str(TESTS)], env=env, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
       text=True)
+
+
+def test_two_processes_equal_one(tmp_path):
+  """Two CPU processes joined by jax.distributed (gloo collectives), each loading its half of
+  every global batch, end with the parameters of one process training on the same global
+  batch (up to the order of the cross-process sums)."""
+  run = _launcher(tmp_path)
   procs = [run("two", 2, 0), run("two", 2, 1), run("one", 1, 0)]
   outs = [p.communicate(timeout=300) for p in procs]
   for p, (out, err) in zip(procs, outs):
@@ -434,19 +440,10 @@ def test_a_ctrl_c_during_cleanup_still_interrupts_and_an_ignored_sigint_stays_ig
 def test_a_held_workdir_stops_every_process_of_a_multi_process_run(tmp_path):
   """Only process 0 takes the workdir's lock; when it is refused, process 1 must stop too
   (it waited for process 0 at the next sync until the coordinator gave up)."""
-  import socket  # pylint: disable=import-outside-toplevel
-  with socket.socket() as s:
-    s.bind(("localhost", 0))
-    port = s.getsockname()[1]
-  cfg = json.dumps(_config("unc", epochs=2, batch_size=4, log_every=2).to_json())
-  env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(ROOT))
-  env.pop("XLA_FLAGS", None)  # one device per process
+  run = _launcher(tmp_path)
   holder = toys.hold(tmp_path / "two", "sljax train (the first run)")
   try:
-    procs = [subprocess.Popen(
-        [sys.executable, "-c", _PROCESS, cfg, str(tmp_path / "two"), "2", str(i), str(port),
-         str(TESTS)], env=env, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-        text=True) for i in (0, 1)]
+    procs = [run("two", 2, 0), run("two", 2, 1)]
     errs = [p.communicate(timeout=120)[1] for p in procs]
   finally:
     holder.kill()

@@ -149,3 +149,23 @@ def test_bad_input_names_scene_and_file(tmp_path, capsys, damage, file):
   problems = out.split("problems (1):\n")[1].splitlines()
   assert len(problems) == 1 and "broken" in problems[0] and file in problems[0]
   assert "Traceback" not in out + err
+
+
+def test_info_notes_12_bit_data_in_16_bit_files(tmp_path, capsys):
+  # A 12-bit camera's values written as they are: read as value / 65535 they come out dark.
+  for k in range(2):
+    write_scene(tmp_path / f"s{k}", _scene(k))
+    for view in ("im0.png", "im1.png"):
+      im = np.full((H, W, 3), 100, np.uint16)
+      im[0, 0] = 4000 + k
+      cv2.imwrite(str(tmp_path / f"s{k}" / view), im)
+  assert cli.main(["info", str(tmp_path)]) == 0
+  out = capsys.readouterr().out
+  assert (f"note:    s0/im0.png is 16-bit with values up to 4000 (12-bit data?); sljax reads "
+          "16-bit PNGs as value / 65535, so it looks 16x darker than white: scale the values to "
+          "the 16-bit range when writing the scenes") in out
+  im = np.full((H, W, 3), 100, np.uint16)
+  im[0, 0] = 60000  # the 16-bit range used: no note
+  cv2.imwrite(str(tmp_path / "s0" / "im0.png"), im)
+  assert cli.main(["info", str(tmp_path)]) == 0
+  assert "note:" not in capsys.readouterr().out

@@ -7,6 +7,7 @@ import struct
 from typing import Any
 from pathlib import Path
 
+import cv2
 import numpy as np
 from tqdm import tqdm
 
@@ -67,7 +68,7 @@ def _count(folder: Path, prefix: str = "") -> int:
 
 def _scene_row(path: Path, problems: list[str], name: str, group: str) -> dict:
   """Facts about one scene folder, read cheaply (PNG headers, PFMs, file listings)."""
-  row: dict = {"name": name, "group": group, "files": set()}
+  row: dict = {"name": name, "group": group, "files": set(), "path": path}
   try:
     w, h, depth, colour = png_header(path / "im0.png")
   except (OSError, ValueError) as e:
@@ -129,6 +130,21 @@ def check(src, use_cache: bool = True) -> int:
   return 0
 
 
+def _low_bit_note(rows: list[dict]) -> str | None:
+  """A note when the first 16-bit view holds 12-bit (or fewer) values: sljax reads a 16-bit
+  PNG as value / 65535, so such data come out 16x (or more) darker than they are."""
+  row = next((r for r in rows if r["kind"].startswith("16-bit")), None)
+  if row is None:
+    return None
+  image = cv2.imread(os.fspath(row["path"] / "im0.png"), cv2.IMREAD_UNCHANGED)
+  if image is None or int(image.max()) >= 4096:
+    return None
+  return (f"note:    {row['name']}/im0.png is 16-bit with values up to {int(image.max())} "
+          "(12-bit data?); sljax reads 16-bit PNGs as value / 65535, so it looks "
+          f"{65535 / max(int(image.max()), 1):.0f}x darker than white: scale the values to the "
+          "16-bit range when writing the scenes")
+
+
 def _plural(n: int, noun: str) -> str:
   """'1 scene', '2 scenes'."""
   return f"{n} {noun}{'' if n == 1 else 's'}"
@@ -174,6 +190,9 @@ def run(args: argparse.Namespace) -> int:
 
   sizes = collections.Counter(f"{r['size'][0]}x{r['size'][1]} {r['kind']}" for r in rows)
   print("views:   " + ", ".join(f"{k} ({v})" for k, v in sizes.most_common()))
+  note = _low_bit_note(rows)
+  if note:
+    print(note)
 
   counts = collections.Counter(f for r in rows for f in r["files"])
   print("files:   im0.png " + f"{len(rows)}/{n}, " +

@@ -68,6 +68,14 @@ def test_info_reports_problems(tmp_path, capsys):
   out = capsys.readouterr().out
   assert "b: sl0 holds 4 patterns, sl1 holds 2" in out
   assert "disp0.pfm: not a PFM" in out
+  flipped = _scene(2)
+  flipped.disp1 = -np.nan_to_num(flipped.disp0, posinf=np.inf)  # written x_right - x_left
+  write_scene(tmp_path / "c", flipped)
+  assert cli.main(["info", str(tmp_path)]) == 1
+  out = capsys.readouterr().out
+  assert ("c: disp1.pfm: 100% of its known disparities are negative (is the sign flipped?)"
+          in out), out
+  assert "c: disp0.pfm" not in out
 
 
 def test_info_flags_mixed_or_undeclared_pattern_counts(tmp_path, capsys):

@@ -106,6 +106,10 @@ def _scene_row(path: Path, problems: list[str], name: str, group: str) -> dict:
       finite = d[np.isfinite(d)]
       row[f] = (float(finite.min()), float(finite.max()), finite.size / d.size) if finite.size \
           else None
+      negative = np.count_nonzero(finite < 0)
+      if negative * 2 > finite.size:  # what loading refuses (sljax.data.scene)
+        problems.append(f"{name}: {f}: {negative / finite.size:.0%} of its known disparities "
+                        "are negative (is the sign flipped?)")
   if "calib.txt" in row["files"]:
     try:
       c = read_calib(path / "calib.txt")

@@ -4,6 +4,7 @@
     <workdir>/metrics.jsonl   a row per training step
     <workdir>/epochs.jsonl    a row per epoch (losses, weights, validation, throughput)
     <workdir>/checkpoints/N/  orbax checkpoints (sljax.train.checkpoint)
+    <workdir>/.sljax.lock     while a run holds the workdir (`held`; removed at its end)
 
 Writes happen on the main process only; every process checks the directory first.
 """

@@ -1,6 +1,7 @@
 """The experiment runner: trains and scores every cell of a plan under OUT, resumably.
 
 OUT/plan.json            the plans run here and the spec of every cell (see Cell.spec)
+OUT/.sljax.lock          while a runner holds OUT (a second one is refused; sljax.files)
 OUT/cells/NAME/          the cell's training workdir (config.json, checkpoints/, *.jsonl)
 OUT/cells/NAME/train.log its training output
 OUT/cells/NAME/done.json written once training finished: final step, seconds, the CPU

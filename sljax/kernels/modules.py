@@ -25,7 +25,8 @@ Initializer = Callable[..., jax.Array]
 class ConvBase(nn.Module):
   """What every convolution module shares: kernel and bias, dtype, implementation, blocks.
 
-  Subclasses set `ndim` (spatial dimensions) and `convolve` (the kernel function call).
+  Subclasses set `ndim` (spatial dimensions) and define `convolve(x, kernel)`: the convolution
+  of x with the cast kernel, no bias (the kernel function call). ConvBase itself is not used.
   """
 
   ndim: ClassVar[int] = 3
@@ -40,10 +41,6 @@ class ConvBase(nn.Module):
   dtype: Any = None  # computation dtype; None: that of the input and kernel (as nn.Conv)
   impl: str | None = None  # "auto" | "lax" | "fast"; None: $SLJAX_CONV3D (sljax.kernels.impl)
   block_values: int = BLOCK_VALUES
-
-  def convolve(self, x: jax.Array, kernel: jax.Array) -> jax.Array:
-    """The convolution of x with the cast kernel (no bias)."""
-    raise NotImplementedError(f"{type(self).__name__}: a ConvBase subclass defines convolve")
 
   @nn.compact
   def __call__(self, x: jax.Array) -> jax.Array:

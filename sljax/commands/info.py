@@ -16,7 +16,7 @@ from sljax.data import preflight
 from sljax.data.calib import read_calib
 from sljax.data.dataset import FolderSource, split_indices
 from sljax.data.pfm import read_pfm
-from sljax.data.scene import present_parts
+from sljax.data.scene import negative_share, present_parts
 from sljax.errors import SljaxError
 
 _FILES = ("im1.png", "disp0.pfm", "disp1.pfm", "mask0.png", "sl0", "sl1", "raw0", "raw1",
@@ -106,10 +106,10 @@ def _scene_row(path: Path, problems: list[str], name: str, group: str) -> dict:
       finite = d[np.isfinite(d)]
       row[f] = (float(finite.min()), float(finite.max()), finite.size / d.size) if finite.size \
           else None
-      negative = np.count_nonzero(finite < 0)
-      if negative * 2 > finite.size:  # what loading refuses (sljax.data.scene)
-        problems.append(f"{name}: {f}: {negative / finite.size:.0%} of its known disparities "
-                        "are negative (is the sign flipped?)")
+      share = negative_share(d)
+      if share is not None:  # what loading refuses
+        problems.append(f"{name}: {f}: {share:.0%} of its known disparities are negative (is "
+                        "the sign flipped?)")
   if "calib.txt" in row["files"]:
     try:
       c = read_calib(path / "calib.txt")

@@ -56,6 +56,14 @@ _RAW_FILE = re.compile(r"^(white|black|[pi]\d{3,})\.png$")
 _LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32)
 
 
+def negative_share(disparity: np.ndarray) -> float | None:
+  """The share of a disparity map's known (finite) values that are negative, when it is more
+  than half (a flipped sign: sljax reads x_left - x_right >= 0); None otherwise."""
+  known = disparity[np.isfinite(disparity)]
+  negative = np.count_nonzero(known < 0)
+  return negative / known.size if negative * 2 > known.size else None
+
+
 def _fail(scene_dir: Path, file: str, problem: str) -> SljaxError:
   return SljaxError(f"scene {scene_dir}: {file}: {problem}")
 
@@ -335,10 +343,9 @@ def load_scene(path: str | os.PathLike, gray: bool | None = None,
         if d.ndim != 2:
           raise _fail(scene_dir, f, f"disparity must have one channel, got shape {d.shape}")
         _check_size(scene_dir, f, d, hw)
-        known = d[np.isfinite(d)]
-        negative = np.count_nonzero(known < 0)
-        if negative * 2 > known.size:  # training would ignore them all, evaluation score them
-          raise _fail(scene_dir, f, f"{negative / known.size:.0%} of its known disparities are "
+        share = negative_share(d)
+        if share is not None:  # training would ignore them all, evaluation score them
+          raise _fail(scene_dir, f, f"{share:.0%} of its known disparities are "
                       "negative; disparities are x_left - x_right >= 0 in both views, unknown "
                       "pixels inf or NaN (is the sign flipped?)")
         setattr(scene, f[:5], d)

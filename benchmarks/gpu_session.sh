@@ -17,6 +17,12 @@
 #          deterministic operations; then the same step benchmark. (2026-11-26, H200: exact
 #          resume held bitwise under deterministic operations; neither step compiled in 4.5 min
 #          when the two precisions compiled in two threads: next time one at a time.)
+#   suite: the third session's single call (15 min of device time): the whole suite on the
+#          GPU as `pytest` runs it there (deterministic operations, `highest`), one line a test
+#          so that a cut-short run still tells; beside it the twin's bf16 step compiled alone
+#          (the GPU's timing then shared with the suite: its compile time is the finding);
+#          then, alone on the GPU, unet-sl's and PSMNet's step with and without
+#          deterministic operations (their speed cost), while the deadline allows.
 #
 # From the device tool (the machine's image has jax with CUDA, flax, optax, orbax, OpenCV and
 # a CUDA torch; nothing is installed, sljax runs from the checkout):
@@ -26,12 +32,13 @@
 #   run(command="bash benchmarks/gpu_session.sh train", timeout_s=600)
 #   run(command="bash benchmarks/gpu_session.sh next", timeout_s=480)
 #   run(command="bash benchmarks/gpu_session.sh resume", timeout_s=410)
+#   run(command="bash benchmarks/gpu_session.sh suite", timeout_s=560)
 # Logs and the benchmarks' records come back under $OUT (session.log first); copy the records'
 # lines into benchmarks/results/ and the figures into the README. On a CPU (a dry run) each
 # part does the same at a tiny size: `OUT=/tmp/out bash benchmarks/gpu_session.sh check dry`.
 set -uo pipefail
 cd "$(dirname "$0")/.."
-part=${1:?check, speed, train, next or resume}
+part=${1:?check, speed, train, next, resume or suite}
 dry=${2:-}
 OUT=${OUT:-/tmp/gpu_session}
 mkdir -p "$OUT"
@@ -144,7 +151,47 @@ elif [ "$part" = resume ]; then
   pytest_bg resume-deterministic "$det" $xb $bitwise
   wait_tests
   bench_precisions
+elif [ "$part" = suite ]; then
+  export XLA_PYTHON_CLIENT_PREALLOCATE=false
+  start=$(date +%s); deadline=$((start + ${DEADLINE:-470}))
+  left() { echo $((deadline - $(date +%s))); }
+  # The console script `sljax`, which some tests run, from the checkout without a network.
+  $PY -m pip install -q --no-deps --no-build-isolation --no-index -e . > /tmp/install.log 2>&1
+  log "pip install -e . exit code $?"
+  xd="-n 8"; files=""; limit=330; blimit=400; args="--preset paper --steps 10"
+  if [ -n "$dry" ]; then
+    xd="-n 2"; files="tests/test_correlation.py tests/test_losses.py"; limit=150; blimit=150
+    args="--preset quick --steps 2"
+  fi
+  log "the whole suite (tests/conftest.py: 'highest', deterministic GPU operations), $xd, -v"
+  timeout "$limit" $PY -m pytest $xd --dist loadfile -v -p no:cacheprovider \
+    -o addopts="-ra --durations=25" --tb=line $files > "$OUT/tests-suite.log" 2>&1 &
+  suite=$!
+  log "beside it: bench_train $args --net psmnet-mtl --step-only --precision bf16 (alone: one precision)"
+  timeout "$blimit" $PY benchmarks/bench_train.py $args --net psmnet-mtl --step-only \
+    --precision bf16 > "$OUT/bench_train-bf16.log" 2>&1 &
+  bf16=$!
+  wait $suite; rc=$?; log "suite: exit code $rc$([ $rc = 124 ] && echo ' (timed out)')"
+  grep -E "^(FAILED|ERROR)|passed|failed" "$OUT/tests-suite.log" | tail -40 | tee -a "$OUT/session.log"
+  grep -c " PASSED" "$OUT/tests-suite.log" | sed 's/^/PASSED lines: /' | tee -a "$OUT/session.log"
+  wait $bf16; rc=$?; log "bf16 step: exit code $rc$([ $rc = 124 ] && echo ' (timed out)')"
+  grep -v cuda_timer "$OUT/bench_train-bf16.log" | tail -6 | tee -a "$OUT/session.log"
+  # The speed cost of deterministic operations, one process each, alone on the GPU.
+  # PSMNet's pair starts only with time for both compilations (about 2 min each on an H100).
+  for net in unet-sl psmnet; do
+    need=40; [ $net = psmnet ] && [ -z "$dry" ] && need=300
+    [ "$(left)" -lt $need ] && { log "no time left for $net ($(left) s)"; continue; }
+    for flags in "" "$det"; do
+      log "bench_train $args --net $net --step-only --precision fp32, XLA_FLAGS='$flags'"
+      (if [ -n "$flags" ]; then export XLA_FLAGS="$flags"; else unset XLA_FLAGS; fi
+       timeout "$(left)" $PY benchmarks/bench_train.py $args \
+        --net $net --step-only --precision fp32) > /tmp/bench.log 2>&1
+      ran; cat /tmp/bench.log >> "$OUT/bench_train-det.log"
+      grep -E "compiled|^\| \(a\)" /tmp/bench.log | tee -a "$OUT/session.log"
+    done
+  done
+  nvidia-smi --query-gpu=name,memory.used,memory.total --format=csv 2>&1 | tee -a "$OUT/session.log"
 else
-  echo "usage: gpu_session.sh check|speed|train|next|resume [dry]" >&2; exit 2
+  echo "usage: gpu_session.sh check|speed|train|next|resume|suite [dry]" >&2; exit 2
 fi
 log "done"

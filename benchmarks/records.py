@@ -32,7 +32,9 @@ def headlines(entry: dict) -> list[tuple[str, str]]:
       out.append((what, f"{r['ratio']:.2f}x ({r['sljax_s']:.2f} s vs {r['torch_s']:.2f} s)"))
     elif b == "bench_train":
       precision = "" if entry.get("precision", "fp32") == "fp32" else f" {entry['precision']}"
-      out.append((f"train loop {entry.get('preset')} {entry.get('net')}{precision}: {r['what']}",
+      flags = f" [{entry['xla_flags']}]" if entry.get("xla_flags") else ""
+      out.append((f"train loop {entry.get('preset')} {entry.get('net')}{precision}{flags}: "
+                  f"{r['what']}",
                   f"{r['samples_per_s']:.2f} samples/s ({r['ratio_to_a']:.3f}x step)"))
     elif b == "bench_corr":
       out.append((f"correlation {r['width']}x{r['height']} t={r['t']} u={r['u']}",

@@ -8,7 +8,6 @@ import signal
 import subprocess
 import sys
 import textwrap
-from pathlib import Path
 
 import jax
 import numpy as np
@@ -23,8 +22,6 @@ from sljax.train import loop
 from sljax.train import state as train_state
 
 import toys
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
@@ -103,8 +100,8 @@ def _without_times(report: str) -> str:
 
 def test_killed_runner_continues_to_the_same_report(smoke_out, tmp_path):
   out = tmp_path / "out"
-  env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(ROOT))
-  proc = subprocess.run([sys.executable, "-c", _KILLED, str(out)], env=env, capture_output=True,
+  proc = subprocess.run([sys.executable, "-c", _KILLED, str(out)], env=toys.same_device_env(),
+                        capture_output=True,
                         text=True, timeout=600)
   assert proc.returncode == -signal.SIGKILL, proc.stderr[-2000:]
   killed = runner.cell_dir(out, "unet-disp-objects-s0")

@@ -118,16 +118,6 @@ _CHILD = textwrap.dedent("""
 """)
 
 
-def _same_device_env() -> dict:
-  """A child's environment for a run that is compared bitwise with this process's: the same
-  platform (a run killed on the CPU and resumed on a GPU differs by float rounding: the four
-  exact-resume tests failed so on an H200) and no preallocation (this process holds a GPU)."""
-  env = dict(os.environ, PYTHONPATH=str(ROOT), XLA_PYTHON_CLIENT_PREALLOCATE="false")
-  if jax.default_backend() == "cpu":  # elsewhere the child picks the accelerator as this did
-    env["JAX_PLATFORMS"] = "cpu"
-  return env
-
-
 @pytest.fixture
 def tiny(monkeypatch):
   monkeypatch.setattr(loop, "compiled_steps", toys.tiny_steps)
@@ -143,7 +133,7 @@ def test_exact_resume_after_kill_mid_epoch_and_during_a_save(strategy, tiny, tmp
   quiet = dict(log=lambda line: None, progress=False)
   full = loop.train(cfg, tmp_path / "full", **quiet)
   assert full.step == 4 * 6
-  env = _same_device_env()
+  env = toys.same_device_env()
   # Killed at step 17 (epoch 3 of 4) it resumes from the mid-epoch checkpoint 16; killed while
   # checkpoint 16 is being finalised, from 12.
   for kind, n, left in (("step", 17, 16), ("save", 16, 12)):
@@ -397,7 +387,7 @@ def test_ctrl_c_stops_after_the_step_and_resumes_exactly(tmp_path, monkeypatch):
   flags = ["--size", "32", "--maxdisp", "16", "--epochs", "4", "--batch-size", "2", "--lr",
            "3e-2", "--max-val", "2", "--preset", "quick", "--log-every", "1", "--save-every",
            "4", "--ynn", "on", "--no-progress"]  # 6 steps per epoch, 24 in all
-  env = _same_device_env()
+  env = toys.same_device_env()
   wd = tmp_path / "interrupted"
   proc = subprocess.run([sys.executable, "-c", _SIGINT_CHILD, str(TESTS), "9", *flags,
                          "--workdir", str(wd)], env=env, cwd=tmp_path, capture_output=True,

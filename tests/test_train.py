@@ -3,7 +3,6 @@ resume after kill -9, checkpoints for inference."""
 
 import json
 import math
-import os
 import signal
 import subprocess
 import sys
@@ -167,9 +166,9 @@ def test_exact_resume_after_kill_9(data_full, tmp_path, capsys):
             "--epochs", "6", "--lr", "1e-3", "--save-every", "2", "--no-progress",
             "--preset", "quick"]
   killed = tmp_path / "killed"
-  env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(ROOT))
   proc = subprocess.Popen([sys.executable, "train.py", *common, "--workdir", str(killed)],
-                          cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+                          cwd=ROOT, env=toys.same_device_env(), stdout=subprocess.PIPE,
+                          stderr=subprocess.STDOUT)
   deadline = time.time() + 300
   while _latest(killed / "checkpoints") < 5 and proc.poll() is None and time.time() < deadline:
     time.sleep(0.02)

@@ -101,7 +101,14 @@ def test_rounds_that_disagree_are_measured_again():
       tune.format_table(table, best)
 
 
-def test_rounds_that_keep_disagreeing_keep_the_default_and_say_so(tmp_path, monkeypatch):
+@pytest.fixture
+def on_cpu(monkeypatch):
+  """choice() tunes only when jax computes on the CPU; its logic is tested wherever the suite
+  runs (on a GPU too), with the measurement scripted."""
+  monkeypatch.setattr(tune.jax, "default_backend", lambda: "cpu")
+
+
+def test_rounds_that_keep_disagreeing_keep_the_default_and_say_so(tmp_path, monkeypatch, on_cpu):
   burst = [0.7, 0.7, 1.05, 0.7, 0.66]
   timings, calls = scripted([burst] * (1 + tune.RETRIES))
   best, table = tune.measure(timings=timings)
@@ -127,7 +134,7 @@ def test_format_table_marks_the_choice():
 
 
 @pytest.fixture
-def cache_dir(tmp_path, monkeypatch):
+def cache_dir(tmp_path, monkeypatch, on_cpu):
   monkeypatch.setenv(cache.ENV_DIR, str(tmp_path / "cache"))
   monkeypatch.setenv(tune.ENV_TUNE, "1")
   return tmp_path / "cache"
@@ -172,6 +179,17 @@ def test_choice_off_by_flag_or_environment(cache_dir, monkeypatch):
   monkeypatch.setenv(tune.ENV_TUNE, "0")
   assert tune.choice() == tune.DEFAULT
   assert not (cache_dir / "tune.json").exists()
+
+
+def test_no_tuning_off_the_cpu(tmp_path, monkeypatch):
+  """On an accelerator the CPU kernels' choice does not matter: the default, nothing measured
+  or cached."""
+  monkeypatch.setenv(cache.ENV_DIR, str(tmp_path))
+  monkeypatch.setenv(tune.ENV_TUNE, "1")
+  monkeypatch.setattr(tune.jax, "default_backend", lambda: "gpu")
+  monkeypatch.setattr(tune, "measure", lambda: pytest.fail("must not measure"))
+  assert tune.choice() == tune.DEFAULT
+  assert not (tmp_path / "tune.json").exists()
 
 
 def test_unwritable_cache_does_not_stop_a_run(cache_dir, monkeypatch):

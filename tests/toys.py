@@ -1,5 +1,5 @@
-"""Tiny stand-in models shared by the tests (inference, evaluation, the training loop), and
-another process holding a folder."""
+"""Tiny stand-in models shared by the tests (inference, evaluation, the training loop),
+another process holding a folder, and a child process's environment."""
 
 import functools
 import os
@@ -12,6 +12,8 @@ import jax.numpy as jnp
 
 from sljax.train import state as train_state
 from sljax.train import step as stp
+
+ROOT = Path(__file__).resolve().parent.parent
 
 
 class ToySL(nn.Module):
@@ -63,8 +65,18 @@ with files.exclusive(sys.argv[1], sys.argv[2]):
 
 def hold(folder, what: str) -> subprocess.Popen:
   """Another process holding folder with sljax.files.exclusive (kill it to end the hold)."""
-  root = Path(__file__).resolve().parents[1]
   proc = subprocess.Popen([sys.executable, "-c", _HOLD, str(folder), what], text=True,
-                          stdout=subprocess.PIPE, env=dict(os.environ, PYTHONPATH=str(root)))
+                          stdout=subprocess.PIPE, env=dict(os.environ, PYTHONPATH=str(ROOT)))
   assert proc.stdout.readline() == "held\n"
   return proc
+
+
+def same_device_env() -> dict:
+  """A child's environment for a run that is compared bitwise with this process's: the same
+  platform (a run killed on the CPU and resumed on a GPU differs by float rounding: exact-resume
+  tests failed so on an H200 and an H100) and no preallocation (this process holds a GPU)."""
+  import jax  # pylint: disable=import-outside-toplevel
+  env = dict(os.environ, PYTHONPATH=str(ROOT), XLA_PYTHON_CLIENT_PREALLOCATE="false")
+  if jax.default_backend() == "cpu":  # elsewhere the child picks the accelerator as this did
+    env["JAX_PLATFORMS"] = "cpu"
+  return env

@@ -49,10 +49,12 @@ ran() { local rc=$?; log "exit code $rc$([ $rc = 124 ] && echo ' (timed out)')";
 
 det="--xla_gpu_deterministic_ops=true"
 pids=""
+# XLA_FLAGS with more flags; never a lone space, which XLA reads as a file of flags and dies.
+with_flags() { echo "${XLA_FLAGS:+$XLA_FLAGS }$1" | sed 's/^ *//; s/ *$//'; }
 # pytest NAME "XLA flags" ARGS...: in the background, into $OUT/tests-NAME.log, within $limit s.
 pytest_bg() {
   local name=$1 flags=$2; shift 2
-  XLA_FLAGS="${XLA_FLAGS:-} $flags" timeout "$limit" $PY -m pytest -q -p no:cacheprovider \
+  XLA_FLAGS="$(with_flags "$flags")" timeout "$limit" $PY -m pytest -q -p no:cacheprovider \
     -o addopts="-ra" --tb=line "$@" > "$OUT/tests-$name.log" 2>&1 &
   pids="$pids $!:$name"
 }
@@ -93,7 +95,7 @@ if [ "$part" = check ]; then
     > "$OUT/tests-highest.log" 2>&1
   ran; grep -E "^(FAILED|ERROR)|passed|failed" "$OUT/tests-highest.log" | tail -25 | tee -a "$OUT/session.log"
   log "the bitwise tests (exact resume, two programs) with XLA's deterministic GPU operations"
-  XLA_FLAGS="${XLA_FLAGS:-} --xla_gpu_deterministic_ops=true" timeout 240 $PY -m pytest $xd -q \
+  XLA_FLAGS="$(with_flags "$det")" timeout 240 $PY -m pytest $xd -q \
     -p no:cacheprovider -o addopts="-ra" --tb=line $bitwise > "$OUT/tests-deterministic.log" 2>&1
   ran; grep -E "^(FAILED|ERROR)|passed|failed" "$OUT/tests-deterministic.log" | tail -10 | tee -a "$OUT/session.log"
 elif [ "$part" = speed ]; then

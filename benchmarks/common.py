@@ -114,8 +114,9 @@ def record(benchmark: str, rows: list[dict], torch_module=None, quiet: bool = Fa
            "machine": machine(torch_module), "backend": jax.default_backend(),
            "versions": versions, "commit": git_commit(),
            "loadavg_1min": round(os.getloadavg()[0], 2), "rows": rows, **extra}
-  if os.environ.get("XLA_FLAGS", "").strip():  # a figure under other compiler flags is another figure
-    entry["xla_flags"] = os.environ["XLA_FLAGS"].strip()
+  flags = os.environ.get("XLA_FLAGS", "").strip()
+  if flags:  # a figure under other compiler flags is another figure
+    entry["xla_flags"] = flags
   RESULTS.mkdir(parents=True, exist_ok=True)
   path = RESULTS / f"{records_key(cpu, jax.default_backend(), jax.devices()[0].device_kind)}.jsonl"
   with open(path, "a", encoding="utf-8") as f:

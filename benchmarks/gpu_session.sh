@@ -185,9 +185,8 @@ elif [ "$part" = suite ]; then
     [ "$(left)" -lt $need ] && { log "no time left for $net ($(left) s)"; continue; }
     for flags in "" "$det"; do
       log "bench_train $args --net $net --step-only --precision fp32, XLA_FLAGS='$flags'"
-      (if [ -n "$flags" ]; then export XLA_FLAGS="$flags"; else unset XLA_FLAGS; fi
-       timeout "$(left)" $PY benchmarks/bench_train.py $args \
-        --net $net --step-only --precision fp32) > /tmp/bench.log 2>&1
+      XLA_FLAGS="$(with_flags "$flags")" timeout "$(left)" $PY benchmarks/bench_train.py $args \
+        --net $net --step-only --precision fp32 > /tmp/bench.log 2>&1
       ran; cat /tmp/bench.log >> "$OUT/bench_train-det.log"
       grep -E "compiled|^\| \(a\)" /tmp/bench.log | tee -a "$OUT/session.log"
     done

@@ -1,6 +1,7 @@
 """The GPU plan's own arithmetic, checked on the CPU before any GPU session: the agreement
 summary against hand-computed differences, and where an accelerator's records go."""
 
+import json
 import sys
 from pathlib import Path
 
@@ -53,3 +54,20 @@ def test_records_table_of_an_accelerator_by_hand():
   text = records.table({"gpu-nvidia-h100-80gb-hbm3": [entry]})
   assert "**Xeon; 1 x NVIDIA H100 80GB HBM3 (gpu)** (`gpu-nvidia-h100-80gb-hbm3`)" in text
   assert "| 2026-11-25 | c0ffee | 4.0 | measured |" in text
+
+
+def test_a_figure_under_other_xla_flags_is_recorded_and_labelled_apart(tmp_path, monkeypatch):
+  import records  # noqa: E402  (benchmarks/ is on the path above)
+  monkeypatch.setattr(common, "RESULTS", tmp_path)
+  row = {"what": "(a) compiled step", "steps_per_s": 2.0, "samples_per_s": 24.0, "ratio_to_a": 1.0}
+  extra = {"preset": "paper", "net": "psmnet", "batch": 12, "precision": "fp32"}
+  monkeypatch.setenv("XLA_FLAGS", " --xla_gpu_deterministic_ops=true ")
+  path = common.record("bench_train", [row], quiet=True, **extra)
+  monkeypatch.setenv("XLA_FLAGS", "")
+  common.record("bench_train", [row], quiet=True, **extra)
+  flagged, plain = (json.loads(line) for line in path.read_text().splitlines())
+  assert flagged["xla_flags"] == "--xla_gpu_deterministic_ops=true" and "xla_flags" not in plain
+  assert records.headlines(flagged) == [
+      ("train loop paper psmnet [--xla_gpu_deterministic_ops=true]: (a) compiled step",
+       "24.00 samples/s (1.000x step)")]
+  assert records.headlines(plain)[0][0] == "train loop paper psmnet: (a) compiled step"

@@ -2,7 +2,8 @@
 
 import argparse
 
-from sljax.experiment import calibrate as cal, plans, report as rep, runner, status as st
+from sljax.experiment import (calibrate as cal, plans, regime as reg, report as rep, runner,
+                              status as st)
 
 
 def register(subparsers) -> None:
@@ -19,7 +20,8 @@ def register(subparsers) -> None:
   r.add_argument("plan", metavar="PLAN",
                  help="table1, table2, table3, fig7 (v1: scored on the held-out split) or "
                       "table1-v2, table2-v2, table3-v2, fig7-v2 (fixed test sets; "
-                      "docs/plan-v2.md)")
+                      "docs/plan-v2.md) or v3-pilot (stl's curves at small fractions; "
+                      "docs/plan-v3.md)")
   r.add_argument("out", metavar="OUT", help="experiment folder (shared by plans that share cells)")
   r.add_argument("--scale", default="cpu",
                  help="smoke (minutes, for tests), cpu (a 2-core CPU, 64x64), cpu128 (128x128) or "
@@ -66,6 +68,17 @@ def register(subparsers) -> None:
   c.add_argument("--scale", default="cpu128", help="smoke, cpu or cpu128")
   c.add_argument("--no-progress", action="store_true", help="no progress bar")
   c.set_defaults(func=calibrate)
+  g = sub.add_parser(
+      "regime", help="v3: where stl overfits, from the pilot's curves (docs/plan-v3.md)",
+      description="Applies the pre-registered regime rule (sljax.experiment.regime) to the "
+                  "v3-pilot cells under OUT: the largest training fraction whose smoothed mean "
+                  "validation curve ends at least 10% above its minimum, and the budget (twice "
+                  "the minimum's epoch). Writes OUT/regime.json, regime.md and a figure.",
+      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+  g.add_argument("out", metavar="OUT", help="the pilot's experiment folder")
+  g.add_argument("--scale", default="cpu", help="the pilot's scale (cpu; smoke for tests)")
+  g.add_argument("--seeds", type=int, default=2, help="the pilot's seed count")
+  g.set_defaults(func=regime)
   ls = sub.add_parser("plans", help="list the plans and scales")
   ls.set_defaults(func=list_plans)
 
@@ -96,6 +109,14 @@ def report(args: argparse.Namespace) -> int:
   """Writes the report and prints where."""
   path = rep.write_report(args.out, args.plans.split(",") if args.plans else None)
   print(f"wrote {path} (+ report.json, figures/)")
+  return 0
+
+
+def regime(args: argparse.Namespace) -> int:
+  """Applies the regime rule to the pilot and prints the outcome."""
+  result = reg.write(args.out, args.scale, args.seeds)
+  print("\n".join(reg.markdown(result)).rstrip())
+  print(f"wrote {args.out}/regime.json, regime.md")
   return 0
 
 

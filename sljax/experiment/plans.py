@@ -31,6 +31,10 @@ Plans:
 - table3-v2: table2's full-data models scored on the fixed tissue test set (the claims; another
   domain) and the fixed objects test set (in-domain, descriptive), and on --eval-data folders.
 - fig7-v2: fig7 scored on the fixed tissue test set.
+- v3-pilot: stl on objects at a few small training fractions, a constant learning rate and a
+  long fixed budget, validated every few epochs on the whole validation split: the curves
+  from which docs/plan-v3.md's regime rule picks where stl overfits (sljax.experiment.regime).
+  Its seeds (100, 101, ...) are never used by a test cell.
 """
 
 import dataclasses
@@ -47,7 +51,9 @@ from sljax.train.state import LR_DROP
 
 V1_PLANS = ("table1", "table2", "table3", "fig7")
 V2_PLANS = ("table1-v2", "table2-v2", "table3-v2", "fig7-v2")
-PLANS = V1_PLANS + V2_PLANS
+V3_PILOT = "v3-pilot"
+V3_PLANS = (V3_PILOT,)
+PLANS = V1_PLANS + V2_PLANS + V3_PLANS
 HELDOUT = "heldout"
 FIXED = "fixed"           # EvalSet kind of a v2 test set
 TEST_SEED = 1_000_003     # dataset seed of the v2 test sets (no training seed is near it)
@@ -150,6 +156,23 @@ SCALES = {s.name: s for s in (
           note="the paper's sizes (256x256, maxdisp 96, 120 epochs, Adam 1e-4); for an "
                "accelerator"),
 )}
+
+
+@dataclasses.dataclass(frozen=True)
+class Overfit:
+  """The v3 design at a scale (docs/plan-v3.md): the pilot's training fractions (largest
+  first), its fixed budget, the validation cadence of every v3 cell and the pilot's first
+  seed."""
+  fractions: tuple[str, ...]
+  pilot_epochs: int
+  val_every: int
+  first_seed: int
+
+
+V3 = {
+    "smoke": Overfit(("1/4", "1/8"), pilot_epochs=4, val_every=2, first_seed=100),
+    "cpu": Overfit(("1/16", "1/32", "1/64"), pilot_epochs=240, val_every=4, first_seed=100),
+}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -344,10 +367,32 @@ def _v2_cells(name: str, sc: Scale, seed: int, eval_data: tuple[str, ...],
   return cells
 
 
+def _pilot_cells(sc: Scale, seed: int) -> list[Cell]:
+  """v3-pilot: stl on objects at each of the design's fractions, constant learning rate, the
+  pilot's budget, every validation scene every val_every epochs; curves only (no test set)."""
+  design = V3[sc.name]
+  cells = []
+  for fraction in design.fractions:
+    config = dataclasses.replace(
+        _base(sc, seed, design.pilot_epochs), model="psmnet", strategy="stl", fraction=fraction,
+        lr_drop_epoch=None, val_every=design.val_every, max_val=None)
+    cells.append(Cell("pilot-" + _psmnet_name("stl", "objects", fraction, seed), "stl",
+                      (("data", fraction),), seed, config))
+  return cells
+
+
+def plan_seeds(name: str, scale: str, seeds: int) -> tuple[int, ...]:
+  """The seeds of a plan run with --seeds N: 0..N-1, or from the v3 pilot's first seed."""
+  first = V3[scale].first_seed if name == V3_PILOT else 0
+  return tuple(range(first, first + seeds))
+
+
 def _check_args(name: str, scale: str, seeds: int, data: str | None,
                 eval_data: tuple[str, ...]) -> None:
   require(name in PLANS, f"unknown plan {name!r}; choose from {', '.join(PLANS)}")
   require(scale in SCALES, f"--scale {scale}: choose from {', '.join(SCALES)}")
+  require(name not in V3_PLANS or scale in V3,
+          f"--scale {scale}: plan {name} runs at {' or '.join(V3)} (docs/plan-v3.md)")
   require(seeds >= 1, f"--seeds {seeds}: must be at least 1")
   require(name in ("table3", "table3-v2") or not eval_data,
           "--eval-data applies to the table3 plans (scoring trained models on other data)")
@@ -367,13 +412,16 @@ def build_plan(name: str, scale: str = "cpu", seeds: int = 3, data: str | None =
   _check_args(name, scale, seeds, data, eval_data)
   sc = dataclasses.replace(SCALES[scale], t=_pattern_count(data, SCALES[scale]))
   cells: list[Cell] = []
-  for seed in range(seeds):
+  seed_list = plan_seeds(name, scale, seeds)
+  for seed in seed_list:
     if name in V1_PLANS:
       cells += _v1_cells(name, sc, seed, data, eval_data)
-    else:
+    elif name in V2_PLANS:
       cells += _v2_cells(name, sc, seed, eval_data, sc.budget)
+    else:
+      cells += _pilot_cells(sc, seed)
   baseline = "unet-disp" if name.startswith("table1") else "stl"
-  return Plan(name, sc, tuple(range(seeds)), tuple(cells), baseline, data, tuple(eval_data))
+  return Plan(name, sc, seed_list, tuple(cells), baseline, data, tuple(eval_data))
 
 
 def _calib_phases(name: str, sc: Scale) -> set[str]:

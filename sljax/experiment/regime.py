@@ -1,0 +1,160 @@
+"""The v3 regime rule (docs/plan-v3.md): where does stl overfit, and for how long to train there.
+
+The pilot (plans.V3_PILOT) trains stl at a few small training fractions with a constant
+learning rate and a long fixed budget, validating every few epochs on the whole validation
+split. The rule, pre-registered before the pilot ran:
+1. Per fraction, the curve is the mean over the pilot's seeds of the validation Full MAE at
+   each validated epoch that every seed reached.
+2. Smooth it with a trailing mean over the last SMOOTH validations (fewer at the start), as v2's
+   calibration rule does, so that one noisy validation neither makes nor hides a rise.
+3. The fraction overfits when its smoothed final value is at least OVERFIT_RISE (10%) above
+   the smoothed curve's minimum; the minimum's epoch is the first validated epoch holding it.
+4. The regime is the largest fraction that overfits; its budget is twice the epoch of its
+   minimum, rounded up to a validation point (a multiple of the validation cadence).
+5. If no fraction overfits, there is no regime, and v3 ends with that finding.
+
+OUT/regime.json keeps every curve, the smoothed values, the minima and rises and the choice;
+OUT/regime.md says it in a table and OUT/figures/v3-pilot_curves.png draws it.
+"""
+
+import math
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from sljax import files
+from sljax.experiment import plans, runner
+from sljax.experiment.calibrate import SMOOTH
+
+OVERFIT_RISE = 0.10
+
+Curve = Sequence[tuple[int, float]]
+
+
+def mean_curve(curves: Sequence[Curve]) -> list[tuple[int, float]]:
+  """(epoch, mean over the curves) at the validated epochs every curve has."""
+  tables = [{int(e): float(v) for e, v in c if v is not None and math.isfinite(v)}
+            for c in curves]
+  if not tables:
+    return []
+  common = sorted(set.intersection(*(set(t) for t in tables)))
+  return [(e, float(np.mean([t[e] for t in tables]))) for e in common]
+
+
+def smooth(values: Sequence[float], window: int = SMOOTH) -> list[float]:
+  """Trailing mean over the last `window` values (fewer at the start)."""
+  v = np.asarray(values, float)
+  return [float(v[max(0, i - window + 1):i + 1].mean()) for i in range(len(v))]
+
+
+def fraction_rise(curve: Curve) -> dict[str, Any]:
+  """Steps 2-3 of the rule on one fraction's mean curve."""
+  if not curve:
+    return {"overfits": False, "min_epoch": None, "rise": None, "smoothed": []}
+  epochs = [e for e, _ in curve]
+  s = smooth([v for _, v in curve])
+  lowest = min(s)
+  i_min = s.index(lowest)
+  rise = s[-1] / lowest - 1.0
+  return {"overfits": bool(rise >= OVERFIT_RISE), "min_epoch": epochs[i_min],
+          "min_smoothed": lowest, "final_smoothed": s[-1], "final_epoch": epochs[-1],
+          "rise": rise, "smoothed": [[e, v] for e, v in zip(epochs, s)]}
+
+
+def choose(rows: Mapping[str, dict[str, Any]], fractions: Sequence[str],
+           val_every: int) -> dict[str, Any]:
+  """Steps 4-5: the largest overfitting fraction (fractions are given largest first) and its
+  budget, or no regime."""
+  for fraction in fractions:
+    row = rows.get(fraction)
+    if row is not None and row["overfits"]:
+      budget = math.ceil(2 * row["min_epoch"] / val_every) * val_every
+      return {"fraction": fraction, "budget": budget, "min_epoch": row["min_epoch"]}
+  return {"fraction": None, "budget": None, "min_epoch": None}
+
+
+def regime(out: str | Path, scale: str = "cpu", seeds: int = 2) -> dict[str, Any]:
+  """The rule applied to the pilot under OUT (finished cells only; missing ones listed)."""
+  out = Path(out)
+  plan = plans.build_plan(plans.V3_PILOT, scale, seeds)
+  design = plans.V3[scale]
+  rows, missing = {}, []
+  for fraction in design.fractions:
+    cells = plan.cells_of(data=fraction)
+    done = [c for c in cells if (runner.cell_dir(out, c.name) / runner.DONE_FILE).exists()]
+    missing += [c.name for c in cells if c not in done]
+    if len(done) < len(cells):
+      continue
+    curves = {c.name: runner.curve(out, c.name) for c in done}
+    mean = mean_curve(list(curves.values()))
+    rows[fraction] = dict(fraction_rise(mean), curves={k: [list(p) for p in v]
+                                                       for k, v in curves.items()},
+                          mean=[list(p) for p in mean])
+  chosen = choose(rows, design.fractions, design.val_every) if not missing else None
+  return {"plan": plan.name, "scale": scale, "seeds": list(plan.seeds),
+          "epochs": design.pilot_epochs, "val_every": design.val_every, "smooth": SMOOTH,
+          "overfit_rise": OVERFIT_RISE, "fractions": rows, "missing": missing,
+          "regime": chosen}
+
+
+def markdown(result: dict[str, Any]) -> list[str]:
+  """The rule's outcome as a table and a sentence."""
+  lines = [f"# v3 pilot: where stl overfits (scale {result['scale']}, seeds "
+           f"{', '.join(map(str, result['seeds']))}, {result['epochs']} epochs, validated every "
+           f"{result['val_every']})", "",
+           "| fraction | minimum (smoothed mean) | its epoch | final (smoothed mean) | rise | "
+           "overfits (rise >= 10%) |", "| --- | ---: | ---: | ---: | ---: | --- |"]
+  for fraction, r in result["fractions"].items():
+    lines.append(f"| {fraction} | {r['min_smoothed']:.3f} px | {r['min_epoch']} | "
+                 f"{r['final_smoothed']:.3f} px | {100 * r['rise']:+.1f}% | "
+                 f"{'yes' if r['overfits'] else 'no'} |")
+  lines.append("")
+  chosen = result["regime"]
+  if chosen is None:
+    lines.append(f"Not finished: {', '.join(result['missing'])}.")
+  elif chosen["fraction"] is None:
+    lines.append("**No fraction overfits**: by the pre-registered rule v3 ends with this "
+                 "finding (no test cell runs).")
+  else:
+    lines.append(f"**Regime: fraction {chosen['fraction']}, budget {chosen['budget']} epochs** "
+                 f"(twice the minimum's epoch {chosen['min_epoch']}, rounded up to a multiple "
+                 f"of {result['val_every']}).")
+  return lines + [""]
+
+
+def figure(result: dict[str, Any], path: Path) -> None:
+  """Each fraction's seeds (thin), mean (thick) and smoothed mean (dashed), minimum marked."""
+  rows = result["fractions"]
+  fig = Figure(figsize=(4.2 * max(1, len(rows)), 3.4))
+  axes = fig.subplots(1, max(1, len(rows)), squeeze=False)
+  for ax, (fraction, r) in zip(axes[0], rows.items()):
+    for name, pts in r["curves"].items():
+      e, v = np.array(pts).T
+      ax.plot(e, v, color="0.7", lw=0.8)
+    e, v = np.array(r["mean"]).T
+    ax.plot(e, v, color="C0", lw=1.5, label="mean of seeds")
+    e, v = np.array(r["smoothed"]).T
+    ax.plot(e, v, "--", color="C1", lw=1.2, label=f"trailing mean of {result['smooth']}")
+    ax.axvline(r["min_epoch"], color="C2", lw=0.8, label=f"minimum (epoch {r['min_epoch']})")
+    ax.set_title(f"{fraction}: rise {100 * r['rise']:+.1f}%", fontsize=9)
+    ax.set_xlabel("epoch")
+    ax.set_ylabel("validation Full MAE (px)")
+    ax.legend(fontsize=7)
+  fig.suptitle("v3 pilot: stl's validation MAE at a constant learning rate", fontsize=10)
+  fig.tight_layout()
+  path.parent.mkdir(parents=True, exist_ok=True)
+  files.save_figure(fig, path, dpi=110)
+
+
+def write(out: str | Path, scale: str = "cpu", seeds: int = 2) -> dict[str, Any]:
+  """Writes OUT/regime.json, OUT/regime.md and the figure; returns the result."""
+  out = Path(out)
+  result = regime(out, scale, seeds)
+  runner.write_json(out / "regime.json", result)
+  files.write_text(out / "regime.md", "\n".join(markdown(result)))
+  if result["fractions"]:
+    figure(result, out / "figures" / "v3-pilot_curves.png")
+  return result

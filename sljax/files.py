@@ -7,6 +7,7 @@ hidden temporary file (.NAME.tmpPID.EXT) beside the output.
 """
 
 import contextlib
+import json
 import os
 import re
 import socket
@@ -15,7 +16,7 @@ import time
 import zipfile
 import zlib
 from pathlib import Path
-from typing import Iterator
+from typing import Any, Iterator
 
 import cv2
 import numpy as np
@@ -308,3 +309,14 @@ def _first_line(e: Exception) -> str:
 
 def _not_npz(path: Path, what: str, problem: str) -> SljaxError:
   return SljaxError(f"{path}: not an .npz archive of {what} ({problem})")
+
+
+def read_json_object(path: str | os.PathLike, where: str) -> dict[str, Any]:
+  """Reads a JSON file that must hold an object; errors start with `where` (scene, file)."""
+  try:
+    value = json.loads(Path(path).read_text(encoding="utf-8"))
+  except (OSError, ValueError) as e:
+    raise SljaxError(f"{where}: not valid JSON ({e})") from None
+  if not isinstance(value, dict):
+    raise SljaxError(f"{where}: must hold a JSON object")
+  return value

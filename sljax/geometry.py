@@ -23,7 +23,7 @@ import numpy as np
 
 from sljax import files
 from sljax.data.calib import Calib, check_calib, depth_from_disparity
-from sljax.data.scene import unit_image
+from sljax.images import unit_image
 from sljax.errors import SljaxError
 
 PNG16_MAX_MM = 65535

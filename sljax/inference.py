@@ -62,7 +62,7 @@ from sljax import tune
 from sljax.corr.correlation import sl_disparity
 from sljax.corr.uncertainty import view_uncertainty
 from sljax.data.dataset import resize_image
-from sljax.data.scene import to_gray, unit_image
+from sljax.images import to_gray, unit_image
 from sljax.errors import SljaxError
 from sljax.sizes import as_size
 from sljax.nets import build_model, registry

@@ -29,7 +29,7 @@ from sljax.baselines import SGBMConfig, SGBMPredictor
 from sljax.data.calib import Calib, read_calib
 from sljax.data.dataset import find_scenes
 from sljax.data.pfm import write_pfm
-from sljax.data.scene import read_image
+from sljax.images import read_image
 from sljax.errors import SljaxError
 from sljax.viz import Panel, save_panels
 

@@ -13,7 +13,7 @@ from sljax import cli, geometry
 from sljax.data import scared
 from sljax.data.calib import Calib, write_calib
 from sljax.data.pfm import read_pfm
-from sljax.data.scene import write_image
+from sljax.images import write_image
 from sljax.errors import SljaxError
 
 H, W = 24, 40

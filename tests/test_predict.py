@@ -9,7 +9,7 @@ import pytest
 from sljax import cli, geometry, predict
 from sljax.data.calib import Calib, write_calib
 from sljax.data.pfm import read_pfm
-from sljax.data.scene import write_image
+from sljax.images import write_image
 from sljax.errors import SljaxError
 
 H, W = 40, 64

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from sljax.data.calib import Calib
-from sljax.data.scene import (UNKNOWN_PATTERN, Scene, load_scene, present_parts, read_image,
-                              write_scene)
+from sljax.data.scene import UNKNOWN_PATTERN, Scene, load_scene, present_parts, write_scene
+from sljax.images import read_image
 from sljax.errors import SljaxError
 
 H, W = 6, 8

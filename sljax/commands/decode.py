@@ -10,7 +10,8 @@ from tqdm import tqdm
 from sljax.data import preflight
 from sljax.data.dataset import FolderSource
 from sljax.data.pfm import write_pfm
-from sljax.data.scene import read_image, write_patterns
+from sljax.data.scene import write_patterns
+from sljax.images import read_image
 from sljax.errors import SljaxError, require
 from sljax.sl.decode import DecodeConfig, count_patterns, decode_captures
 from sljax.sl.match import disparity_from_codes

@@ -11,7 +11,7 @@ from matplotlib.figure import Figure
 from matplotlib.ticker import MaxNLocator
 
 from sljax import files
-from sljax.data.scene import read_json_object
+from sljax.files import read_json_object
 from sljax.errors import SljaxError
 from sljax.nets.registry import NETS
 

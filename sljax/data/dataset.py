@@ -16,7 +16,9 @@ import cv2
 import numpy as np
 
 from sljax import files
-from sljax.data.scene import Scene, load_scene, read_json_object, to_gray
+from sljax.data.scene import Scene, load_scene
+from sljax.images import to_gray
+from sljax.files import read_json_object
 from sljax.errors import SljaxError
 from sljax.sizes import as_size
 

@@ -39,7 +39,8 @@ from sljax.cache import user_cache_dir
 from sljax.data.calib import read_calib
 from sljax.data.dataset import FolderSource, PART_FIELD
 from sljax.data.pfm import _HEADER as PFM_HEADER
-from sljax.data.scene import _PATTERN_FILE, _RAW_FILE, _numbered_files, read_json_object
+from sljax.data.scene import _PATTERN_FILE, _RAW_FILE, _numbered_files
+from sljax.files import read_json_object
 from sljax.errors import SljaxError
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"

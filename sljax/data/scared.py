@@ -33,7 +33,8 @@ import numpy as np
 from sljax import files
 from sljax.data.calib import Calib
 from sljax.data.pfm import write_pfm
-from sljax.data.scene import Scene, image_to_float, write_scene
+from sljax.data.scene import Scene, write_scene
+from sljax.images import image_to_float
 from sljax.errors import SljaxError
 
 LEFT, RIGHT = "Left_Image.png", "Right_Image.png"

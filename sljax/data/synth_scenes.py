@@ -6,13 +6,12 @@ key and the renderer's `SynthConfig`, and return the description `sljax.data.syn
 """
 
 import math
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import jax
 import jax.numpy as jnp
 
-if TYPE_CHECKING:  # the config lives with the renderer, which imports this module
-  from sljax.data.synthetic import SynthConfig
+from sljax.data.synth_config import SynthConfig
 
 
 def _unit_rows(v: jax.Array) -> jax.Array:
@@ -60,7 +59,7 @@ def solid_texture(p, waves):
   return total * (1.0 / math.sqrt(k.shape[0]))
 
 
-def sample_objects(key_shape, key_view, cfg: "SynthConfig") -> dict[str, Any]:
+def sample_objects(key_shape, key_view, cfg: SynthConfig) -> dict[str, Any]:
   """Podium, object (union of ellipsoids) and a viewpoint looking at the object's centre."""
   ks = jax.random.split(key_shape, 8)
   n = cfg.num_ellipsoids
@@ -99,7 +98,7 @@ def sample_objects(key_shape, key_view, cfg: "SynthConfig") -> dict[str, Any]:
       waves_vessel=_waves(jax.random.fold_in(key_shape, 102), 3, 0.01, 0.02))
 
 
-def sample_tissue(key_shape, key_view, cfg: "SynthConfig") -> dict[str, Any]:
+def sample_tissue(key_shape, key_view, cfg: SynthConfig) -> dict[str, Any]:
   """Overlapping flattened lobes on a table and a viewpoint from above."""
   ks = jax.random.split(key_shape, 8)
   n = cfg.num_ellipsoids

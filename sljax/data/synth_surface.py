@@ -5,17 +5,15 @@ its rendering stages.
 """
 
 import math
-from typing import TYPE_CHECKING
 
 import jax.numpy as jnp
 
 from sljax.data import synth_geometry as geo
 from sljax.data import synth_scenes as scenes
 
-if TYPE_CHECKING:  # the config lives with the renderer, which imports this module
-  from sljax.data.synthetic import SynthConfig
+from sljax.data.synth_config import SynthConfig
 
-def camera(desc, cfg: "SynthConfig"):
+def camera(desc, cfg: SynthConfig):
   """Left camera centre and rotation (columns: x right, y down, z forward in world axes)."""
   el, az = desc["elevation"], desc["azimuth"]
   offset = jnp.stack([jnp.cos(el) * jnp.cos(az), jnp.cos(el) * jnp.sin(az), jnp.sin(el)])
@@ -39,7 +37,7 @@ def normal(p, d, facet, desc):
                for r, q, e in zip(room, pod, ell))
 
 
-def blocked(origin, p, desc, cfg: "SynthConfig", eps: float = 1e-4):
+def blocked(origin, p, desc, cfg: SynthConfig, eps: float = 1e-4):
   """Whether the open segments origin -> p cross an object or the podium (room cannot)."""
   v = tuple(pi - oi for pi, oi in zip(p, origin))
   frames, centres = desc["frames"], desc["centres"]
@@ -54,7 +52,7 @@ def blocked(origin, p, desc, cfg: "SynthConfig", eps: float = 1e-4):
   return hit
 
 
-def textures(p, facet, desc, cfg: "SynthConfig"):
+def textures(p, facet, desc, cfg: SynthConfig):
   """Albedo inputs at points p: objects (grey,); tissue (mottle texture, vessel field)."""
   # One texture per point: the object's waves on the object, the room's elsewhere (same values
   # as evaluating both and selecting, half the sines).
@@ -74,7 +72,7 @@ def textures(p, facet, desc, cfg: "SynthConfig"):
   return (tex, vessel)
 
 
-def albedo(facet, tex, cfg: "SynthConfig"):
+def albedo(facet, tex, cfg: SynthConfig):
   """RGB albedo (component tuple) from the texture values of `textures`."""
   if cfg.domain == "objects":
     return tex * 3  # (grey,) -> (grey, grey, grey)

@@ -32,7 +32,7 @@ from tqdm import tqdm
 
 from sljax import files, inference, machine, tune
 from sljax.data.dataset import FolderSource, parse_fraction, split_indices
-from sljax.data.scene import read_json_object
+from sljax.files import read_json_object
 from sljax.data.synthetic import SynthConfig, SyntheticSource
 from sljax.errors import SljaxError, require
 from sljax.evaluate import evaluate, json_safe

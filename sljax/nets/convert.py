@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from sljax import files
-from sljax.data.scene import read_json_object
+from sljax.files import read_json_object
 from sljax.errors import SljaxError, require
 from sljax.kernels import ConvTranspose3D
 from sljax.nets.psmnet import PSMNet, reference_key

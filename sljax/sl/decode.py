@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from sljax.data.scene import unit_image
+from sljax.images import unit_image
 from sljax.errors import SljaxError, require
 from sljax.sl import codes
 

@@ -36,7 +36,7 @@ import orbax.checkpoint as ocp
 from flax import traverse_util
 from orbax.checkpoint.checkpoint_managers import preservation_policy as pp
 
-from sljax.data.scene import read_json_object
+from sljax.files import read_json_object
 from sljax.errors import SljaxError, require
 from sljax.nets import convert
 

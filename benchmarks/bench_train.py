@@ -35,6 +35,7 @@ from sljax.data.synthetic import SynthConfig, SyntheticSource
 from sljax.losses.weighting import step_weights
 from sljax.nets import registry
 from sljax.train import loop
+from sljax.nets.model_config import init_variables
 from sljax.train import state as st
 from sljax.train import step as stp
 from sljax.train.config import PAPER, QUICK, TrainConfig
@@ -64,7 +65,7 @@ def compiled_step(config: TrainConfig):
   mesh = stp.make_mesh()
   model, tx, step, _ = loop.compiled_steps(loop.model_config(config, info), config.disp_loss,
                                            config.lr, None, mesh)
-  state = jax.device_put(st.create_state(st.init_variables(model, 0, *config.size,
+  state = jax.device_put(st.create_state(init_variables(model, 0, *config.size,
                                                            info.channels), tx),
                          stp.shardings(mesh)[0])
   rows = loop.RowCache(source, config, loop.batch_parts(config), False)

@@ -69,7 +69,7 @@ from sljax.nets import build_model, registry
 from sljax.nets.psmnet import PSMNet, normalization_zero
 from sljax.nets.psmnet_mtl import PSMNetMTL, SLOnly, detach_sl
 from sljax.nets.unet import INPUT_ZERO, UNet
-from sljax.train.checkpoint import load_for_inference
+from sljax.models.load import load_for_inference
 
 PAD_MULTIPLE = 16  # PSMNet reference (and the default for models sljax does not know)
 MODES = ("pad", "resize")

@@ -43,7 +43,7 @@ import numpy as np
 
 from sljax import cache, files, machine
 from sljax.nets import build_model
-from sljax.train.state import init_variables
+from sljax.nets.model_config import init_variables
 
 ENV_TUNE = "SLJAX_TUNE"
 YNN_OFF = {"xla_cpu_experimental_ynn_fusion_type": ""}

@@ -11,7 +11,8 @@ import orbax.checkpoint as ocp
 import pytest
 
 from sljax.errors import SljaxError
-from sljax.train import checkpoint as ckpt
+from sljax.models import checkpoint as ckpt
+from sljax.models import load as trained
 from sljax.train import state as st
 
 
@@ -90,7 +91,7 @@ def test_tree_checkpoints_written_before_packing_still_restore(tmp_path):
   config = {"strategy": "stl", "net": "unet-disp", "model_kwargs": {}}
   (tmp_path / "config.json").write_text(json.dumps(config))
   directory.rename(tmp_path / "checkpoints")
-  _, variables, step = ckpt.load_params(tmp_path)
+  _, variables, step = trained.load_params(tmp_path)
   assert step == 3 and set(variables) == {"params", "batch_stats"}
 
 

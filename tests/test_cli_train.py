@@ -11,7 +11,7 @@ import numpy as np
 
 from sljax import cli
 from sljax.data.scene import Scene, write_scene
-from sljax.train import checkpoint as ckpt
+from sljax.models import load as trained
 from sljax.train import cli as train_cli
 
 
@@ -49,7 +49,7 @@ def test_sljax_train_runs_exactly_as_train_py(tmp_path):
   rows = [[{k: v for k, v in json.loads(l).items() if k not in ("seconds", "samples_per_s", "time")}
            for l in (tmp_path / wd / "metrics.jsonl").read_text().splitlines()] for wd in "ab"]
   assert rows[0] == rows[1] and rows[0]
-  (_, a, step_a), (_, b, step_b) = (ckpt.load_params(tmp_path / wd) for wd in "ab")
+  (_, a, step_a), (_, b, step_b) = (trained.load_params(tmp_path / wd) for wd in "ab")
   leaves = [jax.tree_util.tree_leaves_with_path(v) for v in (a, b)]
   assert step_a == step_b and len(leaves[0]) == len(leaves[1]) > 10
   for (pa, xa), (pb, xb) in zip(*leaves):

@@ -12,7 +12,7 @@ import pytest
 from sljax.errors import SljaxError
 from sljax.kernels import ConvBase
 from sljax.nets import PSMNetMTL, UNet, build_model
-from sljax.train.state import INIT_COMPILER_OPTIONS
+from sljax.nets.model_config import INIT_COMPILER_OPTIONS
 
 SIZE, MAXDISP = 32, 16
 # unsafe_rbg compiles the initialisers far faster than threefry on the CPU.

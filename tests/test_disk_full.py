@@ -9,7 +9,8 @@ import pytest
 from orbax.checkpoint._src.path import atomicity
 
 from sljax.errors import SljaxError
-from sljax.train import checkpoint as ckpt
+from sljax.models import checkpoint as ckpt
+from sljax.models import failures
 from sljax.train import cli as train_cli
 from sljax.train import loop
 
@@ -66,7 +67,7 @@ def test_failed_save_stops_with_one_line_and_resume_is_exact(how, tiny, monkeypa
   if how != "readonly":  # the failing save is named by its step
     assert msg.startswith("saving checkpoint 16 failed: "), msg
   # Nothing half-written is visible: checkpoint 16 never became a step; 12 restores.
-  assert ckpt.last_good_step(ck) == 12 and _final(wd)[0] == 12
+  assert failures.last_good_step(ck) == 12 and _final(wd)[0] == 12
   result = loop.train(cfg, wd, resume=True, **QUIET)  # "space is back"
   assert result.step == 24
   _assert_same_run(tmp_path / "full", wd)
@@ -138,14 +139,14 @@ def test_cli_prints_one_line_without_traceback(tiny, monkeypatch, tmp_path, capf
 def test_storage_errno_finds_the_cause():
   """Direct OSErrors, chained ones, exception groups and TensorStore messages; other errors
   are not storage failures."""
-  assert ckpt.storage_errno(OSError(errno.EACCES, "Permission denied", "/x")) == (errno.EACCES,
+  assert failures.storage_errno(OSError(errno.EACCES, "Permission denied", "/x")) == (errno.EACCES,
                                                                                   "/x")
-  assert ckpt.storage_errno(_tensorstore_enospc("/w/c"))[0] == errno.ENOSPC
-  assert ckpt.storage_errno(_tensorstore_enospc("/w/c"))[1] == "/w/c/d/0a1b"
+  assert failures.storage_errno(_tensorstore_enospc("/w/c"))[0] == errno.ENOSPC
+  assert failures.storage_errno(_tensorstore_enospc("/w/c"))[1] == "/w/c/d/0a1b"
   group = ExceptionGroup("many", [ValueError("x"), OSError(errno.EDQUOT, "quota")])
-  assert ckpt.storage_errno(group)[0] == errno.EDQUOT
-  assert ckpt.storage_errno(ValueError("shape mismatch")) is None
-  assert ckpt.storage_errno(OSError(errno.ENOENT, "No such file")) is None
+  assert failures.storage_errno(group)[0] == errno.EDQUOT
+  assert failures.storage_errno(ValueError("shape mismatch")) is None
+  assert failures.storage_errno(OSError(errno.ENOENT, "No such file")) is None
 
 
 def test_resume_drops_damaged_log_lines(tmp_path):

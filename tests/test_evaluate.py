@@ -184,7 +184,7 @@ def _write_unet_sl_workdir(workdir, kwargs_in_config):
   import jax
 
   from sljax.nets import build_model
-  from sljax.train import checkpoint as ckpt
+  from sljax.models import checkpoint as ckpt
   model = build_model("unet-sl", **UNET_KW)
   x = jax.ShapeDtypeStruct((1, 32, 32, 1), jnp.float32)
   shapes = jax.eval_shape(lambda a, b: model.init(jax.random.PRNGKey(0), a, b, train=False), x, x)

@@ -19,7 +19,7 @@ from sljax.errors import SljaxError
 from sljax.experiment import plans, report, runner
 from sljax.nets import build_model, detach_sl
 from sljax.train import loop
-from sljax.train import state as train_state
+from sljax.nets.model_config import init_variables
 
 import toys
 
@@ -182,7 +182,7 @@ def test_stl_and_unc_are_paired_within_a_seed(tmp_path):
   # Initial weights: everything stl has, unc has with equal values (the twin's extra SL path
   # aside); another seed differs.
   h, w = stl.config.size
-  inits = [train_state.init_variables(build_model(c.config.net, maxdisp=c.config.maxdisp,
+  inits = [init_variables(build_model(c.config.net, maxdisp=c.config.maxdisp,
                                                   t=c.config.synth_t), c.config.seed, h, w, 3)
            for c in (stl, unc, by["stl", small, 1])]
   plain, twin, other = inits[0], detach_sl(inits[1]), inits[2]

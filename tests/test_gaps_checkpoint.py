@@ -14,7 +14,8 @@ import pytest
 
 import sljax.inference
 from sljax.nets import build_model
-from sljax.train import checkpoint as ckpt
+from sljax.models import checkpoint as ckpt
+from sljax.models import load as trained
 
 MODEL, KWARGS = "unet-disp", {"depth": 2, "base_width": 4, "gray": True}
 # step -> validation MAE (None: a mid-epoch checkpoint, saved without validation)
@@ -66,12 +67,12 @@ def test_keeps_the_last_n_plus_the_lowest_validation_mae(workdir):
 
 
 def test_load_params_returns_the_lowest_validation_mae(workdir):
-  config, variables, step = ckpt.load_params(workdir)
+  config, variables, step = trained.load_params(workdir)
   assert step == 2 and config["net"] == MODEL
   assert _value(variables) == 2.0
   assert set(variables) == {"params", "batch_stats"}
   # An explicit step still loads that step.
-  _, variables, step = ckpt.load_params(workdir, step=5)
+  _, variables, step = trained.load_params(workdir, step=5)
   assert step == 5 and _value(variables) == 5.0
 
 
@@ -88,14 +89,14 @@ def test_inference_load_serves_the_best_checkpoint(workdir):
 def test_best_among_the_last_is_kept_once(tmp_path):
   workdir = _workdir(tmp_path, {1: 0.5, 2: 0.8, 3: 0.3, 4: 0.6}, keep=2)
   assert _steps(workdir) == [3, 4]
-  assert ckpt.load_params(workdir)[2] == 3
+  assert trained.load_params(workdir)[2] == 3
 
 
 def test_best_that_is_not_the_first(tmp_path):
   """A later, lower MAE replaces the best; the old best is dropped once outside the last N."""
   workdir = _workdir(tmp_path, {1: 0.5, 2: 0.2, 3: 0.9, 4: 0.1, 5: 0.7, 6: 0.8}, keep=1)
   assert _steps(workdir) == [4, 6]
-  assert ckpt.load_params(workdir)[2] == 4
+  assert trained.load_params(workdir)[2] == 4
 
 
 def test_default_keeps_the_last_three_plus_the_best(tmp_path):
@@ -130,7 +131,7 @@ def test_loading_a_workdir_without_checkpoints_writes_nothing(tmp_path):
   (workdir / ckpt.CONFIG_FILE).write_text(json.dumps({"strategy": "stl", "net": MODEL,
                                                       "model_kwargs": KWARGS}))
   with pytest.raises(ckpt.SljaxError, match="no checkpoint saved yet"):
-    ckpt.load_params(workdir)
+    trained.load_params(workdir)
   assert [p.name for p in workdir.iterdir()] == [ckpt.CONFIG_FILE]
 
 
@@ -145,6 +146,6 @@ def test_converted_folder_named_like_a_step_is_not_a_step(tmp_path, workdir):
   one inside a workdir's other subfolders, is read as the converted model."""
   for folder in (tmp_path / "7", workdir / "exported" / "model"):
     _converted(folder)
-    name, kwargs, variables, config = ckpt.load_for_inference(folder)
+    name, kwargs, variables, config = trained.load_for_inference(folder)
     assert (name, kwargs, config["source"]) == ("psmnet", {"maxdisp": 32}, str(folder))
     np.testing.assert_array_equal(variables["params"]["w"], [1.0, 1.0])

@@ -293,7 +293,7 @@ def test_wrong_model_options_for_checkpoint(unet_disp_vars):
 def test_load_checkpoint_round_trip(unet_sl_vars, tmp_path):
   import json
 
-  from sljax.train import checkpoint as ckpt
+  from sljax.models import checkpoint as ckpt
   workdir = tmp_path / "run"
   workdir.mkdir()
   config = {"model": "unet-sl", "strategy": "stl", "net": "unet-sl",

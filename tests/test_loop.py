@@ -18,7 +18,7 @@ import pytest
 from sljax import files
 from sljax.data.scene import Scene
 from sljax.nets import ModelConfig
-from sljax.train import checkpoint as ckpt
+from sljax.models import checkpoint as ckpt
 from sljax.train import loop
 from sljax.train.config import TrainConfig, config_from_json
 

@@ -15,6 +15,7 @@ import pytest
 
 from sljax.losses import weighting as wt
 from sljax.nets import ModelConfig, build_model, registry
+from sljax.nets.model_config import INIT_COMPILER_OPTIONS, init_variables
 from sljax.train import state as st
 from sljax.train import step as stp
 
@@ -24,7 +25,7 @@ MAXDISP = 16
 T = 3
 LR = 2e-3
 # Tests compile without XLA backend optimisations: compiling dominates, the steps are tiny.
-FAST = st.INIT_COMPILER_OPTIONS
+FAST = INIT_COMPILER_OPTIONS
 
 
 def _batch(b: int = 2) -> dict[str, np.ndarray]:
@@ -60,7 +61,7 @@ def _overfit(step, state, batch, weights, n):
 @pytest.fixture(scope="module")
 def twin():
   model = build_model("psmnet-mtl", maxdisp=MAXDISP, t=T, in_channels=3)
-  return model, st.init_variables(model, 0, H, W, 3)
+  return model, init_variables(model, 0, H, W, 3)
 
 
 @pytest.fixture(scope="module")
@@ -140,7 +141,7 @@ def test_twin_unc_weights_and_log_sigma_gradient(twin_runs):
 @pytest.mark.parametrize("net", ["unet-sl", "unet-disp"])
 def test_unets_overfit_one_batch(net, mesh):
   model = build_model(net, t=T, in_channels=3, depth=2, base_width=8)
-  variables = st.init_variables(model, 0, H, W, 3)
+  variables = init_variables(model, 0, H, W, 3)
   tx = st.make_optimizer(2e-2)
   config = ModelConfig(net, 3, MAXDISP, T, (("base_width", 8), ("depth", 2)))
   step = stp.make_train_step(model, config, disp_loss="l2", tx=tx, mesh=mesh,
@@ -159,7 +160,7 @@ _SHARDED = textwrap.dedent("""
     from sljax.nets import ModelConfig, build_model
     from sljax.train import state as st, step as stp
     model = build_model("unet-disp", in_channels=3, depth=2, base_width=8)
-    v = st.init_variables(model, 0, 32, 32, 3)
+    v = init_variables(model, 0, 32, 32, 3)
     tx = st.make_optimizer(1e-3)
     rng = np.random.default_rng(1)
     left = rng.random((8, 32, 32, 3)).astype(np.float32)
@@ -170,7 +171,7 @@ _SHARDED = textwrap.dedent("""
     for devices in (jax.devices()[:1], jax.devices()):
       mesh = stp.make_mesh(devices)
       step = stp.make_train_step(model, ModelConfig("unet-disp", 3, 16), disp_loss="l2", tx=tx,
-                                 mesh=mesh, compiler_options=st.INIT_COMPILER_OPTIONS)
+                                 mesh=mesh, compiler_options=INIT_COMPILER_OPTIONS)
       s = jax.device_put(st.create_state(jax.tree.map(jnp.copy, v), tx),
                          stp.shardings(mesh)[0])
       b = stp.put_batch(host, mesh)

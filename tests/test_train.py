@@ -16,9 +16,9 @@ import pytest
 from sljax.data.dataset import epoch_order
 from sljax.data.scene import Scene, write_scene
 from sljax.errors import SljaxError
-from sljax.train import checkpoint as ckpt
+from sljax.models import checkpoint as ckpt
+from sljax.models import load as trained
 from sljax.train import cli, loop
-from sljax.train import state as train_state
 
 import toys
 
@@ -62,7 +62,7 @@ def no_compile(monkeypatch):
   """Fails the test if training gets as far as initialising (compiling) the model."""
   def boom(*a, **k):
     raise AssertionError("reached model initialisation")
-  monkeypatch.setattr(train_state, "init_variables", boom)
+  monkeypatch.setattr(loop, "init_variables", boom)
 
 
 def _run(argv, capsys):
@@ -210,7 +210,7 @@ def test_load_for_inference_of_a_workdir(data_full, tmp_path):
                    "--unet-width", "8", "--size", "32", "--maxdisp", "16", "--batch-size", "2",
                    "--epochs", "1", "--workdir", str(wd), "--no-progress"]) == 0
   for path in (wd, wd / "checkpoints"):
-    name, kwargs, variables, config = ckpt.load_for_inference(path)
+    name, kwargs, variables, config = trained.load_for_inference(path)
     assert name == "unet-sl" and kwargs == {"in_channels": 1, "t": 5, "depth": 2, "base_width": 8}
     assert config["size"] == [32, 32] and config["strategy"] == "stl" and config["gray"] is True
     assert "uncertainty" not in variables["params"] and "batch_stats" in variables
@@ -219,7 +219,7 @@ def test_load_for_inference_of_a_workdir(data_full, tmp_path):
   epochs = [json.loads(l) for l in (wd / "epochs.jsonl").read_text().splitlines()]
   assert len(epochs) == 1 and np.isfinite(epochs[0]["val_mae"]) and epochs[0]["val_sl"] > 0
   with pytest.raises(SljaxError, match="does not exist"):
-    ckpt.load_for_inference(tmp_path / "nope")
+    trained.load_for_inference(tmp_path / "nope")
 
 
 class _NaNSource:

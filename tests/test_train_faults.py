@@ -18,7 +18,8 @@ import pytest
 
 from sljax.data.scene import Scene, write_scene
 from sljax.errors import SljaxError
-from sljax.train import checkpoint as ckpt
+from sljax.models import checkpoint as ckpt
+from sljax.models import load as trained
 from sljax.train import cli, loop
 from sljax.train.profiler import StepProfiler
 
@@ -121,7 +122,7 @@ def test_damaged_checkpoint_is_one_line_naming_it(damage, base, tmp_path, capsys
   assert _digest(wd) == before  # nothing written, nothing deleted
   # predict / evaluate / export / --init-from load through load_params: the same message.
   with pytest.raises(SljaxError, match=r"checkpoints/6: checkpoint 6 is damaged or incomplete"):
-    ckpt.load_params(wd, 6)
+    trained.load_params(wd, 6)
 
 
 def test_damaged_only_checkpoint_says_there_is_no_earlier_one(base, tmp_path, capsys):
@@ -141,9 +142,9 @@ def test_no_late_tracebacks_after_a_failed_restore(base, tmp_path):
   wd = _copy(base, tmp_path)
   DAMAGE["garbage manifest"](wd / "checkpoints" / "6")
   DAMAGE["flipped"](wd / "checkpoints" / "4")
-  script = ("import sys\nfrom sljax.train import checkpoint as ckpt\n"
+  script = ("import sys\nfrom sljax.models import load as trained\n"
             "for i in range(6):\n"
-            "  try:\n    ckpt.load_params(sys.argv[1], (6, 4)[i % 2])\n"
+            "  try:\n    trained.load_params(sys.argv[1], (6, 4)[i % 2])\n"
             "  except Exception as e:\n    print(type(e).__name__, 'damaged' in str(e))\n")
   env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(ROOT))
   proc = subprocess.run([sys.executable, "-c", script, str(wd)], env=env, capture_output=True,
@@ -174,7 +175,7 @@ def test_unretrieved_orbax_read_failures_after_a_restore_are_not_logged(base, tm
   wd = _copy(base, tmp_path)
   DAMAGE["garbage manifest"](wd / "checkpoints" / "6")
   with pytest.raises(SljaxError, match="damaged"):
-    ckpt.load_params(wd, 6)
+    trained.load_params(wd, 6)
   with caplog.at_level(logging.ERROR, logger="asyncio"):
     _unretrieved_failure(tmp_path / "site-packages" / "orbax" / "checkpoint")
     assert not caplog.records
@@ -404,13 +405,13 @@ def test_a_restore_failing_for_another_reason_keeps_its_error(base, tmp_path, mo
     raise RuntimeError("RESOURCE_EXHAUSTED: out of memory")
   monkeypatch.setattr(ckpt, "_restore", oom)
   with pytest.raises(RuntimeError, match="RESOURCE_EXHAUSTED"):
-    ckpt.load_params(wd, 6)
+    trained.load_params(wd, 6)
 
   def denied(*args, **kwargs):
     raise PermissionError(13, "Permission denied", str(wd / "checkpoints" / "6" / "meta"))
   monkeypatch.setattr(ckpt, "_restore", denied)
   with pytest.raises(SljaxError) as e:
-    ckpt.load_params(wd, 6)
+    trained.load_params(wd, 6)
   assert "checkpoint 6 cannot be read: Permission denied" in str(e.value)
   assert "delete" not in str(e.value)
 

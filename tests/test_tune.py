@@ -11,11 +11,11 @@ import pytest
 
 from sljax import cache, cli, inference, machine, tune
 from sljax.nets import ModelConfig
-from sljax.train import checkpoint as ckpt
+from sljax.models import checkpoint as ckpt
 from sljax.train import loop
 from sljax.train import step as stp
 from sljax.train.config import QUICK, config_from_json
-from sljax.train.state import init_variables
+from sljax.nets.model_config import init_variables
 
 
 def fake(table):

@@ -10,6 +10,7 @@ from pathlib import Path
 import flax.linen as nn
 import jax.numpy as jnp
 
+from sljax.nets.model_config import INIT_COMPILER_OPTIONS
 from sljax.train import state as train_state
 from sljax.train import step as stp
 
@@ -48,7 +49,7 @@ def tiny_steps(model_config, disp_loss, lr, lr_drop_step, mesh, ynn="on"):
   """Drop-in for sljax.train.loop.compiled_steps that trains TinyTwin for any PSMNet."""
   model = TinyTwin(maxdisp=model_config.maxdisp, t=model_config.t or 4)
   tx = train_state.make_optimizer(lr, lr_drop_step)
-  opts = train_state.INIT_COMPILER_OPTIONS
+  opts = INIT_COMPILER_OPTIONS
   return (model, tx,
           stp.make_train_step(model, model_config, disp_loss=disp_loss, tx=tx, mesh=mesh,
                               compiler_options=opts),

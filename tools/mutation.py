@@ -44,7 +44,7 @@ MODULES: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "report": (("sljax/experiment/report.py",), ("tests/test_stats.py",)),
     "geometry": (("sljax/geometry.py",), ("tests/test_gaps_geometry.py", "tests/test_predict.py")),
     "metrics": (("sljax/metrics.py",), ("tests/test_metrics.py", "tests/test_gaps_metrics.py")),
-    "checkpoint": (("sljax/train/checkpoint.py",), ("tests/test_gaps_checkpoint.py",
+    "checkpoint": (("sljax/models/checkpoint.py", "sljax/models/load.py"), ("tests/test_gaps_checkpoint.py",
                                                     "tests/test_checkpoint.py")),
     "losses": (("sljax/losses/disparity.py", "sljax/losses/sl.py", "sljax/losses/weighting.py"),
                ("tests/test_losses.py", "tests/test_weighting.py")),

@@ -38,7 +38,8 @@ from sljax.errors import SljaxError, require
 from sljax.evaluate import evaluate, json_safe
 from sljax.experiment.plans import (FIXED, HELDOUT, TEST_SEED, Cell, EvalSet, Plan, build_plan,
                                     check_unique, describe)
-from sljax.train import checkpoint as ckpt
+from sljax.models import checkpoint as ckpt
+from sljax.models import load as trained
 from sljax.train.config import config_from_json, dumps
 from sljax.train.loop import open_source, train
 
@@ -239,7 +240,7 @@ def _eval_source(cell: Cell, evalset: EvalSet):
 def _final_predictor(out: Path, cell: Cell) -> inference.Predictor:
   """The cell's final checkpoint (resize protocol) with the compiler and kernel choices it
   trained with: scoring never tunes, and at the smoke scale nothing is tuned at all."""
-  saved = ckpt.read_config(cell_dir(out, cell.name))
+  saved = trained.read_config(cell_dir(out, cell.name))
   return inference.load(final_checkpoint(out, cell.name), mode="resize",
                         kernels=tune.KernelChoice.from_name(saved.get("ynn", "on")),
                         conv_impl=config_from_json(saved).model_conv_impl)

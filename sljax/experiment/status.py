@@ -15,7 +15,7 @@ from pathlib import Path
 from sljax import files, machine
 from sljax.experiment.plans import Cell, Plan
 from sljax.experiment.runner import DONE_FILE, EVAL_DIR, cell_dir, read_json, registered_plans
-from sljax.train.checkpoint import CHECKPOINT_DIR
+from sljax.models.checkpoint import CHECKPOINT_DIR
 from sljax.train.workdir import EPOCHS_FILE
 
 DONE, SCORING, TRAINING, WAITING = "finished", "trained, not scored", "training", "waiting"

@@ -1,4 +1,5 @@
-"""A network's configuration, resolved and checked once, and `build_model` on top of it.
+"""A network's configuration, resolved and checked once; `build_model` and `init_variables` on top
+of it.
 
 A `ModelConfig` is what training, inference and the compiled steps share about a network: its
 name, input channels, disparity range, pattern count, module options, convolution kernels and
@@ -10,8 +11,11 @@ a compiled program (the kernels included) never share one.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Any
 
+import flax.linen as nn
+import jax
 import jax.numpy as jnp
 
 from sljax.errors import SljaxError
@@ -114,3 +118,23 @@ def build_model(name: str, **kwargs: Any):
   """
   kwargs.pop("precision", None)  # a step option, not a module one
   return ModelConfig.of(name, **kwargs).build()
+
+
+# Initialisation runs once: compile it without XLA's backend optimisations (2-3x faster to
+# compile on CPU). Always the same options, so initial values stay deterministic in the seed.
+INIT_COMPILER_OPTIONS = {"xla_backend_optimization_level": 0,
+                         "xla_llvm_disable_expensive_passes": True}
+
+
+@functools.lru_cache(maxsize=8)
+def _init_fn(model: nn.Module, height: int, width: int, channels: int):
+  x = jnp.zeros((1, height, width, channels), jnp.float32)
+  return jax.jit(lambda key: model.init(key, x, x, train=False),
+                 compiler_options=INIT_COMPILER_OPTIONS)
+
+
+def init_variables(model: nn.Module, seed: int, height: int, width: int,
+                   channels: int) -> dict[str, Any]:
+  """Model variables from a batch-1 dummy input, deterministic in seed (compiled once per
+  model and shape in a process)."""
+  return dict(_init_fn(model, height, width, channels)(jax.random.PRNGKey(seed)))

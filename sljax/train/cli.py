@@ -10,7 +10,8 @@ import jax
 from sljax.cache import enable_compile_cache
 from sljax.errors import SljaxError, run_command
 from sljax.quiet import quiet_libraries
-from sljax.train import checkpoint as ckpt
+from sljax.models import checkpoint as ckpt
+from sljax.models import load as trained
 from sljax.train.config import FIELDS, PRESETS, TrainConfig, config_from_json, preset_config
 from sljax.train.loop import default_workdir, train
 from sljax.train.workdir import check_config_kept
@@ -102,7 +103,7 @@ def saved_config(workdir: Path) -> dict:
     what = "does not exist" if not workdir.exists() else f"holds no run (no {ckpt.CONFIG_FILE})"
     raise SljaxError(f"--resume: {workdir} {what}; nothing to resume (check --workdir, or "
                      "leave out --resume to start a new run)")
-  return ckpt.read_config(workdir)
+  return trained.read_config(workdir)
 
 
 def check_saved_data(workdir: Path, data: str | None) -> None:

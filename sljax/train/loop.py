@@ -37,8 +37,8 @@ from sljax.data import preflight
 from sljax.errors import SljaxError, require
 from sljax.losses import weighting
 from sljax.nets import registry
-from sljax.nets.model_config import ModelConfig
-from sljax.train import checkpoint as ckpt
+from sljax.nets.model_config import ModelConfig, init_variables
+from sljax.models import checkpoint as ckpt
 from sljax.train import state as st
 from sljax.train import step as stp
 from sljax.train.config import TrainConfig, with_absolute_paths
@@ -93,7 +93,7 @@ def task_weights(config: TrainConfig, history: Sequence[Sequence[float]]) -> np.
 def create_train_state(run: Setup, model, tx) -> st.TrainState:
   """Fresh state: initial weights from the seed, then those of --init-from where given."""
   config = run.config
-  variables = st.init_variables(model, config.seed, *config.size, run.info.channels)
+  variables = init_variables(model, config.seed, *config.size, run.info.channels)
   if run.init is not None:
     variables = merge_init(variables, run.init[1], run.init[0], config, config.init_from)
   return st.create_state(variables, tx)

@@ -8,7 +8,7 @@ from typing import Any
 import jax
 
 from sljax.errors import SljaxError
-from sljax.train import checkpoint as ckpt
+from sljax.models import checkpoint as ckpt
 from sljax.train import state as st
 from sljax.train.setup import Setup
 from sljax.train.state import LoopState

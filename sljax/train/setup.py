@@ -16,7 +16,8 @@ from sljax.data.dataset import split_indices, take_fraction
 from sljax.errors import SljaxError, require
 from sljax.nets import detach_sl, registry
 from sljax.nets.model_config import ModelConfig
-from sljax.train import checkpoint as ckpt
+from sljax.models import checkpoint as ckpt
+from sljax.models import load as trained
 from sljax.train.config import TrainConfig, validate
 from sljax.train.feed import DataInfo, check_source, open_source
 from sljax.train.workdir import prepare_workdir
@@ -36,7 +37,7 @@ def load_init(path: str, config: TrainConfig) -> tuple[str, dict[str, Any]]:
   """(source net name, variables) of an --init-from checkpoint/converted PSMNet; a twin's
   checkpoint gives its disparity path to a single-task run."""
   try:
-    name, _, variables, _ = ckpt.load_for_inference(path)
+    name, _, variables, _ = trained.load_for_inference(path)
   except SljaxError as e:  # the loader's line ("PATH: does not exist"), naming the flag
     raise SljaxError(f"--init-from {e}") from None
   if registry.spec(name).single == config.net:
@@ -103,7 +104,7 @@ def resolve_ynn(config: TrainConfig, workdir: Path, resume: bool, overwrite: boo
   if config.ynn != "auto":
     return config
   if resume and not overwrite and (workdir / ckpt.CONFIG_FILE).is_file():
-    return dataclasses.replace(config, ynn=ckpt.read_config(workdir).get("ynn", "on"))
+    return dataclasses.replace(config, ynn=trained.read_config(workdir).get("ynn", "on"))
   return dataclasses.replace(config, ynn=tune.choice(log=log).name)
 
 

@@ -2,10 +2,8 @@
 loop's bookkeeping saved beside it in each checkpoint."""
 
 import dataclasses
-import functools
 from typing import Any
 
-import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import optax
@@ -32,26 +30,6 @@ def make_optimizer(lr: float, drop_step: int | None = None) -> optax.GradientTra
   if drop_step is not None:
     lr = optax.piecewise_constant_schedule(lr, {int(drop_step): LR_DROP})
   return optax.adam(lr, b1=0.9, b2=0.999)
-
-
-# Initialisation runs once: compile it without XLA's backend optimisations (2-3x faster to
-# compile on CPU). Always the same options, so initial values stay deterministic in the seed.
-INIT_COMPILER_OPTIONS = {"xla_backend_optimization_level": 0,
-                         "xla_llvm_disable_expensive_passes": True}
-
-
-@functools.lru_cache(maxsize=8)
-def _init_fn(model: nn.Module, height: int, width: int, channels: int):
-  x = jnp.zeros((1, height, width, channels), jnp.float32)
-  return jax.jit(lambda key: model.init(key, x, x, train=False),
-                 compiler_options=INIT_COMPILER_OPTIONS)
-
-
-def init_variables(model: nn.Module, seed: int, height: int, width: int,
-                   channels: int) -> dict[str, Any]:
-  """Model variables from a batch-1 dummy input, deterministic in seed (compiled once per
-  model and shape in a process)."""
-  return dict(_init_fn(model, height, width, channels)(jax.random.PRNGKey(seed)))
 
 
 def net_params(params: dict[str, Any]) -> dict[str, Any]:

@@ -3,7 +3,7 @@
     <workdir>/config.json     the resolved run (TrainConfig fields + what the data decided)
     <workdir>/metrics.jsonl   a row per training step
     <workdir>/epochs.jsonl    a row per epoch (losses, weights, validation, throughput)
-    <workdir>/checkpoints/N/  orbax checkpoints (sljax.train.checkpoint)
+    <workdir>/checkpoints/N/  orbax checkpoints (sljax.models.checkpoint)
     <workdir>/.sljax.lock     while a run holds the workdir (`held`; removed at its end)
 
 Writes happen on the main process only; every process checks the directory first.
@@ -23,7 +23,9 @@ from jax.experimental import multihost_utils
 from sljax import files
 from sljax.errors import SljaxError
 from sljax.nets import registry
-from sljax.train.checkpoint import CHECKPOINT_DIR, CONFIG_FILE, read_config, storage_guard
+from sljax.models.checkpoint import CHECKPOINT_DIR, CONFIG_FILE
+from sljax.models.failures import storage_guard
+from sljax.models.load import read_config
 from sljax.train.config import PATH_FIELDS, TrainConfig, diff_configs, dumps
 from sljax.train.tensorboard import TensorBoardWriter
 

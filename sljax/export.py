@@ -43,6 +43,8 @@ import numpy as np
 from jax import export as jex
 
 from sljax import files, inference, sizes
+from sljax.inference.inputs import resize_maps
+from sljax.inference.programs import outputs
 from sljax.corr import correlation
 from sljax.data.dataset import resize_image
 from sljax.errors import SljaxError
@@ -149,7 +151,7 @@ def inference_function(predictor, size: tuple[int, int]) -> Callable:
     net_hw = predictor.train_size
     in_h, in_w = _checked_matrices(lambda x: resize_image(x, net_hw), h, w, "input resize")
     out_h, out_w = _checked_matrices(
-        lambda x: inference._resize_maps(x[None], (h, w))[0], *net_hw, "output resize")
+        lambda x: resize_maps(x[None], (h, w))[0], *net_hw, "output resize")
     scale = np.float32(w / net_hw[1])
 
   def prepare(x):
@@ -160,13 +162,13 @@ def inference_function(predictor, size: tuple[int, int]) -> Callable:
     canvas = jnp.broadcast_to(fill, (x.shape[0], h + ph, w + pw, c))
     return canvas.at[:, ph:, :w].set(x)
 
-  sl_u = predictor.sl_max_disp
-  sl_window = getattr(predictor, "sl_window", None) or correlation.PAPER_WINDOW
+  sl_u = predictor.options.search_range
+  sl_window = predictor.options.window or correlation.PAPER_WINDOW
 
   def f(left, right):
     # The predictor's order: crop (pad mode), then correlate or score the patterns, then resize
     # back (resize mode).
-    out = inference._forward(model, variables, prepare(left), prepare(right))
+    out = outputs(model, variables, prepare(left), prepare(right))
     if mode == "pad":
       out = {k: v[:, ph:, :w] for k, v in out.items()}
     if "patterns_right" in out:  # unet-sl: correlation of its predicted patterns

@@ -30,7 +30,7 @@ from sljax.data.calib import Calib, read_calib
 from sljax.data.dataset import find_scenes
 from sljax.data.pfm import write_pfm
 from sljax.images import read_image
-from sljax.errors import SljaxError
+from sljax.errors import SljaxError, require
 from sljax.viz import Panel, save_panels
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".ppm", ".pgm")
@@ -133,14 +133,20 @@ def check_outputs(out: Path, pairs: list[Pair], overwrite: bool) -> None:
     files.refuse_existing([output_dir(out, p) / f for p in pairs for f in OUTPUT_FILES], False)
 
 
-def load_predictor(model: str, mode: str = "pad", maxdisp: int | None = None):
-  """'sgbm' (OpenCV StereoSGBM) or a checkpoint / converted PSMNet folder."""
+def load_predictor(model: str, mode: str = "pad", maxdisp: int | None = None,
+                   search_range: int | None = None, num_disparities: int | None = None):
+  """'sgbm' (OpenCV StereoSGBM) or a checkpoint / converted PSMNet folder; each range applies to
+  its own kind (PSMNet's cost volume, unet-sl's correlation, SGBM's numDisparities)."""
   if model == "sgbm":
-    return SGBMPredictor(SGBMConfig(num_disparities=maxdisp))
+    require(maxdisp is None and search_range is None, "MODEL sgbm: its disparity range is "
+            "--num-disparities (--maxdisp and --search-range are the networks')")
+    return SGBMPredictor(SGBMConfig(num_disparities=num_disparities))
+  require(num_disparities is None, f"MODEL {model}: --num-disparities is sgbm's range (a "
+          "PSMNet's is --maxdisp, unet-sl's --search-range)")
   if not Path(model).exists():
     raise SljaxError(f"MODEL {model}: unknown model: no such checkpoint, training workdir or "
                      "converted PSMNet folder (or use 'sgbm')")
-  return inference.load(model, mode=mode, maxdisp=maxdisp)
+  return inference.load(model, mode=mode, maxdisp=maxdisp, search_range=search_range)
 
 
 def read_pair(pair: Pair) -> tuple[np.ndarray, np.ndarray]:

@@ -144,7 +144,7 @@ def test_cli_probabilities_outside_unit_range_are_one_line_error(tmp_path, capsy
   assert not out.exists()
 
 
-@pytest.mark.parametrize("flag, value", [("--window", "4"), ("--max-disp", "-1")])
+@pytest.mark.parametrize("flag, value", [("--window", "4"), ("--search-range", "-1")])
 def test_cli_bad_option_is_one_line_error(tmp_path, capsys, flag, value):
   pred, scene = _scene_and_pred(tmp_path, False)
   argv = ["uncertainty", "--pred", str(pred), "--gt", str(scene), "--out", str(tmp_path / "o"),

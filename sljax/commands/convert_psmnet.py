@@ -4,7 +4,7 @@ import argparse
 
 import numpy as np
 
-from sljax.errors import require
+from sljax.nets import registry
 from sljax.nets import convert
 
 
@@ -30,8 +30,7 @@ def register(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
   """Converts and writes; prints a one-line summary."""
-  require(args.maxdisp > 0 and args.maxdisp % 16 == 0,
-          f"--maxdisp must be a positive multiple of 16, got {args.maxdisp}")
+  registry.check_maxdisp(args.maxdisp, f"--maxdisp {args.maxdisp}")
   state_dict = convert.read_state_dict(args.ckpt)
   variables = convert.convert_state_dict(state_dict)
   in_channels = int(variables["params"]["feature_extraction"]["firstconv_0"]["conv"]["kernel"]

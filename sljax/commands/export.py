@@ -28,8 +28,10 @@ def register(subparsers) -> None:
                  help="pad (default): full resolution, padded as the PSMNet reference pads; "
                       "resize: at the training size and back (fixed in the artifact)")
   p.add_argument("--maxdisp", type=int, default=None,
-                 help="disparity range: cost volume depth of psmnet/psmnet-mtl (multiple of "
-                      "16), correlation range of unet-sl (default: the model's)")
+                 help="psmnet/psmnet-mtl: the cost volume's depth (a multiple of 16; default: "
+                      "the model's)")
+  p.add_argument("--search-range", type=int, default=None, metavar="PX",
+                 help="unet-sl: the correlation's search range (default: sljax.corr's)")
   p.add_argument("--overwrite", action="store_true", help="replace OUT and its sidecar")
   p.set_defaults(func=run)
 
@@ -46,7 +48,8 @@ def run(args) -> int:
   for p in (out, side):  # before the (slow) loading and tracing
     if p.exists() and not args.overwrite:
       raise SljaxError(f"{p}: exists (pass --overwrite to replace it)")
-  predictor = inference.load(args.model, mode=args.mode, maxdisp=args.maxdisp)
+  predictor = inference.load(args.model, mode=args.mode, maxdisp=args.maxdisp,
+                             search_range=args.search_range)
   out, side = export.write_export(predictor, size, out, args.model, overwrite=args.overwrite)
   print(f"wrote {out} ({out.stat().st_size / 2**20:.2f} MiB, {predictor.describe()}) and {side}")
   return 0

@@ -4,7 +4,6 @@ import argparse
 from pathlib import Path
 
 from sljax import geometry, predict
-from sljax.errors import SljaxError
 
 
 def register(subparsers) -> None:
@@ -38,9 +37,12 @@ def register(subparsers) -> None:
                       "resize: at the training size and back, disparity scaled by the width "
                       "ratio")
   p.add_argument("--maxdisp", type=int, default=None,
-                 help="disparity range: cost volume depth of psmnet/psmnet-mtl (multiple of "
-                      "16), correlation range of unet-sl, numDisparities of sgbm (default: the "
-                      "model's; sgbm: calib ndisp, else 25%% of the width)")
+                 help="psmnet/psmnet-mtl: the cost volume's depth (a multiple of 16; default: "
+                      "the model's)")
+  p.add_argument("--search-range", type=int, default=None, metavar="PX",
+                 help="unet-sl: the correlation's search range (default: sljax.corr's)")
+  p.add_argument("--num-disparities", type=int, default=None, metavar="N",
+                 help="sgbm: numDisparities (default: calib ndisp, else 25%% of the width)")
   p.add_argument("--max-depth", type=float, default=None, metavar="MM",
                  help="depths beyond this many mm are unknown in every output")
   p.add_argument("--overwrite", action="store_true", help="replace existing output files")
@@ -49,13 +51,12 @@ def register(subparsers) -> None:
 
 def run(args) -> int:
   """Finds the pairs, loads the model, predicts and prints one line per pair."""
-  if args.maxdisp is not None and args.maxdisp <= 0:
-    raise SljaxError(f"--maxdisp must be positive, got {args.maxdisp}")
   geometry.check_max_depth(args.max_depth, "--max-depth")
   pairs = predict.find_pairs(args.inputs, args.calib)
   out = Path(args.out)
   predict.check_outputs(out, pairs, args.overwrite)  # before the (slow) model loading
-  predictor = predict.load_predictor(args.model, args.mode, args.maxdisp)
+  predictor = predict.load_predictor(args.model, args.mode, args.maxdisp, args.search_range,
+                                     args.num_disparities)
   summaries = predict.predict_pairs(predictor, pairs, out, args.max_depth)
   for pair, s in zip(pairs, summaries):
     line = f"{predict.output_dir(out, pair)}: disparity known on {s['known_disparity']:.1%}"

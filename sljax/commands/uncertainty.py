@@ -35,9 +35,9 @@ def register(subparsers) -> None:
   p.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
   p.add_argument("--overwrite", action="store_true",
                  help=f"replace {METRICS_JSON} and the pictures in an existing --out")
-  p.add_argument("--max-disp", type=int, default=None,
-                 help="correlation search range u when disparity is computed "
-                 "(default 25%% of width)")
+  p.add_argument("--search-range", "--max-disp", dest="search_range", type=int, default=None,
+                 metavar="PX", help="correlation search range u when disparity is computed "
+                 "(default 25%% of width; --max-disp is its former name)")
   p.add_argument("--window", type=int, default=17, help="correlation window side (default 17)")
   p.add_argument("--mask", action="store_true",
                  help="analyse only pixels inside the scene's mask0.png")
@@ -76,8 +76,8 @@ def run(args) -> int:
   """Runs the analysis and writes the metrics and the two pictures."""
   require(args.window >= 1 and args.window % 2 == 1,
           f"--window must be a positive odd number, got {args.window}")
-  require(args.max_disp is None or args.max_disp >= 0,
-          f"--max-disp must be >= 0, got {args.max_disp}")
+  require(args.search_range is None or args.search_range >= 0,
+          f"--search-range must be >= 0, got {args.search_range}")
   out = Path(args.out)
   files.check_output_folder(out, args.overwrite)
   files.refuse_existing([out / n for n in (METRICS_JSON, HIST_PNG, MAPS_PNG)], args.overwrite)
@@ -93,7 +93,7 @@ def run(args) -> int:
     disparity = pred["disparity"].astype(np.float32)
     source = "npz"
   else:
-    disparity, _ = correlation.sl_disparity(p_left, p_right, args.max_disp, args.window)
+    disparity, _ = correlation.sl_disparity(p_left, p_right, args.search_range, args.window)
     source = "correlation"
 
   u_left = uncertainty.view_uncertainty(p_left)

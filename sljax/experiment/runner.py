@@ -263,8 +263,7 @@ def choose_window(out: Path, cell: Cell) -> int | None:
   maes = {}
   predictor = _final_predictor(out, cell)
   for window in cell.windows:
-    predictor.sl_window = window
-    rep = evaluate(predictor, source, indices, progress=False)
+    rep = evaluate(predictor.with_options(window=window), source, indices, progress=False)
     maes[window] = rep["pooled"]["full"]["mae"]
   chosen = min(cell.windows, key=lambda w: (maes[w], w))
   path.parent.mkdir(parents=True, exist_ok=True)
@@ -281,7 +280,7 @@ def evaluate_cell(out: Path, cell: Cell, evalset: EvalSet) -> dict[str, Any]:
   predictor = _final_predictor(out, cell)
   info = {"cell": cell.name, "set": evalset.name, "kind": evalset.kind}
   if window is not None:
-    predictor.sl_window = window
+    predictor = predictor.with_options(window=window)
     info["corr_window"] = window
   if evalset.kind == FIXED:
     info["dataset_seed"] = TEST_SEED

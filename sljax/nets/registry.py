@@ -15,6 +15,10 @@ from typing import Any
 from sljax.errors import SljaxError
 
 TASKS = ("sl", "disp")
+# How pad-mode inference pads a network's input: "normalized-zero" (PSMNets: to a multiple of
+# 16 with the value their input normalisation maps to 0), "unet" (to a multiple of 2^depth with
+# the value the UNet's input centring maps to 0), "zero" (to a multiple of 16 with 0).
+PAD_RULES = ("normalized-zero", "unet", "zero")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -31,6 +35,7 @@ class NetSpec:
   twin: str | None = None         # the multi-task twin trained by strategies other than stl
   single: str | None = None       # a twin's single-task network (its disparity path)
   sec_per_sample_64: float = 0.1  # rough CPU s per training sample at 64x64 (for estimates)
+  pad: str = "zero"               # inference's pad protocol (PAD_RULES; sljax.inference.padding)
 
   @property
   def multi_task(self) -> bool:
@@ -46,19 +51,20 @@ class NetSpec:
 NETS: dict[str, NetSpec] = {spec.name: spec for spec in (
     NetSpec("psmnet", "sljax.nets.psmnet:PSMNet", parts=("left", "right", "disp"),
             tasks=("disp",), gray=False, outputs=("disparity",),
-            options=("maxdisp", "align_corners", "conv_impl"), twin="psmnet-mtl", sec_per_sample_64=0.11),
+            options=("maxdisp", "align_corners", "conv_impl"), twin="psmnet-mtl", sec_per_sample_64=0.11,
+            pad="normalized-zero"),
     NetSpec("psmnet-mtl", "sljax.nets.psmnet_mtl:PSMNetMTL",
             parts=("left", "right", "disp", "sl"), tasks=("sl", "disp"), gray=False,
             outputs=("disparity", "sl_logits"), options=("maxdisp", "t", "align_corners", "conv_impl"),
-            single="psmnet", sec_per_sample_64=0.18),
+            single="psmnet", sec_per_sample_64=0.18, pad="normalized-zero"),
     NetSpec("unet-sl", "sljax.nets.unet:UNet", parts=("left", "right", "sl", "sl_right"),
             tasks=("sl",), gray=True, outputs=("sl_logits", "sl_logits_right"),
             options=("t", "depth", "base_width", "conv_impl"), fixed=(("head", "sl"),),
-            sec_per_sample_64=0.02),
+            sec_per_sample_64=0.02, pad="unet"),
     NetSpec("unet-disp", "sljax.nets.unet:UNet", parts=("left", "right", "disp"),
             tasks=("disp",), gray=True, outputs=("disparity",),
             options=("depth", "base_width", "conv_impl"), fixed=(("head", "disp"),),
-            sec_per_sample_64=0.02),
+            sec_per_sample_64=0.02, pad="unet"),
 )}
 NAMES = tuple(NETS)
 # What `train.py --model` chooses from: twins are reached through --strategy.

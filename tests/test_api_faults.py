@@ -18,11 +18,15 @@ from sljax.data.dataset import iterate_batches
 from sljax.data.scene import Scene, load_scene, write_scene
 from sljax.errors import SljaxError
 from sljax.metrics import DisparityAccumulator
+from sljax.nets import ModelConfig
 from sljax.sl import codes
+from toys import registered, toy_spec
 
 
 class ToyDisp(nn.Module):
   """disparity = first channel of the left view (never compiled by these tests)."""
+  in_channels: int = 1
+  conv_impl: str | None = None
 
   @nn.compact
   def __call__(self, left, right, train=False):
@@ -32,7 +36,9 @@ class ToyDisp(nn.Module):
 
 def _toy(**kw):
   variables = {"params": {"bias": jnp.zeros((1,), jnp.float32)}}
-  return inference.Predictor(ToyDisp(), variables, model_name="toy", mode="pad", **kw)
+  with registered(toy_spec("toy", ToyDisp)):
+    return inference.Predictor(ModelConfig.of("toy"), variables,
+                               inference.PredictOptions(mode="pad", **kw))
 
 
 # ---- sljax.inference -------------------------------------------------------------------------
@@ -54,7 +60,7 @@ def test_load_refuses_kernels_that_are_not_a_choice_before_reading_the_checkpoin
 
 
 def test_load_refuses_maxdisp_true(monkeypatch):
-  monkeypatch.setattr(inference, "load_for_inference",
+  monkeypatch.setattr(inference.predictor, "load_for_inference",
                       lambda path: ("psmnet", {"maxdisp": 16}, {}, {}))
   with pytest.raises(SljaxError, match="maxdisp must be a positive integer, got True"):
     inference.load("run", maxdisp=True)
@@ -63,7 +69,7 @@ def test_load_refuses_maxdisp_true(monkeypatch):
 def test_a_model_too_large_to_build_is_not_called_a_checkpoint_mismatch(monkeypatch):
   def out_of_memory(*args):
     raise MemoryError("Unable to allocate 1.82 TiB")
-  monkeypatch.setattr(inference, "_abstract_run", out_of_memory)
+  monkeypatch.setattr(inference.PROGRAMS, "variable_shapes", out_of_memory)
   with pytest.raises(SljaxError, match="cannot build the model .* out of memory") as e:
     _toy()
   assert "do not match" not in str(e.value)

@@ -15,7 +15,8 @@ from sljax.data.pfm import read_pfm
 from sljax.data.scene import Scene, write_scene
 from sljax.evaluate import evaluate
 from sljax.data.dataset import FolderSource
-from toys import ToySL
+from sljax.nets import ModelConfig
+from toys import ToySL, registered, toy_spec
 
 
 def textured_scene(name, seed, h=48, w=80, d_back=6, d_front=12, with_gt=True):
@@ -159,11 +160,11 @@ def test_sl_model_pattern_accuracy_and_figures(tmp_path):
   gt = np.full((h, w), float(d), np.float32)
   write_scene(tmp_path / "d" / "a",
               Scene(name="a", im0=left, im1=right, disp0=gt, sl0=sl0, sl1=sl1))
-  predictor = inference.Predictor(ToySL(), {"params": {"gain": jnp.ones(())}},
-                                  model_name="toy-sl", mode="pad")
   out = tmp_path / "out"
-  report = evaluate(predictor, FolderSource(tmp_path / "d"), out_dir=out, figures=True,
-                    progress=False)
+  with registered(toy_spec("toy-sl", ToySL, outputs=("sl_logits", "sl_logits_right"))):
+    predictor = inference.Predictor(ModelConfig.of("toy-sl"), {"params": {"gain": jnp.ones(())}})
+    report = evaluate(predictor, FolderSource(tmp_path / "d"), out_dir=out, figures=True,
+                      progress=False)
   known = h * w * 3 - 2 * 64
   left_acc = report["pooled"]["patterns_left"]
   assert left_acc["pattern_n_pixels"] == known

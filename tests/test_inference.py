@@ -1,5 +1,6 @@
 import cv2
 import flax.linen as nn
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -7,11 +8,15 @@ import pytest
 from sljax import inference
 from sljax.data.dataset import resize_image
 from sljax.errors import SljaxError
-from toys import ToySL
+from sljax.nets import psmnet
+from sljax.nets import ModelConfig
+from toys import ToySL, registered, toy_spec
 
 
 class ToyDisp(nn.Module):
   """disparity = 10 * first channel of the left view + bias: every output pixel is traceable."""
+  in_channels: int = 1
+  conv_impl: str | None = None
 
   @nn.compact
   def __call__(self, left, right, train=False):
@@ -19,10 +24,37 @@ class ToyDisp(nn.Module):
     return {"disparity": 10.0 * left[..., 0] + bias[0] + 0.0 * right[..., 0]}
 
 
+class Spy(ToyDisp):
+  """Records the input shape it is traced with (SEEN)."""
+
+  @nn.compact
+  def __call__(self, left, right, train=False):
+    SEEN["shape"] = left.shape
+    return {"disparity": left[..., 0]}
+
+
+SEEN: dict = {}
+
+
+@pytest.fixture(scope="module", autouse=True)
+def toy_networks():
+  """The toy networks of this file, in the registry while it runs."""
+  with registered(toy_spec("toy", ToyDisp), toy_spec("count", ToyCount), toy_spec("spy", Spy),
+                  toy_spec("spy-psmnet", SpyPSMNet, pad="normalized-zero", gray=False),
+                  toy_spec("toy-sl", ToySL, outputs=("sl_logits", "sl_logits_right"),
+                           gray=False),
+                  toy_spec("toy-mtl", ToyMTL, outputs=("disparity", "sl_logits"), gray=False)):
+    yield
+
+
+def _predictor(net, variables, channels=1, **options):
+  return inference.Predictor(ModelConfig.of(net, in_channels=channels), variables,
+                             inference.PredictOptions(**options))
+
+
 def _toy(mode, channels=1, train_size=(32, 48)):
   variables = {"params": {"bias": jnp.array([0.5] * channels, jnp.float32)}}
-  return inference.Predictor(ToyDisp(), variables, model_name="toy", train_size=train_size,
-                             mode=mode)
+  return _predictor("toy", variables, channels, train_size=train_size, mode=mode)
 
 
 @pytest.fixture(scope="module")
@@ -51,43 +83,34 @@ def test_pad_mode_on_odd_size_crops_back_exactly(pad_predictor):
 
 
 def test_pad_mode_pads_top_and_right():
-  """Models sljax does not know: zeros above and right of the image, to a multiple of 16."""
-  seen = {}
-
-  class Spy(nn.Module):
-    @nn.compact
-    def __call__(self, left, right, train=False):
-      seen["shape"] = left.shape
-      return {"disparity": left[..., 0]}
-
-  pred = inference.Predictor(Spy(), {}, model_name="spy", mode="pad", gray=True)
+  """Networks whose registry entry pads with "zero": zeros above and right of the image, to a
+  multiple of 16."""
+  pred = _predictor("spy", {}, mode="pad")
   left, right = _pair(33, 40)
   pred(left, right)
-  assert seen["shape"] == (1, 48, 48, 1)
+  assert SEEN["shape"] == (1, 48, 48, 1)
   lf = np.pad(left, ((15, 0), (0, 8)))
   # Apply the model directly on our own padding: the predictor's crop gives the same map.
   np.testing.assert_array_equal(pred(left, right)["disparity"], lf[15:, :40])
 
 
+class SpyPSMNet(psmnet.PSMNet):
+  """Records the input it runs on (SEEN["left"])."""
+
+  @nn.compact
+  def __call__(self, left, right, train=False):
+    jax.debug.callback(lambda x: SEEN.update(left=np.asarray(x)), left)
+    return {"disparity": left[..., 0]}
+
+
 @pytest.mark.parametrize("channels", [1, 3])
 def test_psmnet_pad_value_is_the_normalised_zero(channels):
   """Gray and RGB PSMNets see the normalisation's zero in the pad (a spy subclass records it)."""
-  import jax
-  from sljax.nets import psmnet
-  seen = {}
-
-  class SpyPSMNet(psmnet.PSMNet):
-    @nn.compact
-    def __call__(self, left, right, train=False):
-      jax.debug.callback(lambda x: seen.update(left=np.asarray(x)), left)
-      return {"disparity": left[..., 0]}
-
-  pred = inference.Predictor(SpyPSMNet(in_channels=channels), {}, model_name="spy-psmnet",
-                             mode="pad", gray=channels == 1)
+  pred = _predictor("spy-psmnet", {}, channels, mode="pad")
   left, right = _pair(30, 27, c=channels)
   pred(left, right)
   jax.effects_barrier()
-  x = np.asarray(seen["left"])
+  x = np.asarray(SEEN["left"])
   assert x.shape == (1, 32, 32, channels)
   np.testing.assert_array_equal(x[0, 2:, :27], left)
   pad = np.concatenate([x[0, :2].reshape(-1, channels), x[0, 2:, 27:].reshape(-1, channels)])
@@ -140,7 +163,7 @@ class ToyCount(ToyDisp):
 
 def test_compiled_once_per_shape_and_shared_between_predictors():
   variables = {"params": {"bias": jnp.array([0.5], jnp.float32)}}
-  p = inference.Predictor(ToyCount(), variables, model_name="count", mode="pad")
+  p = _predictor("count", variables, mode="pad")
   assert p.traces == 0
   p(*_pair(21, 33, seed=5))
   p(*_pair(21, 33, seed=6))
@@ -149,8 +172,7 @@ def test_compiled_once_per_shape_and_shared_between_predictors():
   assert p.traces == 2
   # Resize mode: the network always sees the training size (32x48, compiled above: 21x33 pads
   # to 32x48), and an equal model in another predictor reuses the compilation.
-  r = inference.Predictor(ToyCount(), variables, model_name="count", mode="resize",
-                          train_size=(32, 48))
+  r = _predictor("count", variables, mode="resize", train_size=(32, 48))
   r(*_pair(17, 19))
   r(*_pair(60, 90))
   assert r.traces == p.traces == 2
@@ -194,11 +216,9 @@ def test_bfloat16_jax_views_are_float_images(pad_predictor):
 
 def test_checkpoint_that_does_not_match_the_model():
   with pytest.raises(SljaxError, match="do not match.*bias"):
-    inference.Predictor(ToyDisp(), {"params": {"bias": jnp.zeros((2,))}}, model_name="toy",
-                        name="ckpt/x")
+    _predictor("toy", {"params": {"bias": jnp.zeros((2,))}}, name="ckpt/x")
   with pytest.raises(SljaxError, match="ckpt/y.*do not match"):
-    inference.Predictor(ToyDisp(), {"params": {"other": jnp.zeros((1,))}}, model_name="toy",
-                        name="ckpt/y")
+    _predictor("toy", {"params": {"other": jnp.zeros((1,))}}, name="ckpt/y")
 
 
 def test_sl_model_disparity_from_pattern_correlation():
@@ -206,8 +226,7 @@ def test_sl_model_disparity_from_pattern_correlation():
   h, w, d = 24, 64, 5
   tex = (rng.uniform(size=(h, w + d, 3)) > 0.5).astype(np.float32)
   left, right = tex[:, :w], tex[:, d:]  # right[x - d] = tex[x] = left[x]
-  pred = inference.Predictor(ToySL(), {"params": {"gain": jnp.ones(())}}, model_name="toy-sl",
-                             mode="pad")
+  pred = _predictor("toy-sl", {"params": {"gain": jnp.ones(())}}, 3, mode="pad")
   assert pred.is_sl and pred.channels == 3
   out = pred(left, right)
   assert set(out) == {"disparity", "patterns", "patterns_right", "confidence"}
@@ -317,6 +336,8 @@ def test_load_checkpoint_round_trip(unet_sl_vars, tmp_path):
 
 class ToyMTL(nn.Module):
   """Like psmnet-mtl: a disparity and left-view pattern logits (logit = 4 * (image - 0.5))."""
+  in_channels: int = 3
+  conv_impl: str | None = None
 
   @nn.compact
   def __call__(self, left, right, train=False):
@@ -325,8 +346,7 @@ class ToyMTL(nn.Module):
 
 
 def test_mtl_style_model_confidence_is_mean_pattern_certainty():
-  pred = inference.Predictor(ToyMTL(), {"params": {"gain": jnp.ones(())}}, model_name="toy-mtl",
-                             mode="pad")
+  pred = _predictor("toy-mtl", {"params": {"gain": jnp.ones(())}}, 3, mode="pad")
   left, right = _pair(20, 24, seed=11, c=3)
   out = pred(left, right)
   assert set(out) == {"disparity", "patterns", "confidence"}
@@ -363,12 +383,9 @@ def test_psmnet_mtl_pad_mode_odd_size(mtl_predictor):
 
 
 def test_psmnet_mtl_resize_mode_is_pad_at_training_size_resized_back(mtl_predictor):
-  from sljax.nets import build_model
   rng = np.random.default_rng(14)
   left, right = rng.uniform(0, 1, (2, 40, 36, 3)).astype(np.float32)
-  resize = inference.Predictor(
-      build_model("psmnet-mtl", **PSM_KW), mtl_predictor.variables, model_name="psmnet-mtl",
-      train_size=(32, 32), mode="resize")
+  resize = mtl_predictor.with_options(train_size=(32, 32), mode="resize")
   traces = mtl_predictor.traces
   out = resize(left, right)
   assert resize.traces == traces  # the same model at the same input shape: no recompilation
@@ -462,10 +479,7 @@ def test_psmnet_mtl_export_round_trip(mtl_predictor, tmp_path):
 def test_twin_in_two_programs_equals_one(mtl_predictor):
   """The memory-bounded path for large inputs (the twin as PSMNet + its SL path alone, two
   programs) gives the one-program outputs; large inputs choose it, small ones do not."""
-  from sljax.nets import build_model
-  model = build_model("psmnet-mtl", **PSM_KW)
-  split = inference.Predictor(model, mtl_predictor.variables, model_name="psmnet-mtl",
-                              mode="pad", split_twin=True)
+  split = mtl_predictor.with_options(split_twin=True)
   rng = np.random.default_rng(18)
   left = rng.integers(0, 256, (2, 30, 27, 3), dtype=np.uint8)
   right = rng.integers(0, 256, (2, 30, 27, 3), dtype=np.uint8)
@@ -473,7 +487,8 @@ def test_twin_in_two_programs_equals_one(mtl_predictor):
   assert set(one) == set(two) == {"disparity", "patterns", "confidence"}
   for k in one:
     np.testing.assert_allclose(two[k], one[k], rtol=1e-5, atol=1e-5)
-  big = build_model("psmnet-mtl", maxdisp=192, t=9)
+  big = ModelConfig.of("psmnet-mtl", maxdisp=192, t=9)
   assert inference.twin_split_needed(big, (1, 1024, 1280, 3))
   assert not inference.twin_split_needed(big, (1, 256, 320, 3))
-  assert not inference.twin_split_needed(build_model("psmnet", maxdisp=192), (1, 1024, 1280, 3))
+  assert not inference.twin_split_needed(ModelConfig.of("psmnet", maxdisp=192),
+                                         (1, 1024, 1280, 3))

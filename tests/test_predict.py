@@ -116,7 +116,7 @@ def test_predict_writes_ply_that_agrees_with_its_disparity(tmp_path, capsys):
   scene = _scene(tmp_path / "data" / "s1")
   out = tmp_path / "out"
   assert cli.main(["predict", "sgbm", str(scene / "im0.png"), str(scene / "im1.png"),
-                   "--out", str(out), "--maxdisp", "16"]) == 0
+                   "--out", str(out), "--num-disparities", "16"]) == 0
   assert "points" in capsys.readouterr().out
   names = {p.name for p in out.iterdir()}
   assert names == {"disparity.pfm", "disparity.png", "depth_mm.pfm", "depth_mm.png", "cloud.ply"}
@@ -200,10 +200,10 @@ def test_predict_sl_model_writes_confidence(tmp_path):
   scene = _scene(tmp_path / "s", size=(30, 50))
   out = tmp_path / "out"
   assert cli.main(["predict", str(model), str(scene / "im0.png"), str(scene / "im1.png"),
-                   "--out", str(out), "--maxdisp", "12"]) == 0
+                   "--out", str(out), "--search-range", "12"]) == 0
   conf = read_pfm(out / "confidence.pfm")
   assert conf.shape == (30, 50) and (conf >= 0).all() and (conf <= 1).all()
-  assert read_pfm(out / "disparity.pfm").max() <= 12  # --maxdisp is the correlation range
+  assert read_pfm(out / "disparity.pfm").max() <= 12  # the correlation's search range
   assert (out / "confidence.png").exists() and (out / "cloud.ply").exists()
 
 
@@ -245,20 +245,26 @@ def test_predict_bad_inputs(tmp_path, capsys):
   (pairs / "right").mkdir()
   write_image(pairs / "left" / "a.png", np.zeros((8, 8)))
   assert "right/a.png: missing" in _one_error(capsys, base + [str(pairs), "--out", out])
-  assert "--maxdisp" in _one_error(capsys, base + [left, right, "--maxdisp", "0", "--out", out])
+  # Each range belongs to one kind of model, and says which is the right one.
+  assert "its disparity range is --num-disparities" in _one_error(
+      capsys, base + [left, right, "--maxdisp", "16", "--out", out])
   assert "--max-depth must be positive (mm), got -1.0" in _one_error(
       capsys, base + [left, right, "--max-depth", "-1", "--out", out])
   psm = _converted_model(tmp_path / "psm", "psmnet", {"maxdisp": 16, "in_channels": 3},
                          hw=(32, 32))
   assert "multiple of 16" in _one_error(
       capsys, ["predict", str(psm), left, right, "--maxdisp", "20", "--out", out])
+  assert "search_range is unet-sl's correlation range; psmnet has none" in _one_error(
+      capsys, ["predict", str(psm), left, right, "--search-range", "20", "--out", out])
+  assert "--num-disparities is sgbm's range" in _one_error(
+      capsys, ["predict", str(psm), left, right, "--num-disparities", "16", "--out", out])
   assert not (tmp_path / "out").exists()  # no bad input left anything behind
 
 
 def test_predict_pairs_from_python_takes_a_str_out_and_checks_its_arguments_first(tmp_path):
   scene = _scene(tmp_path / "s")
   pairs = predict.find_pairs([str(scene / "im0.png"), str(scene / "im1.png")])
-  sgbm = predict.load_predictor("sgbm", maxdisp=16)
+  sgbm = predict.load_predictor("sgbm", num_disparities=16)
   out = tmp_path / "out"
   for bad in (0, -1.0, float("nan")):  # else every pixel silently unknown: an empty cloud
     with pytest.raises(SljaxError, match="max_depth must be positive"):
@@ -305,7 +311,7 @@ def test_full_disk_keeps_the_earlier_file(tmp_path, capsys, monkeypatch, victim)
   scene = _scene(tmp_path / "data" / "s1")
   out = tmp_path / "out"
   argv = ["predict", "sgbm", str(scene / "im0.png"), str(scene / "im1.png"), "--out", str(out),
-          "--maxdisp", "16"]
+          "--num-disparities", "16"]
   assert cli.main(argv) == 0
   before = {p.name: p.read_bytes() for p in out.iterdir()}
 

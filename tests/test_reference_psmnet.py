@@ -20,7 +20,7 @@ import pytest
 
 import reference_weights as rw
 from sljax import inference
-from sljax.nets import PSMNet, PSMNetMTL, detach_sl
+from sljax.nets import ModelConfig, PSMNet, PSMNetMTL, detach_sl
 from sljax.nets.convert import convert_state_dict
 from sljax.nets.psmnet import reference_key
 
@@ -152,7 +152,8 @@ def test_twin_disparity_path_matches_the_reference(fixture, variables):
   case = CASES["pad"]
   model = PSMNetMTL(maxdisp=case.maxdisp, t=4)
   twin = _twin_variables(variables, model, case)
-  predictor = inference.Predictor(model, twin, model_name="psmnet-mtl", mode="pad")
+  predictor = inference.Predictor(ModelConfig.of("psmnet-mtl", maxdisp=case.maxdisp, t=4,
+                                                 conv_impl=model.conv_impl), twin)
   left, right = rw.images(case)
   out = predictor(left[0], right[0])
   assert out["patterns"].shape == (case.height, case.width, 4)

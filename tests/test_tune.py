@@ -255,8 +255,8 @@ def test_auto_resolves_once_and_a_resume_keeps_the_saved_choice(tmp_path, monkey
 
 def test_inference_runs_its_forward_with_the_choice(monkeypatch):
   got = []
-  real = inference.forward
-  monkeypatch.setattr(inference, "forward", lambda *a: got.append(a[-1]) or real(*a))
+  real = inference.predictor.forward
+  monkeypatch.setattr(inference.predictor, "forward", lambda *a: got.append(a[-1]) or real(*a))
   kw = {"in_channels": 1, "depth": 2, "base_width": 4}
   from sljax.nets import build_model
   model = build_model("unet-disp", **kw)

@@ -1,6 +1,7 @@
 """Tiny stand-in models shared by the tests (inference, evaluation, the training loop),
 another process holding a folder, and a child process's environment."""
 
+import contextlib
 import functools
 import os
 import subprocess
@@ -10,6 +11,7 @@ from pathlib import Path
 import flax.linen as nn
 import jax.numpy as jnp
 
+from sljax.nets import registry
 from sljax.nets.model_config import INIT_COMPILER_OPTIONS
 from sljax.train import state as train_state
 from sljax.train import step as stp
@@ -19,12 +21,34 @@ ROOT = Path(__file__).resolve().parent.parent
 
 class ToySL(nn.Module):
   """Pattern logits = +-20 from the views themselves (t = channels), both views."""
+  in_channels: int = 3
+  conv_impl: str | None = None
 
   @nn.compact
   def __call__(self, left, right, train=False):
     gain = self.param("gain", nn.initializers.ones, ())
     return {"sl_logits": 20.0 * gain * (2.0 * left - 1.0),
             "sl_logits_right": 20.0 * gain * (2.0 * right - 1.0)}
+
+
+def toy_spec(name: str, cls: type, outputs: tuple[str, ...] = ("disparity",), pad: str = "zero",
+             gray: bool = True) -> registry.NetSpec:
+  """A registry entry for a toy network of the tests (a flax module at a module's top level
+  with in_channels and conv_impl fields, as ModelConfig.build passes them)."""
+  return registry.NetSpec(name, f"{cls.__module__}:{cls.__qualname__}", parts=(),
+                          tasks=("disp",), gray=gray, outputs=outputs, options=(), pad=pad)
+
+
+@contextlib.contextmanager
+def registered(*specs: registry.NetSpec):
+  """The toy networks in sljax.nets.registry.NETS while the block runs."""
+  added = [s.name for s in specs if s.name not in registry.NETS]
+  registry.NETS.update({s.name: s for s in specs if s.name in added})
+  try:
+    yield
+  finally:
+    for name in added:
+      del registry.NETS[name]
 
 
 class TinyTwin(nn.Module):

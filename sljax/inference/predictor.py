@@ -150,6 +150,11 @@ class Predictor:
     return self.config.net
 
   @property
+  def model_kwargs(self) -> dict[str, Any]:
+    """The network's build options, as a checkpoint's config.json keeps them."""
+    return self.config.saved_kwargs
+
+  @property
   def is_sl(self) -> bool:
     """True when the network predicts structured-light patterns."""
     return "sl_logits" in self.config.spec.outputs

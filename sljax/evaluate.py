@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from sljax import files, metrics
+from sljax import files, markdown, metrics
 from sljax.corr.uncertainty import pattern_uncertainty
 from sljax.data import scared
 from sljax.data.pfm import read_pfm, write_pfm
@@ -261,12 +261,6 @@ def _fmt(value: Any, key: str = "") -> str:
   return f"{value:.3f}"
 
 
-def _table(header: list[str], rows: list[list[str]]) -> list[str]:
-  lines = ["| " + " | ".join(header) + " |", "|" + "|".join(" --- " for _ in header) + "|"]
-  lines += ["| " + " | ".join(r) + " |" for r in rows]
-  return lines
-
-
 def markdown_report(report: dict[str, Any]) -> str:
   """The report as Markdown: context lines, the pooled table, pattern accuracy, per-scene rows."""
   lines = [f"# Evaluation: {report['model']}", ""]
@@ -288,7 +282,7 @@ def markdown_report(report: dict[str, Any]) -> str:
     lines.append("")
     rows = [[r.capitalize(), str(pooled[r]["n_scenes"])] + [_fmt(pooled[r].get(k), k) for k in keys]
             for r in regions]
-    lines += _table(["region", "scenes"] + [_HEADERS[k] for k in keys], rows)
+    lines += markdown.table(["region", "scenes"] + [_HEADERS[k] for k in keys], rows)
     lines.append("")
   for view in ("left", "right"):
     p = pooled.get(f"patterns_{view}")
@@ -310,7 +304,7 @@ def markdown_report(report: dict[str, Any]) -> str:
       if "coverage" in k:
         mae = "excluded" if k["excluded"] else _fmt(k["depth_mae_mm"])
         rows.append([r["scene"], f"{100 * k['coverage']:.1f}", f"{100 * k['assessed']:.1f}", mae])
-    lines += _table(["keyframe", "coverage %", "assessed %", "depth MAE mm"], rows)
+    lines += markdown.table(["keyframe", "coverage %", "assessed %", "depth MAE mm"], rows)
     lines.append("")
   if regions:
     lines.append("## Per scene")
@@ -330,7 +324,7 @@ def markdown_report(report: dict[str, Any]) -> str:
       if "depth_mae_mm" in keys:
         cells.append(_fmt(full.get("depth_mae_mm")))
       rows.append(cells)
-    lines += _table(header, rows)
+    lines += markdown.table(header, rows)
     lines.append("")
   return "\n".join(lines)
 

@@ -61,7 +61,7 @@ def test_v2_test_sets_are_the_same_for_every_seed_and_arm_and_disjoint_from_trai
     for e in cell.evals:
       source, idx = runner._eval_source(cell, e)  # pylint: disable=protected-access
       assert e.kind == plans.FIXED and source.seed == plans.TEST_SEED
-      assert idx == list(range(plan.scale.test_n))
+      assert idx == list(range(plan.scale.v2.test_n))
       by_set.setdefault(e.name, set()).add((source.seed, source.config, tuple(idx)))
       test_groups = {source.group(i) for i in idx}
       train = open_source(cell.config)

@@ -133,10 +133,13 @@ def list_plans(args: argparse.Namespace) -> int:
   for scale in plans.SCALES.values():
     print(f"scale {scale.name}: {scale.size}x{scale.size}, t = {scale.t}, maxdisp "
           f"{scale.maxdisp}, {scale.objects_n} objects scenes, batch {scale.batch_size}, Adam "
-          f"{scale.lr:g}, epochs {scale.epochs} (1/16: {scale.small_epochs}), fine-tuning "
-          f"{scale.finetune_epochs} epochs on {scale.tissue_n} tissue scenes; {scale.note}"
-          + (f"; v2: test sets of {scale.test_n} scenes per domain, windows "
-             f"{', '.join(map(str, scale.windows))}, budgets "
-             + (", ".join(f"{a} {p}: {e}" for (a, p), e in scale.budgets) or "not calibrated")
-             if scale.test_n else ""))
+          f"{scale.lr:g}, epochs {scale.schedule.epochs} (1/16: {scale.schedule.small_epochs}), "
+          f"fine-tuning {scale.schedule.finetune_epochs} epochs on {scale.tissue_n} tissue "
+          f"scenes; {scale.note}"
+          + (f"; v2: test sets of {scale.v2.test_n} scenes per domain, windows "
+             f"{', '.join(map(str, scale.v2.windows))}, budgets "
+             + (", ".join(f"{a} {p}: {e}" for (a, p), e in scale.v2.budgets) or "not calibrated")
+             if scale.v2.test_n else "")
+          + (f"; v3: pilot at {', '.join(scale.v3.fractions)}, {scale.v3.pilot_epochs} epochs"
+             if scale.v3 else ""))
   return 0

@@ -10,7 +10,7 @@ from typing import Any
 from matplotlib.figure import Figure
 from matplotlib.ticker import MaxNLocator
 
-from sljax import files
+from sljax import files, markdown
 from sljax.files import read_json_object
 from sljax.errors import SljaxError
 from sljax.nets.registry import NETS
@@ -89,7 +89,7 @@ def summary_table(runs: list[dict[str, Any]]) -> str:
       if k.startswith("val_") and k != "val_mae" and _finite(final[k]) and k not in extra:
         extra.append(k)
   header = ["run", "workdir", "epochs", "final val MAE px", "best val MAE px (epoch)"] + extra
-  lines = ["| " + " | ".join(header) + " |", "|" + "|".join(" --- " for _ in header) + "|"]
+  rows = []
   for r in runs:
     vals = [rec for rec in r["records"] if _finite(rec.get("val_mae"))]
     epochs = max((rec["epoch"] for rec in r["records"]), default=0)
@@ -100,8 +100,8 @@ def summary_table(runs: list[dict[str, Any]]) -> str:
       cells += [f"{final[k]:.4g}" if _finite(final.get(k)) else "-" for k in extra]
     else:
       cells = ["-", "-"] + ["-"] * len(extra)
-    lines.append("| " + " | ".join([r["label"], f"`{r['workdir']}`", str(epochs)] + cells) + " |")
-  return "\n".join(lines) + "\n"
+    rows.append([r["label"], f"`{r['workdir']}`", str(epochs)] + cells)
+  return "\n".join(markdown.table(header, rows)) + "\n"
 
 
 def plot(runs: list[dict[str, Any]], out: str | os.PathLike, title: str = "Validation MAE",

@@ -13,6 +13,7 @@ from typing import Any
 
 from sljax.experiment import stats
 from sljax.experiment.plans import HELDOUT, Plan
+from sljax.losses.weighting import MULTI_TASK
 
 ALPHA = 0.05
 POWER = 0.8
@@ -90,7 +91,7 @@ def claims(plan: Plan, agg: dict[str, Any]) -> list[dict[str, Any]]:
     for frac in (("1/16",) if v2 else ("all", "1/16")):
       g = group(data=frac)
       set_name = "test-objects" if v2 else HELDOUT
-      for arm in ("cg_a", "cg_b", "epr", "unc"):
+      for arm in MULTI_TASK:
         for metric, label in (("mae", "Full"), ("seg_mae", "Seg")):
           add(f"{frac} data: {arm} has a lower {label} MAE than stl", g, set_name, arm, metric,
               paper_gain=_paper_gain("table2", frac, arm, metric),
@@ -118,7 +119,7 @@ def claims(plan: Plan, agg: dict[str, Any]) -> list[dict[str, Any]]:
     for set_name in g["sets"]:
       if set_name in in_domain:  # table3 is about other domains; in-domain is table2's
         continue
-      for arm in ("cg_a", "cg_b", "epr", "unc"):
+      for arm in MULTI_TASK:
         add(f"{set_name}: {arm} has a lower MAE than stl (paper: stl last everywhere)", g,
             set_name, arm, "mae")
   elif base_name == "fig7":
@@ -127,7 +128,7 @@ def claims(plan: Plan, agg: dict[str, Any]) -> list[dict[str, Any]]:
       if g is None:
         continue
       set_name = "test-tissue" if v2 else HELDOUT
-      for arm in ("cg_a", "cg_b", "epr", "unc"):
+      for arm in MULTI_TASK:
         add(f"{where} fine-tuning: {arm} ends with a lower MAE than stl (paper: only unc)", g,
             set_name, arm, "mae", paper_gain=arm == "unc")
   adjusted = stats.holm([c["difference"]["p"] if "difference" in c else math.nan for c in out])

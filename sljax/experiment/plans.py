@@ -37,6 +37,7 @@ Plans:
   Its seeds (100, 101, ...) are never used by a test cell.
 """
 
+
 import dataclasses
 from collections.abc import Callable
 from pathlib import Path
@@ -45,7 +46,7 @@ from typing import Any
 from sljax import files
 from sljax.data.dataset import FolderSource
 from sljax.errors import SljaxError, require
-from sljax.losses.weighting import STRATEGIES
+from sljax.losses.weighting import SINGLE_TASK, STRATEGIES
 from sljax.train.config import QUICK, TrainConfig
 from sljax.train.state import LR_DROP
 
@@ -61,106 +62,29 @@ PHASES = ("objects", "1/16", "finetune")  # the budgets of a scale: all data, 1/
 
 
 @dataclasses.dataclass(frozen=True)
-class Scale:
-  """The sizes of a plan: image and pattern counts, data, epochs, optimiser."""
-  name: str
-  size: int                # training = render size (square)
-  t: int                   # patterns per view, both domains (objects binary, tissue Gray)
-  maxdisp: int
-  objects_n: int           # synthetic objects scenes (train + held-out)
-  tissue_n: int            # synthetic tissue scenes: the scarce fine-tuning set
+class Schedule:
+  """v1's budgets and validation cadence at a scale (docs/results-v1.md, "Why this scale")."""
   epochs: int              # objects training, all of the training split
   small_epochs: int        # objects training on 1/16 of it
   finetune_epochs: int
-  batch_size: int
-  lr: float
-  lr_drop: bool            # lr 10x lower for the last quarter of the epochs; fine-tuning
-                           # continues at the lower rate (else fixed, as the paper)
-  corr_window: int         # unet-sl's correlation window (17 at 256 px, scaled with size)
-  unet_width: int
-  unet_depth: int
   val_every: int           # epochs between validations (training curves)
   small_val_every: int
-  max_val: int | None      # validation scenes for the curves (the report scores all)
-  note: str
-  # v2 (docs/plan-v2.md): correlation windows unet-sl chooses from on validation; scenes per
-  # domain in the fixed test sets; budgets: ((arm or "*", phase), epochs) set by the
-  # calibration rule (empty: not calibrated yet); calib_epochs: ((phase, epochs)) of the long
-  # calibration runs.
+
+
+@dataclasses.dataclass(frozen=True)
+class V2Design:
+  """The v2 choices at a scale (docs/plan-v2.md): unet-sl's candidate correlation windows, the
+  fixed test sets' scenes per domain, the budgets ((arm or "*", phase), epochs) set by the
+  calibration rule (empty: not calibrated) and the long calibration runs' (phase, epochs)."""
   windows: tuple[int, ...] = ()
   test_n: int = 0
   budgets: tuple[tuple[tuple[str, str], int], ...] = ()
   calib_epochs: tuple[tuple[str, int], ...] = ()
-  # --ynn of every cell: "auto" tunes on first use; smoke keeps XLA's defaults ("on"), since
-  # its programs run for seconds and tuning would take longer than the whole plan.
-  ynn: str = "auto"
-  # --conv-impl of every cell: smoke's programs run for seconds, so compiling the fast kernels
-  # costs more than they save there (benchmarks/bench_smoke.py).
-  conv_impl: str = "auto"
-
-  def budget(self, arm: str, phase: str) -> int:
-    """The v2 epochs of an arm in a phase (its own calibrated budget, else the scale's "*");
-    SljaxError when the scale has none yet."""
-    table = dict(self.budgets)
-    epochs = table.get((arm, phase), table.get(("*", phase)))
-    require(epochs is not None,
-            f"scale {self.name} has no calibrated budget for {arm} ({phase}) yet: run `sljax "
-            f"experiment calibrate PLAN OUT --scale {self.name}` and commit the budgets it "
-            "prints (docs/plan-v2.md)")
-    return epochs
-
-
-SCALES = {s.name: s for s in (
-    Scale("smoke", size=32, t=5, maxdisp=16, objects_n=40, tissue_n=20, epochs=2,
-          small_epochs=2, finetune_epochs=2, batch_size=2, lr=1e-3, lr_drop=False,
-          corr_window=3, unet_width=4, unet_depth=2, val_every=1, small_val_every=1,
-          max_val=4, note="a few minutes on a CPU; the tests run it", windows=(3, 5), test_n=20,
-          budgets=((("*", "objects"), 2), (("*", "1/16"), 2), (("*", "finetune"), 2)),
-          calib_epochs=(("objects", 3), ("1/16", 3), ("finetune", 3)), ynn="on",
-          conv_impl="lax"),
-    Scale("cpu", size=64, t=6, maxdisp=16, objects_n=400, tissue_n=80, epochs=12,
-          small_epochs=96, finetune_epochs=40, batch_size=4, lr=1e-3, lr_drop=True,
-          corr_window=5, unet_width=16, unet_depth=4, val_every=1, small_val_every=8,
-          max_val=40,
-          note="fits a 2-core CPU: 64x64 with 6 patterns keeps the finest stripe about "
-               "1.5 px wide, as 8 patterns at 256x256; Adam 1e-3 dropping to 1e-4 for the "
-               "last quarter of the epochs brings validation to a plateau within the budget; "
-               "the 1/16 runs take 8x the epochs (half the full runs' steps), which their "
-               "plateau needs",
-          windows=(5, 9, 17), test_n=500,
-          # v1's budgets, calibrated on stl on seed 0's held-out split: v2's validation split.
-          budgets=((("*", "objects"), 12), (("*", "1/16"), 96), (("*", "finetune"), 40)),
-          calib_epochs=(("objects", 36), ("1/16", 288), ("finetune", 120))),
-    Scale("cpu128", size=128, t=7, maxdisp=32, objects_n=400, tissue_n=80, epochs=12,
-          small_epochs=96, finetune_epochs=40, batch_size=4, lr=1e-3, lr_drop=True,
-          corr_window=9, unet_width=16, unet_depth=4, val_every=1, small_val_every=8,
-          max_val=40,
-          note="the second CPU scale: 128x128 with 7 patterns keeps the finest stripe 1.68 px "
-               "wide (docs/plan-v2.md), maxdisp 32 covers the disparities (<= 0.22 x 128 = "
-               "28 px); unet-sl's window is chosen on validation from 5, 9, 13, 17, 25; every "
-               "budget is set on validation by the calibration rule",
-          windows=(5, 9, 13, 17, 25), test_n=500,
-          # `sljax experiment calibrate table1-v2 runs/calib-cpu128 --scale cpu128` (seed 0,
-          # validation only, commit 342ae01, AMD EPYC family 25 model 1, 2 cores): no arm
-          # reached a plateau within its long run, so by the rule each budget is the whole run.
-          # Plateau epochs and best smoothed validation MAE: unet-sl objects 57/60, 2.648 px;
-          # unet-sl fine-tuning 107/120, 3.289 px; unet-disp objects 50/60, 0.622 px;
-          # unet-disp fine-tuning 91/120, 0.518 px.
-          budgets=((("unet-sl", "objects"), 60), (("unet-sl", "finetune"), 120),
-                   (("unet-disp", "objects"), 60), (("unet-disp", "finetune"), 120)),
-          calib_epochs=(("objects", 60), ("1/16", 288), ("finetune", 120))),
-    Scale("paper", size=256, t=8, maxdisp=96, objects_n=8000, tissue_n=500, epochs=120,
-          small_epochs=120, finetune_epochs=40, batch_size=12, lr=1e-4, lr_drop=False,
-          corr_window=17, unet_width=32, unet_depth=4, val_every=1, small_val_every=1,
-          max_val=None,
-          note="the paper's sizes (256x256, maxdisp 96, 120 epochs, Adam 1e-4); for an "
-               "accelerator"),
-)}
 
 
 @dataclasses.dataclass(frozen=True)
-class Overfit:
-  """The v3 design at a scale (docs/plan-v3.md): the pilot's training fractions (largest
+class V3Design:
+  """The v3 choices at a scale (docs/plan-v3.md): the pilot's training fractions (largest
   first), its fixed budget, the validation cadence of every v3 cell and the pilot's first
   seed."""
   fractions: tuple[str, ...]
@@ -169,10 +93,86 @@ class Overfit:
   first_seed: int
 
 
-V3 = {
-    "smoke": Overfit(("1/4", "1/8"), pilot_epochs=4, val_every=2, first_seed=100),
-    "cpu": Overfit(("1/16", "1/32", "1/64"), pilot_epochs=240, val_every=4, first_seed=100),
-}
+@dataclasses.dataclass(frozen=True)
+class Scale:
+  """The sizes of a plan: images and patterns, data, optimiser, networks, and the schedules and
+  designs of v1, v2 and v3 at this scale."""
+  name: str
+  size: int                # training = render size (square)
+  t: int                   # patterns per view, both domains (objects binary, tissue Gray)
+  maxdisp: int
+  objects_n: int           # synthetic objects scenes (train + held-out)
+  tissue_n: int            # synthetic tissue scenes: the scarce fine-tuning set
+  batch_size: int
+  lr: float
+  lr_drop: bool            # lr 10x lower for the last quarter of the epochs; fine-tuning
+                           # continues at the lower rate (else fixed, as the paper)
+  corr_window: int         # unet-sl's correlation window (17 at 256 px, scaled with size)
+  unet_width: int
+  unet_depth: int
+  max_val: int | None      # validation scenes for the curves (the report scores all)
+  schedule: Schedule
+  note: str
+  v2: V2Design = V2Design()
+  v3: V3Design | None = None
+  # --ynn and --conv-impl of every cell: "auto" tunes and chooses per machine; the smoke scale
+  # keeps XLA's defaults and lax, since its programs run for seconds (benchmarks/bench_smoke.py).
+  ynn: str = "auto"
+  conv_impl: str = "auto"
+
+  def budget(self, arm: str, phase: str) -> int:
+    """The v2 epochs of an arm in a phase (its own calibrated budget, else the scale's "*");
+    SljaxError when the scale has none yet."""
+    table = dict(self.v2.budgets)
+    epochs = table.get((arm, phase), table.get(("*", phase)))
+    require(epochs is not None,
+            f"scale {self.name} has no calibrated budget for {arm} ({phase}) yet: run `sljax "
+            f"experiment calibrate PLAN OUT --scale {self.name}` and commit the budgets it "
+            "prints (docs/plan-v2.md)")
+    return epochs
+
+
+# One row per scale; where each value came from is in docs/plan-v2.md ("Scales").
+SCALES = {s.name: s for s in (
+    Scale("smoke", size=32, t=5, maxdisp=16, objects_n=40, tissue_n=20, batch_size=2, lr=1e-3,
+          lr_drop=False, corr_window=3, unet_width=4, unet_depth=2, max_val=4,
+          schedule=Schedule(2, 2, 2, val_every=1, small_val_every=1),
+          note="a few minutes on a CPU; the tests run it",
+          v2=V2Design(windows=(3, 5), test_n=20,
+                      budgets=((("*", "objects"), 2), (("*", "1/16"), 2), (("*", "finetune"), 2)),
+                      calib_epochs=(("objects", 3), ("1/16", 3), ("finetune", 3))),
+          v3=V3Design(("1/4", "1/8"), pilot_epochs=4, val_every=2, first_seed=100),
+          ynn="on", conv_impl="lax"),
+    Scale("cpu", size=64, t=6, maxdisp=16, objects_n=400, tissue_n=80, batch_size=4, lr=1e-3,
+          lr_drop=True, corr_window=5, unet_width=16, unet_depth=4, max_val=40,
+          schedule=Schedule(12, 96, 40, val_every=1, small_val_every=8),
+          note="fits a 2-core CPU: 64x64 with 6 patterns keeps the finest stripe about "
+               "1.5 px wide, as 8 patterns at 256x256; Adam 1e-3 dropping to 1e-4 for the "
+               "last quarter of the epochs brings validation to a plateau within the budget; "
+               "the 1/16 runs take 8x the epochs (half the full runs' steps), which their "
+               "plateau needs",
+          v2=V2Design(windows=(5, 9, 17), test_n=500,
+                      budgets=((("*", "objects"), 12), (("*", "1/16"), 96),
+                               (("*", "finetune"), 40)),
+                      calib_epochs=(("objects", 36), ("1/16", 288), ("finetune", 120))),
+          v3=V3Design(("1/16", "1/32", "1/64"), pilot_epochs=240, val_every=4, first_seed=100)),
+    Scale("cpu128", size=128, t=7, maxdisp=32, objects_n=400, tissue_n=80, batch_size=4,
+          lr=1e-3, lr_drop=True, corr_window=9, unet_width=16, unet_depth=4, max_val=40,
+          schedule=Schedule(12, 96, 40, val_every=1, small_val_every=8),
+          note="the second CPU scale: 128x128 with 7 patterns keeps the finest stripe 1.68 px "
+               "wide (docs/plan-v2.md), maxdisp 32 covers the disparities (<= 0.22 x 128 = "
+               "28 px); unet-sl's window is chosen on validation from 5, 9, 13, 17, 25; every "
+               "budget is set on validation by the calibration rule",
+          v2=V2Design(windows=(5, 9, 13, 17, 25), test_n=500,
+                      budgets=((("unet-sl", "objects"), 60), (("unet-sl", "finetune"), 120),
+                               (("unet-disp", "objects"), 60), (("unet-disp", "finetune"), 120)),
+                      calib_epochs=(("objects", 60), ("1/16", 288), ("finetune", 120)))),
+    Scale("paper", size=256, t=8, maxdisp=96, objects_n=8000, tissue_n=500, batch_size=12,
+          lr=1e-4, lr_drop=False, corr_window=17, unet_width=32, unet_depth=4, max_val=None,
+          schedule=Schedule(120, 120, 40, val_every=1, small_val_every=1),
+          note="the paper's sizes (256x256, maxdisp 96, 120 epochs, Adam 1e-4); for an "
+               "accelerator"),
+)}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -228,6 +228,9 @@ class Plan:
     return [c for c in self.cells if all((k, v) in c.factors for k, v in factors.items())]
 
 
+# ----------------------------------------------------------------------------- configurations
+
+
 def _frac_label(fraction: str) -> str:
   return "all" if fraction == "1" else fraction
 
@@ -238,13 +241,13 @@ def _drop(scale: Scale, epochs: int) -> int | None:
 
 def _base(scale: Scale, seed: int, epochs: int | None = None) -> TrainConfig:
   """The scale's TrainConfig for objects training (paper losses and strategies)."""
-  epochs = scale.epochs if epochs is None else epochs
+  epochs = scale.schedule.epochs if epochs is None else epochs
   return dataclasses.replace(
       QUICK, preset=f"experiment-{scale.name}", seed=seed, size=(scale.size, scale.size),
       synth_size=scale.size, synth_t=scale.t, maxdisp=scale.maxdisp, synth_n=scale.objects_n,
       epochs=epochs, batch_size=scale.batch_size, lr=scale.lr, lr_drop_epoch=_drop(scale, epochs),
       corr_window=scale.corr_window, unet_width=scale.unet_width, unet_depth=scale.unet_depth,
-      val_every=scale.val_every, max_val=scale.max_val, keep=2, ynn=scale.ynn,
+      val_every=scale.schedule.val_every, max_val=scale.max_val, keep=2, ynn=scale.ynn,
       conv_impl=scale.conv_impl)
 
 
@@ -253,8 +256,9 @@ def _on_target(config: TrainConfig, scale: Scale, data: str | None,
   """The config moved to the fine-tuning target (scarce synthetic tissue, or the user's data):
   every epoch validated, the learning rate where pretraining ended."""
   lr = config.lr * (LR_DROP if config.lr_drop_epoch is not None else 1.0)
-  moved = dataclasses.replace(config, epochs=scale.finetune_epochs if epochs is None else epochs,
-                              val_every=1, lr=lr, lr_drop_epoch=None)
+  moved = dataclasses.replace(
+      config, epochs=scale.schedule.finetune_epochs if epochs is None else epochs, val_every=1,
+      lr=lr, lr_drop_epoch=None)
   if data is not None:
     return dataclasses.replace(moved, data=data)
   return dataclasses.replace(moved, domain="tissue", synth_n=scale.tissue_n)
@@ -265,29 +269,148 @@ def _psmnet_name(strategy: str, where: str, fraction: str, seed: int) -> str:
   return f"psmnet-{strategy}-{where}{frac}-s{seed}"
 
 
+def test_set(domain: str, scale: Scale) -> EvalSet:
+  """The fixed v2 test set of a synthetic domain at a scale."""
+  return EvalSet(f"test-{domain}", FIXED, domain=domain, n=scale.v2.test_n)
+
+
+def _folders(eval_data: tuple[str, ...]) -> tuple[EvalSet, ...]:
+  """Scoring sets of whole scene-format folders (table3's --eval-data)."""
+  return tuple(EvalSet(Path(p).name, "folder", path=str(Path(p).resolve())) for p in eval_data)
+
+
+# ----------------------------------------------------------------------------- cells by plan
+
+
 Epochs = Callable[[str, str], int]  # (arm, phase) -> training epochs
 
 
+@dataclasses.dataclass(frozen=True)
+class Seeded:
+  """What a plan's cells of one seed are made from."""
+  scale: Scale
+  seed: int
+  data: str | None
+  eval_data: tuple[str, ...]
+  epochs: Epochs           # v1: the scale's schedule; v2: its calibrated budgets
+
+
 def _v1_epochs(scale: Scale) -> Epochs:
-  by_phase = {"objects": scale.epochs, "1/16": scale.small_epochs,
-              "finetune": scale.finetune_epochs}
+  s = scale.schedule
+  by_phase = {"objects": s.epochs, "1/16": s.small_epochs, "finetune": s.finetune_epochs}
   return lambda arm, phase: by_phase[phase]
 
 
-def _table2_cells(scale: Scale, seed: int, data: str | None, fractions: tuple[str, ...],
-                  evals: tuple[EvalSet, ...], epochs: Epochs) -> list[Cell]:
-  where = "data" if data else "objects"
+def _strategy_cells(a: Seeded, data: str | None, fractions: tuple[str, ...],
+                    evals: tuple[EvalSet, ...]) -> list[Cell]:
+  """table2's cells: every strategy at each training fraction, on objects (or `data`)."""
+  sc, where = a.scale, "data" if data else "objects"
   cells = []
   for fraction in fractions:
     small = fraction != "1"
     for strategy in STRATEGIES:
       config = dataclasses.replace(
-          _base(scale, seed, epochs(strategy, "1/16" if small else "objects")), model="psmnet",
-          strategy=strategy, fraction=fraction, data=data,
-          val_every=scale.small_val_every if small else scale.val_every)
-      cells.append(Cell(_psmnet_name(strategy, where, fraction, seed), strategy,
-                        (("data", _frac_label(fraction)),), seed, config, evals=evals))
+          _base(sc, a.seed, a.epochs(strategy, "1/16" if small else "objects")),
+          model="psmnet", strategy=strategy, fraction=fraction, data=data,
+          val_every=sc.schedule.small_val_every if small else sc.schedule.val_every)
+      cells.append(Cell(_psmnet_name(strategy, where, fraction, a.seed), strategy,
+                        (("data", _frac_label(fraction)),), a.seed, config, evals=evals))
   return cells
+
+
+def _fine_tuned(a: Seeded, pretrained: list[Cell], target: str, data: str | None,
+                evals: tuple[EvalSet, ...]) -> list[Cell]:
+  """fig7's cells: each pretrained PSMNet fine-tuned on the target."""
+  return [Cell(_psmnet_name(pre.arm, f"{target}-ft", "1", a.seed), pre.arm,
+               (("data", target),), a.seed,
+               _on_target(pre.config, a.scale, data, a.epochs(pre.arm, "finetune")),
+               init_cell=pre.name, evals=evals) for pre in pretrained]
+
+
+def _unets(a: Seeded, target: str, data: str | None, pre_evals: tuple[EvalSet, ...],
+           ft_evals: tuple[EvalSet, ...], windows: tuple[int, ...]) -> list[Cell]:
+  """table1's cells: unet-sl and unet-disp on objects, then fine-tuned on the target."""
+  cells = []
+  for model in ("unet-sl", "unet-disp"):
+    chosen = windows if model == "unet-sl" else ()
+    pre = dataclasses.replace(_base(a.scale, a.seed, a.epochs(model, "objects")), model=model,
+                              strategy=SINGLE_TASK)
+    pre_name = f"{model}-objects-s{a.seed}"
+    cells.append(Cell(pre_name, model, (("data", "objects"),), a.seed, pre, evals=pre_evals,
+                      windows=chosen))
+    cells.append(Cell(f"{model}-{target}-ft-s{a.seed}", model, (("data", target),), a.seed,
+                      _on_target(pre, a.scale, data, a.epochs(model, "finetune")),
+                      init_cell=pre_name, evals=ft_evals, windows=chosen))
+  return cells
+
+
+HELD = (EvalSet(HELDOUT, "heldout"),)
+
+
+def _table1(a: Seeded) -> list[Cell]:
+  target = "data" if a.data else "tissue"
+  return _unets(a, target, a.data, HELD, HELD, ())
+
+
+def _table2(a: Seeded) -> list[Cell]:
+  return _strategy_cells(a, a.data, ("1", "1/16"), HELD)
+
+
+def _table3(a: Seeded) -> list[Cell]:
+  tissue = EvalSet("tissue", "synthetic", domain="tissue", n=a.scale.tissue_n)
+  return _strategy_cells(a, a.data, ("1",), HELD + (tissue,) + _folders(a.eval_data))
+
+
+def _fig7(a: Seeded) -> list[Cell]:
+  pretrained = _strategy_cells(a, None, ("1",), HELD)
+  return pretrained + _fine_tuned(a, pretrained, "data" if a.data else "tissue", a.data, HELD)
+
+
+def _table1_v2(a: Seeded) -> list[Cell]:
+  objects, tissue = test_set("objects", a.scale), test_set("tissue", a.scale)
+  return _unets(a, "tissue", None, (objects,), (tissue,), a.scale.v2.windows)
+
+
+def _table2_v2(a: Seeded) -> list[Cell]:
+  return _strategy_cells(a, None, ("1/16",), (test_set("objects", a.scale),))
+
+
+def _table3_v2(a: Seeded) -> list[Cell]:
+  evals = (test_set("tissue", a.scale), test_set("objects", a.scale)) + _folders(a.eval_data)
+  return _strategy_cells(a, None, ("1",), evals)
+
+
+def _fig7_v2(a: Seeded) -> list[Cell]:
+  pretrained = _strategy_cells(a, None, ("1",), (test_set("objects", a.scale),))
+  return pretrained + _fine_tuned(a, pretrained, "tissue", None,
+                                  (test_set("tissue", a.scale),))
+
+
+def _v3_pilot(a: Seeded) -> list[Cell]:
+  """stl on objects at each of the design's fractions, constant learning rate, the pilot's
+  budget, every validation scene every val_every epochs; curves only (no test set)."""
+  design = a.scale.v3
+  cells = []
+  for fraction in design.fractions:
+    config = dataclasses.replace(
+        _base(a.scale, a.seed, design.pilot_epochs), model="psmnet", strategy=SINGLE_TASK,
+        fraction=fraction, lr_drop_epoch=None, val_every=design.val_every, max_val=None)
+    cells.append(Cell("pilot-" + _psmnet_name(SINGLE_TASK, "objects", fraction, a.seed),
+                      SINGLE_TASK, (("data", fraction),), a.seed, config))
+  return cells
+
+
+# Each shipped plan: its cells for one seed, and the arm the others are compared with.
+BUILDERS: dict[str, tuple[Callable[[Seeded], list[Cell]], str]] = {
+    "table1": (_table1, "unet-disp"), "table2": (_table2, SINGLE_TASK),
+    "table3": (_table3, SINGLE_TASK), "fig7": (_fig7, SINGLE_TASK),
+    "table1-v2": (_table1_v2, "unet-disp"), "table2-v2": (_table2_v2, SINGLE_TASK),
+    "table3-v2": (_table3_v2, SINGLE_TASK), "fig7-v2": (_fig7_v2, SINGLE_TASK),
+    V3_PILOT: (_v3_pilot, SINGLE_TASK),
+}
+
+
+# ----------------------------------------------------------------------------- plans
 
 
 def _pattern_count(data: str | None, scale: Scale) -> int:
@@ -298,92 +421,9 @@ def _pattern_count(data: str | None, scale: Scale) -> int:
   return scale.t if t is None else t
 
 
-def test_set(domain: str, scale: Scale) -> EvalSet:
-  """The fixed v2 test set of a synthetic domain at a scale."""
-  return EvalSet(f"test-{domain}", FIXED, domain=domain, n=scale.test_n)
-
-
-def _v1_cells(name: str, sc: Scale, seed: int, data: str | None,
-              eval_data: tuple[str, ...]) -> list[Cell]:
-  heldout = EvalSet(HELDOUT, "heldout")
-  epochs = _v1_epochs(sc)
-  cells: list[Cell] = []
-  target = "data" if data else "tissue"
-  if name == "table1":
-    for model in ("unet-sl", "unet-disp"):
-      pre = dataclasses.replace(_base(sc, seed), model=model, strategy="stl")
-      pre_name = f"{model}-objects-s{seed}"
-      cells.append(Cell(pre_name, model, (("data", "objects"),), seed, pre, evals=(heldout,)))
-      cells.append(Cell(f"{model}-{target}-ft-s{seed}", model, (("data", target),), seed,
-                        _on_target(pre, sc, data), init_cell=pre_name, evals=(heldout,)))
-  elif name == "table2":
-    cells += _table2_cells(sc, seed, data, ("1", "1/16"), (heldout,), epochs)
-  elif name == "table3":
-    evals = (heldout, EvalSet("tissue", "synthetic", domain="tissue", n=sc.tissue_n))
-    evals += tuple(EvalSet(Path(p).name, "folder", path=str(Path(p).resolve()))
-                   for p in eval_data)
-    cells += _table2_cells(sc, seed, data, ("1",), evals, epochs)
-  else:  # fig7
-    pretrained = _table2_cells(sc, seed, None, ("1",), (heldout,), epochs)
-    cells += pretrained
-    for pre in pretrained:
-      cells.append(Cell(_psmnet_name(pre.arm, f"{target}-ft", "1", seed), pre.arm,
-                        (("data", target),), seed, _on_target(pre.config, sc, data),
-                        init_cell=pre.name, evals=(heldout,)))
-  return cells
-
-
-def _v2_cells(name: str, sc: Scale, seed: int, eval_data: tuple[str, ...],
-              epochs: Epochs) -> list[Cell]:
-  """v2 cells: the v1 cells' training (budgets from the scale's calibration), scored on the
-  fixed test sets; unet-sl chooses its correlation window on validation."""
-  objects, tissue = test_set("objects", sc), test_set("tissue", sc)
-  cells: list[Cell] = []
-  if name == "table1-v2":
-    for model in ("unet-sl", "unet-disp"):
-      windows = sc.windows if model == "unet-sl" else ()
-      pre = dataclasses.replace(_base(sc, seed, epochs(model, "objects")), model=model,
-                                strategy="stl")
-      pre_name = f"{model}-objects-s{seed}"
-      cells.append(Cell(pre_name, model, (("data", "objects"),), seed, pre, evals=(objects,),
-                        windows=windows))
-      cells.append(Cell(f"{model}-tissue-ft-s{seed}", model, (("data", "tissue"),), seed,
-                        _on_target(pre, sc, None, epochs(model, "finetune")),
-                        init_cell=pre_name, evals=(tissue,), windows=windows))
-  elif name == "table2-v2":
-    cells += _table2_cells(sc, seed, None, ("1/16",), (objects,), epochs)
-  elif name == "table3-v2":
-    evals = (tissue, objects) + tuple(EvalSet(Path(p).name, "folder",
-                                              path=str(Path(p).resolve())) for p in eval_data)
-    cells += _table2_cells(sc, seed, None, ("1",), evals, epochs)
-  else:  # fig7-v2
-    pretrained = _table2_cells(sc, seed, None, ("1",), (objects,), epochs)
-    cells += pretrained
-    for pre in pretrained:
-      cells.append(Cell(_psmnet_name(pre.arm, "tissue-ft", "1", seed), pre.arm,
-                        (("data", "tissue"),), seed,
-                        _on_target(pre.config, sc, None, epochs(pre.arm, "finetune")),
-                        init_cell=pre.name, evals=(tissue,)))
-  return cells
-
-
-def _pilot_cells(sc: Scale, seed: int) -> list[Cell]:
-  """v3-pilot: stl on objects at each of the design's fractions, constant learning rate, the
-  pilot's budget, every validation scene every val_every epochs; curves only (no test set)."""
-  design = V3[sc.name]
-  cells = []
-  for fraction in design.fractions:
-    config = dataclasses.replace(
-        _base(sc, seed, design.pilot_epochs), model="psmnet", strategy="stl", fraction=fraction,
-        lr_drop_epoch=None, val_every=design.val_every, max_val=None)
-    cells.append(Cell("pilot-" + _psmnet_name("stl", "objects", fraction, seed), "stl",
-                      (("data", fraction),), seed, config))
-  return cells
-
-
 def plan_seeds(name: str, scale: str, seeds: int) -> tuple[int, ...]:
   """The seeds of a plan run with --seeds N: 0..N-1, or from the v3 pilot's first seed."""
-  first = V3[scale].first_seed if name == V3_PILOT else 0
+  first = SCALES[scale].v3.first_seed if name == V3_PILOT else 0
   return tuple(range(first, first + seeds))
 
 
@@ -391,8 +431,9 @@ def _check_args(name: str, scale: str, seeds: int, data: str | None,
                 eval_data: tuple[str, ...]) -> None:
   require(name in PLANS, f"unknown plan {name!r}; choose from {', '.join(PLANS)}")
   require(scale in SCALES, f"--scale {scale}: choose from {', '.join(SCALES)}")
-  require(name not in V3_PLANS or scale in V3,
-          f"--scale {scale}: plan {name} runs at {' or '.join(V3)} (docs/plan-v3.md)")
+  v3_scales = [s.name for s in SCALES.values() if s.v3 is not None]
+  require(name not in V3_PLANS or scale in v3_scales,
+          f"--scale {scale}: plan {name} runs at {' or '.join(v3_scales)} (docs/plan-v3.md)")
   require(seeds >= 1, f"--seeds {seeds}: must be at least 1")
   require(name in ("table3", "table3-v2") or not eval_data,
           "--eval-data applies to the table3 plans (scoring trained models on other data)")
@@ -411,23 +452,18 @@ def build_plan(name: str, scale: str = "cpu", seeds: int = 3, data: str | None =
   scale without calibrated budgets."""
   _check_args(name, scale, seeds, data, eval_data)
   sc = dataclasses.replace(SCALES[scale], t=_pattern_count(data, SCALES[scale]))
-  cells: list[Cell] = []
+  build, baseline = BUILDERS[name]
+  epochs = _v1_epochs(sc) if name in V1_PLANS else sc.budget
   seed_list = plan_seeds(name, scale, seeds)
-  for seed in seed_list:
-    if name in V1_PLANS:
-      cells += _v1_cells(name, sc, seed, data, eval_data)
-    elif name in V2_PLANS:
-      cells += _v2_cells(name, sc, seed, eval_data, sc.budget)
-    else:
-      cells += _pilot_cells(sc, seed)
-  baseline = "unet-disp" if name.startswith("table1") else "stl"
+  cells = [c for seed in seed_list
+           for c in build(Seeded(sc, seed, data, tuple(eval_data), epochs))]
   return Plan(name, sc, seed_list, tuple(cells), baseline, data, tuple(eval_data))
 
 
 def _calib_phases(name: str, sc: Scale) -> set[str]:
   """The budget phases (PHASES) whose epochs a v2 plan's cells ask for."""
   asked: set[str] = set()
-  _v2_cells(name, sc, 0, (), lambda arm, phase: asked.add(phase) or 1)
+  BUILDERS[name][0](Seeded(sc, 0, None, (), lambda arm, phase: asked.add(phase) or 1))
   return asked
 
 
@@ -439,18 +475,18 @@ def calibration_plan(name: str, scale: str) -> Plan:
           f"{', '.join(V2_PLANS)}")
   _check_args(name, scale, 1, None, ())
   able = [s.name for s in SCALES.values()
-          if _calib_phases(name, s) <= set(dict(s.calib_epochs))]
+          if _calib_phases(name, s) <= set(dict(s.v2.calib_epochs))]
   require(scale in able, f"calibrate --scale {scale}: the scale has no calibration epochs for "
           f"plan {name}; calibrate it at {', '.join(able[:-1])} or {able[-1]}")
   sc = SCALES[scale]
-  long_epochs = dict(sc.calib_epochs)
+  long_epochs = dict(sc.v2.calib_epochs)
+  build, baseline = BUILDERS[name]
   cells = [dataclasses.replace(
       c, name="calib-" + c.name.removesuffix("-s0"), evals=(), windows=(),
       init_cell=None if c.init_cell is None else "calib-" + c.init_cell.removesuffix("-s0"),
       config=dataclasses.replace(c.config, lr_drop_epoch=None, max_val=None))
-      for c in _v2_cells(name, sc, 0, (), lambda arm, phase: long_epochs[phase])]
-  return Plan(f"calibrate-{name}", sc, (0,), tuple(cells), "unet-disp" if name.startswith(
-      "table1") else "stl")
+      for c in build(Seeded(sc, 0, None, (), lambda arm, phase: long_epochs[phase]))]
+  return Plan(f"calibrate-{name}", sc, (0,), tuple(cells), baseline)
 
 
 def phase_of(cell: Cell) -> str:

@@ -80,7 +80,7 @@ def regime(out: str | Path, scale: str = "cpu", seeds: int = 2) -> dict[str, Any
   """The rule applied to the pilot under OUT (finished cells only; missing ones listed)."""
   out = Path(out)
   plan = plans.build_plan(plans.V3_PILOT, scale, seeds)
-  design = plans.V3[scale]
+  design = plan.scale.v3
   rows, missing = {}, []
   for fraction in design.fractions:
     cells = plan.cells_of(data=fraction)

@@ -27,7 +27,7 @@ from typing import Any, Sequence
 import numpy as np
 from matplotlib.figure import Figure
 
-from sljax import files
+from sljax import files, markdown
 from sljax.errors import SljaxError
 from sljax.evaluate import json_safe
 from sljax.experiment import stats
@@ -131,8 +131,7 @@ def _fmt_ci(s: dict[str, float], digits: int = 3) -> str:
 
 
 def _md_table(header: list[str], rows: list[list[str]]) -> list[str]:
-  return (["| " + " | ".join(header) + " |", "|" + "|".join(" --- " for _ in header) + "|"]
-          + ["| " + " | ".join(r) + " |" for r in rows] + [""])
+  return markdown.table(header, rows) + [""]
 
 
 # ----------------------------------------------------------------------------- aggregation

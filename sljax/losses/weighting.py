@@ -12,14 +12,40 @@ Task order everywhere is (sl, disp).
         (sigma = 1, so the initial effective weights are 0.25 and 0.5).
 """
 
+import dataclasses
 from collections.abc import Sequence
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-STRATEGIES = ("stl", "cg_a", "cg_b", "epr", "unc")
-CONSTANT_SL_GAIN = {"cg_a": 10.0, "cg_b": 0.5}
+
+
+@dataclasses.dataclass(frozen=True)
+class Strategy:
+  """One loss weighting: how its weights are set (see the module docstring)."""
+  name: str
+  weights: str                 # "constant" (sl_gain, 1), "dwa" or "uncertainty"
+  sl_gain: float = 0.0         # the constant weight of L_sl ("constant" only)
+
+  @property
+  def multi_task(self) -> bool:
+    """True when the twin's SL path trains too (every strategy but stl)."""
+    return self.weights != "constant" or self.sl_gain > 0
+
+  @property
+  def learns_sigmas(self) -> bool:
+    """True when the strategy has learnable log sigmas in the parameters (unc)."""
+    return self.weights == "uncertainty"
+
+
+# The one table of strategies; the order is the paper's.
+TABLE = {s.name: s for s in (
+    Strategy("stl", "constant"), Strategy("cg_a", "constant", 10.0),
+    Strategy("cg_b", "constant", 0.5), Strategy("epr", "dwa"), Strategy("unc", "uncertainty"))}
+STRATEGIES = tuple(TABLE)
+SINGLE_TASK = "stl"  # plain PSMNet: the baseline every multi-task strategy is compared with
+MULTI_TASK = tuple(name for name, s in TABLE.items() if s.multi_task)
 DWA_ZETA1 = 2.0
 DWA_ZETA2 = 2.0
 UNC_SL_GAIN = 0.5
@@ -29,11 +55,10 @@ UNCERTAINTY_KEY = "uncertainty"
 
 def constant_weights(strategy: str) -> np.ndarray:
   """(w_sl, w_disp) of the fixed strategies stl, cg_a and cg_b."""
-  if strategy == "stl":
-    return np.array([0.0, 1.0], np.float32)
-  if strategy in CONSTANT_SL_GAIN:
-    return np.array([CONSTANT_SL_GAIN[strategy], 1.0], np.float32)
-  raise ValueError(f"strategy {strategy!r} has no constant weights")
+  s = TABLE.get(strategy)
+  if s is None or s.weights != "constant":
+    raise ValueError(f"strategy {strategy!r} has no constant weights")
+  return np.array([s.sl_gain, 1.0], np.float32)
 
 
 def dwa_weights(history: Sequence[Sequence[float]], zeta1: float = DWA_ZETA1,
@@ -53,9 +78,10 @@ def epoch_weights(strategy: str, history: Sequence[Sequence[float]]) -> np.ndarr
 
   For unc they are multipliers (1, 1) on top of the learned uncertainty weighting.
   """
-  if strategy == "epr":
+  kind = TABLE[strategy].weights
+  if kind == "dwa":
     return dwa_weights(history)
-  if strategy == "unc":
+  if kind == "uncertainty":
     return np.ones(2, np.float32)
   return constant_weights(strategy)
 
@@ -89,7 +115,7 @@ def uncertainty_loss(l_sl: jax.Array, l_disp: jax.Array, log_sigma_sl: jax.Array
 
 def step_weights(strategy: str, history: Sequence[Sequence[float]]) -> np.ndarray:
   """The step's strategy input [w_sl, w_disp, unc]: one compiled step serves every strategy."""
-  unc = 1.0 if strategy == "unc" else 0.0
+  unc = 1.0 if TABLE[strategy].learns_sigmas else 0.0
   return np.array([*epoch_weights(strategy, history), unc], np.float32)
 
 

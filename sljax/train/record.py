@@ -8,6 +8,7 @@ from typing import Any
 import jax
 
 from sljax.errors import SljaxError
+from sljax.losses import weighting
 from sljax.models import checkpoint as ckpt
 from sljax.train import state as st
 from sljax.train.setup import Setup
@@ -33,9 +34,10 @@ def fetch_metrics(rec: Recorder, pending: list[tuple[int, Any]],
   """Fetches the pending steps' metrics, checks them, logs a row per step and adds their
   losses to the epoch sums; returns the new LoopState and the last row."""
   config, spe = rec.run.config, rec.run.steps_per_epoch
+  sigmas = weighting.TABLE[config.strategy].learns_sigmas
   rows = []
   for step, m in zip([s for s, _ in pending], jax.device_get([m for _, m in pending])):
-    m = {k: float(v) for k, v in m.items() if config.strategy == "unc" or not k.startswith("sigma")}
+    m = {k: float(v) for k, v in m.items() if sigmas or not k.startswith("sigma")}
     if not math.isfinite(m["loss"]):
       rec.writer.write(METRICS_FILE, rows)
       rec.manager.wait_until_finished()

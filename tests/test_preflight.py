@@ -217,6 +217,28 @@ def test_training_stops_before_its_first_step(tmp_path, monkeypatch):
   assert not (tmp_path / "w" / loop.METRICS_FILE).exists()
 
 
+def test_a_bad_file_is_named_before_any_tuning_or_compiling(tmp_path, monkeypatch, capsys):
+  """A 24-scene folder with one corrupt im0.png, on a CPU kind with empty tuning and pre-flight
+  caches (the cache_dir fixture): `train` names the file and stops before it tunes XLA's
+  settings (minutes on a new CPU kind) or compiles anything."""
+  from sljax import tune
+  monkeypatch.delenv("SLJAX_TUNE", raising=False)
+  assert tune.enabled(None) and tune.cached_choice() is None  # a first run on this CPU kind
+  tuned = []
+  monkeypatch.setattr(tune, "measure", lambda *a, **k: tuned.append(1) or pytest.fail("tuned"))
+  monkeypatch.setattr(loop, "compiled_steps",
+                      lambda *a, **k: pytest.fail("compiled before the data check"))
+  root = _dataset(tmp_path / "data", 24)
+  victim = root / "s17" / "im0.png"
+  victim.write_bytes(victim.read_bytes()[:-20])
+  assert cli.main(["train", "--data", str(root), "--size", "32", "--maxdisp", "16",
+                   "--batch-size", "2", "--epochs", "1", "--ynn", "auto",
+                   "--workdir", str(tmp_path / "w")]) == 2
+  err = capsys.readouterr().err.strip().splitlines()
+  assert f"{victim}: truncated" in err[-1] and not tuned
+  assert not (tmp_path / "w" / "config.json").exists()
+
+
 def test_one_pattern_rule_for_info_and_the_preflight_check():
   """dataset.json's count where it declares one (0 included), else the first scene's; `sljax
   info` flags exactly the datasets the pre-flight check refuses."""

@@ -33,7 +33,6 @@ import numpy as np
 from tqdm import tqdm
 
 from sljax import tune
-from sljax.data import preflight
 from sljax.errors import SljaxError, require
 from sljax.losses import weighting
 from sljax.nets import registry
@@ -183,11 +182,10 @@ def _train(config: TrainConfig, workdir: Path, resume: bool, overwrite: bool,
   """train() once its workdir is held."""
   config = with_absolute_paths(config)  # config.json names the folders from anywhere
   check_profile_dir(profile_dir)
-  run = setup(config, workdir, resume, overwrite, log, preset_note, source=open_source(config))
-  spe, main_process = run.steps_per_epoch, jax.process_index() == 0
-  preflight.check_run(run.source, [(run.train_idx, batch_parts(config)), (
-      run.val_idx, batch_parts(config, validation=run.info.has_disp))],
-                      progress=progress is True or (progress is None and main_process))
+  main_process = jax.process_index() == 0
+  run = setup(config, workdir, resume, overwrite, log, preset_note, source=open_source(config),
+              progress=progress is True or (progress is None and main_process))
+  spe = run.steps_per_epoch
   if overwrite:
     clear_run(workdir)  # only now: a run refused by its checks leaves the old one whole
 

@@ -12,6 +12,7 @@ import numpy as np
 from flax import traverse_util
 
 from sljax import tune
+from sljax.data import preflight
 from sljax.data.dataset import split_indices, take_fraction
 from sljax.errors import SljaxError, require
 from sljax.nets import detach_sl, registry
@@ -19,7 +20,7 @@ from sljax.nets.model_config import ModelConfig
 from sljax.models import checkpoint as ckpt
 from sljax.models import load as trained
 from sljax.train.config import TrainConfig, validate
-from sljax.train.feed import DataInfo, check_source, open_source
+from sljax.train.feed import DataInfo, batch_parts, check_source, open_source
 from sljax.train.workdir import prepare_workdir
 
 
@@ -120,9 +121,12 @@ def _why_no_held_out(source: Any) -> str:
 
 
 def setup(config: TrainConfig, workdir: Path, resume: bool, overwrite: bool,
-          log: Callable[[str], None], preset_note: str = "", source: Any = None) -> Setup:
-  """Checks the options, data and workdir (SljaxError before anything compiles) and announces
-  the run; source: the scenes (default open_source). The caller writes config.json
+          log: Callable[[str], None], preset_note: str = "", source: Any = None,
+          progress: bool = False) -> Setup:
+  """Checks the options, data and workdir (SljaxError before anything compiles or is tuned:
+  a bad file is named in seconds, not after minutes of tuning on a new CPU kind) and announces
+  the run; source: the scenes (default open_source); progress: the pre-flight check's bar.
+  The caller writes config.json
   (write_config) once the run has passed its checks and restored its checkpoint, so a new run
   that stops before that leaves no config.json (with --overwrite, the caller clears the old run
   once every check has passed: workdir.clear_run)."""
@@ -144,8 +148,11 @@ def setup(config: TrainConfig, workdir: Path, resume: bool, overwrite: bool,
           f" ({_why_no_held_out(source)})")
   steps_per_epoch = len(train_idx) // config.batch_size
   log(announce(config, preset_note, steps_per_epoch, len(train_idx), len(val_idx)))
-  config = resolve_ynn(config, workdir, resume, overwrite, log)  # may compile: after checks
   info = check_source(source, config)
+  preflight.check_run(source, [(train_idx, batch_parts(config)),
+                               (val_idx, batch_parts(config, validation=info.has_disp))],
+                      progress=progress)
+  config = resolve_ynn(config, workdir, resume, overwrite, log)  # may compile: after checks
   model_cfg = model_config(config, info)
   config_json = dict(config.to_json(), net=config.net, model_kwargs=model_cfg.saved_kwargs,
                      t=info.t,

@@ -40,12 +40,12 @@ ROOT = Path(__file__).resolve().parents[1]
 # module name -> (files to mutate, fast test files that cover them). JAX tests compile: keep
 # each list to the tests that exercise the module directly.
 MODULES: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
-    "stats": (("sljax/experiment/stats.py",), ("tests/test_stats.py", "tests/test_gaps_stats.py")),
+    "stats": (("sljax/experiment/stats.py",), ("tests/test_stats.py",)),
     "report": (("sljax/experiment/report.py",), ("tests/test_stats.py",)),
-    "geometry": (("sljax/geometry.py",), ("tests/test_gaps_geometry.py", "tests/test_predict.py")),
-    "metrics": (("sljax/metrics.py",), ("tests/test_metrics.py", "tests/test_gaps_metrics.py")),
-    "checkpoint": (("sljax/models/checkpoint.py", "sljax/models/load.py"), ("tests/test_gaps_checkpoint.py",
-                                                    "tests/test_checkpoint.py")),
+    "geometry": (("sljax/geometry.py",), ("tests/test_geometry.py", "tests/test_predict.py")),
+    "metrics": (("sljax/metrics.py",), ("tests/test_metrics.py",)),
+    "checkpoint": (("sljax/models/checkpoint.py", "sljax/models/load.py"),
+                   ("tests/test_load.py", "tests/test_checkpoint.py")),
     "losses": (("sljax/losses/disparity.py", "sljax/losses/sl.py", "sljax/losses/weighting.py"),
                ("tests/test_losses.py", "tests/test_weighting.py")),
     "corr": (("sljax/corr/correlation.py", "sljax/corr/uncertainty.py"),

@@ -1,7 +1,7 @@
 """Fingerprints of the scenes the committed v2 grids trained and were scored on.
 
 The grids ran on code frozen at one commit and their records are committed; the report and
-any later re-scoring run on main. tests/test_grid_records.py checks that main still builds the
+any later re-scoring run on main. tests/test_committed_records.py checks that main still builds the
 same cells (configurations); this checks that main still renders the same scenes for them, so
 that a change to the renderer, the split or a plan's data that would move the test sets under
 the records fails a test instead of passing unnoticed. Per scene: pixel count, mean and

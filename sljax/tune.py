@@ -11,7 +11,7 @@ that use it (`KernelChoice.compiler_options(kind)`, passed to `jax.jit`), never 
 The convolution kernels themselves are not tuned, because measuring them found no CPU that
 disagrees: the folded kernels train 3x faster than `lax` on Zen 3 (the main job) and were made
 because `lax` was several times slower on Zen 5, and block sizes of 16 Ki to 1 Mi values are
-within the noise on both (README, Benchmarks). They are chosen where
+within the noise on both (docs/benchmarks.md). They are chosen where
 the model is built (its `conv_impl`, `sljax.kernels`).
 
 How. `measure` compiles PSMNet itself (128x128, maxdisp 48, batch 1: the real mix of 2D and 3D

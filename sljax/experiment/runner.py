@@ -313,7 +313,7 @@ def train_cell(out: Path, cell: Cell, bar, weight: float) -> dict[str, Any]:
   done = {"step": result.step, "epochs": result.epochs_done, "last_val_mae": result.last_val,
           "train_seconds": sum(r["seconds"] for r in epochs),
           "wall_seconds_last_call": time.perf_counter() - t0,
-          "machine": machine.cpu_description()}  # a grid may span machines (README: times)
+          "machine": machine.cpu_description()}  # a grid may span machines
   write_json(wd / DONE_FILE, done)
   return done
 

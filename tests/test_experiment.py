@@ -199,9 +199,15 @@ def test_every_plan_builds_at_every_scale():
     for scale in plans.SCALES:
       try:
         plan = plans.build_plan(name, scale, 2)
-      except SljaxError as e:  # a v2 plan whose arms this scale has not calibrated yet
+      except SljaxError as e:
+        if name in plans.V3_PLANS:  # v3: scales with a v3 design, and a regime for the tests
+          design = plans.SCALES[scale].v3
+          assert ("runs at" in str(e) if design is None else
+                  design.regime is None and "no regime yet" in str(e)), (name, scale, e)
+          continue
+        # a v2 plan whose arms this scale has not calibrated yet
         assert name in plans.V2_PLANS and "no calibrated budget" in str(e), (name, scale, e)
-        assert not plans.SCALES[scale].budgets or scale == "cpu128", (name, scale)
+        assert not plans.SCALES[scale].v2.budgets or scale == "cpu128", (name, scale)
         continue
       plans.check_unique(plan)
       assert len({c.seed for c in plan.cells}) == 2
@@ -266,3 +272,34 @@ def test_a_second_runner_on_a_held_out_is_refused(capsys, tmp_path):
   finally:
     proc.kill()
     proc.wait()
+
+
+def test_a_cell_scored_on_its_best_checkpoint_keeps_it(tmp_path):
+  """v3 scores the best checkpoint by validation too: the finished cell keeps its final and its
+  best checkpoint (the lowest validation MAE of epochs.jsonl) and scores each."""
+  import dataclasses
+  sc = plans.SCALES["smoke"]
+  base = plans.build_plan("table1", "smoke", 1).cells[0]  # unet-sl on objects: compiled above
+  config = dataclasses.replace(base.config, model="unet-disp", epochs=4, val_every=1)
+  evals = (plans.test_set("objects", sc), plans.test_set("objects", sc, "best"))
+  cell = dataclasses.replace(base, name="unet-disp-best-s0", arm="unet-disp", config=config,
+                             evals=evals, windows=())
+  plan = plans.Plan("v3", sc, (0,), (cell,), "unet-disp")
+  runner.run(plan, tmp_path, progress=False, log=lambda line: None)
+  wd = runner.cell_dir(tmp_path, cell.name)
+  done = json.loads((wd / runner.DONE_FILE).read_text())
+  rows = [json.loads(l) for l in (wd / "epochs.jsonl").read_text().splitlines()]
+  spe = done["step"] // 4
+  best = min(rows, key=lambda r: r["val_mae"])
+  assert done["best_step"] == best["epoch"] * spe
+  kept = {int(p.name) for p in (wd / "checkpoints").iterdir() if p.name.isdigit()}
+  assert kept == {done["step"], done["best_step"]}
+  final = json.loads((wd / "eval" / "test-objects.json").read_text())
+  at_best = json.loads((wd / "eval" / "test-objects-best.json").read_text())
+  assert at_best["checkpoint"] == "best by validation MAE"
+  assert "checkpoint" not in final
+  if done["best_step"] == done["step"]:
+    assert at_best["pooled"]["full"]["mae"] == final["pooled"]["full"]["mae"]
+  with pytest.raises(SljaxError, match="kept no best checkpoint"):
+    (wd / runner.DONE_FILE).write_text(json.dumps(dict(done, best_step=None)))
+    runner.final_checkpoint(tmp_path, cell.name, "best")

@@ -1,11 +1,13 @@
 """The v3 design (docs/plan-v3.md): the pilot's cells and the regime rule, checked by hand."""
 
+import dataclasses
 import json
 
+import numpy as np
 import pytest
 
 from sljax.errors import SljaxError
-from sljax.experiment import plans, regime, runner
+from sljax.experiment import plans, regime, runner, stats
 
 
 def test_pilot_cells_at_the_cpu_scale():
@@ -89,3 +91,59 @@ def test_regime_reads_the_pilot_records_and_waits_for_every_cell(tmp_path):
   assert res["regime"] == {"fraction": "1/8", "budget": 16, "min_epoch": 8}
   assert "Regime: fraction 1/8, budget 16 epochs" in (tmp_path / "regime.md").read_text()
   assert (tmp_path / "figures" / "v3-pilot_curves.png").stat().st_size > 0
+
+
+# ---- the test grid ---------------------------------------------------------------------------
+
+
+def test_v3_cells_train_in_the_regime_and_score_final_and_best():
+  plan = plans.build_plan("v3", "smoke", 2)
+  assert plan.seeds == (0, 1) and plan.baseline == "stl"
+  assert [c.arm for c in plan.cells[:3]] == ["stl", "unc", "epr"]
+  fraction, epochs = plans.SCALES["smoke"].v3.regime
+  for cell in plan.cells:
+    c = cell.config
+    assert c.fraction == fraction and c.epochs == epochs and c.lr_drop_epoch is None
+    assert c.val_every == plans.SCALES["smoke"].v3.val_every and c.max_val is None
+    assert [(e.name, e.checkpoint) for e in cell.evals] == [
+        ("test-objects", "final"), ("test-tissue", "final"), ("test-objects-best", "best")]
+  # The objects test set is v2's: the same scenes (dataset seed, size, count).
+  v2 = plans.build_plan("table2-v2", "smoke", 1).cells[0].evals[0]
+  assert dataclasses.replace(plan.cells[0].evals[0], checkpoint="final") == v2
+
+
+def test_v3_waits_for_the_regime():
+  design = plans.SCALES["cpu"].v3
+  if design.regime is not None:
+    pytest.skip("the cpu scale's regime is committed")
+  with pytest.raises(SljaxError, match="no regime yet"):
+    plans.build_plan("v3", "cpu", 10)
+
+
+def test_v3_claims_on_fake_records(tmp_path):
+  """The family of two: (a) final test Full MAE, (b) the overfitting rise from each cell's own
+  curve; hand-computed differences; epr is in the tables but not a claim."""
+  from sljax.experiment import claims, report
+  plan = plans.build_plan("v3", "smoke", 3)
+  runner.register(tmp_path, plan)
+  mae = {"stl": [1.0, 1.2, 1.1], "unc": [0.9, 1.0, 1.05], "epr": [1.0, 1.1, 1.2]}
+  rise = {"stl": [0.3, 0.2, 0.4], "unc": [0.1, 0.1, 0.2], "epr": [0.3, 0.3, 0.3]}
+  for cell in plan.cells:
+    k = cell.seed
+    _fake_cell(tmp_path, cell.name, [(2, 1.0), (4, 0.5), (6, 0.5 + rise[cell.arm][k])])
+    for e in cell.evals:
+      path = runner.cell_dir(tmp_path, cell.name) / "eval" / f"{e.name}.json"
+      path.parent.mkdir(exist_ok=True)
+      path.write_text(json.dumps({"pooled": {"full": {"mae": mae[cell.arm][k]}}}))
+  agg = report.aggregate(tmp_path, plan)
+  cl = claims.claims(plan, agg)
+  assert [c["set"] for c in cl] == ["test-objects", "validation-curve"]
+  assert cl[0]["difference"]["mean"] == pytest.approx(np.mean(np.subtract(mae["unc"], mae["stl"])))
+  assert cl[1]["difference"]["mean"] == pytest.approx(np.mean(np.subtract(rise["unc"], rise["stl"])))
+  assert cl[1]["difference"]["wins"] == 3
+  ps = [c["difference"]["p"] for c in cl]
+  assert [c["p_holm"] for c in cl] == pytest.approx(stats.holm(ps))
+  curve_set = agg["groups"][0]["sets"]["validation-curve"]
+  assert curve_set["arms"]["epr"]["rise"]["mean"] == pytest.approx(0.3)
+  md = (report.write_report(tmp_path)).read_text()
+  assert "overfitting rise" in md and "v3: stl, unc and epr" in md

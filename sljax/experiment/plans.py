@@ -35,6 +35,10 @@ Plans:
   long fixed budget, validated every few epochs on the whole validation split: the curves
   from which docs/plan-v3.md's regime rule picks where stl overfits (sljax.experiment.regime).
   Its seeds (100, 101, ...) are never used by a test cell.
+- v3: stl, unc and epr in the regime the pilot found (the scale's V3Design.regime: a training
+  fraction and a budget), constant learning rate, validated as the pilot; the final checkpoint
+  scored on the fixed objects and tissue test sets, and the best checkpoint by validation on
+  the objects test set.
 """
 
 
@@ -53,7 +57,8 @@ from sljax.train.state import LR_DROP
 V1_PLANS = ("table1", "table2", "table3", "fig7")
 V2_PLANS = ("table1-v2", "table2-v2", "table3-v2", "fig7-v2")
 V3_PILOT = "v3-pilot"
-V3_PLANS = (V3_PILOT,)
+V3_PLANS = (V3_PILOT, "v3")
+V3_ARMS = ("stl", "unc", "epr")  # the baseline, the claims' arm, the exploratory arm
 PLANS = V1_PLANS + V2_PLANS + V3_PLANS
 HELDOUT = "heldout"
 FIXED = "fixed"           # EvalSet kind of a v2 test set
@@ -91,6 +96,9 @@ class V3Design:
   pilot_epochs: int
   val_every: int
   first_seed: int
+  # (training fraction, epochs) the regime rule chose on the pilot (committed with the pilot's
+  # outcome in docs/plan-v3.md); None: not chosen yet.
+  regime: tuple[str, int] | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -141,7 +149,8 @@ SCALES = {s.name: s for s in (
           v2=V2Design(windows=(3, 5), test_n=20,
                       budgets=((("*", "objects"), 2), (("*", "1/16"), 2), (("*", "finetune"), 2)),
                       calib_epochs=(("objects", 3), ("1/16", 3), ("finetune", 3))),
-          v3=V3Design(("1/4", "1/8"), pilot_epochs=4, val_every=2, first_seed=100),
+          v3=V3Design(("1/4", "1/8"), pilot_epochs=4, val_every=2, first_seed=100,
+                      regime=("1/4", 4)),
           ynn="on", conv_impl="lax"),
     Scale("cpu", size=64, t=6, maxdisp=16, objects_n=400, tissue_n=80, batch_size=4, lr=1e-3,
           lr_drop=True, corr_window=5, unet_width=16, unet_depth=4, max_val=40,
@@ -180,12 +189,13 @@ class EvalSet:
   """Scenes a cell is scored on: its own held-out split, the held-out split of a synthetic
   domain (rendered from the cell's seed), a fixed test set (every scene of a synthetic domain
   rendered from TEST_SEED at the cell's size and pattern count), or every scene of a
-  folder."""
+  folder; scored with the cell's final checkpoint, or its best by validation MAE."""
   name: str
-  kind: str                # "heldout" | "synthetic" | "folder"
+  kind: str                # "heldout" | "synthetic" | "fixed" | "folder"
   domain: str | None = None
   n: int | None = None
   path: str | None = None
+  checkpoint: str = "final"  # "final" | "best"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -269,9 +279,12 @@ def _psmnet_name(strategy: str, where: str, fraction: str, seed: int) -> str:
   return f"psmnet-{strategy}-{where}{frac}-s{seed}"
 
 
-def test_set(domain: str, scale: Scale) -> EvalSet:
-  """The fixed v2 test set of a synthetic domain at a scale."""
-  return EvalSet(f"test-{domain}", FIXED, domain=domain, n=scale.v2.test_n)
+def test_set(domain: str, scale: Scale, checkpoint: str = "final") -> EvalSet:
+  """The fixed v2 test set of a synthetic domain at a scale (scoring the final checkpoint, or
+  the best by validation: set name suffixed "-best")."""
+  suffix = "" if checkpoint == "final" else f"-{checkpoint}"
+  return EvalSet(f"test-{domain}{suffix}", FIXED, domain=domain, n=scale.v2.test_n,
+                 checkpoint=checkpoint)
 
 
 def _folders(eval_data: tuple[str, ...]) -> tuple[EvalSet, ...]:
@@ -400,13 +413,34 @@ def _v3_pilot(a: Seeded) -> list[Cell]:
   return cells
 
 
+def _v3(a: Seeded) -> list[Cell]:
+  """stl, unc and epr in the pilot's regime (fraction and budget), constant learning rate,
+  every validation scene every val_every epochs; scored on the fixed test sets."""
+  design = a.scale.v3
+  require(design.regime is not None,
+          f"plan v3: scale {a.scale.name} has no regime yet: run the pilot (`sljax experiment "
+          "run v3-pilot`), apply the rule (`sljax experiment regime`) and commit the regime "
+          "with the outcome in docs/plan-v3.md")
+  fraction, epochs = design.regime
+  evals = (test_set("objects", a.scale), test_set("tissue", a.scale),
+           test_set("objects", a.scale, "best"))
+  cells = []
+  for strategy in V3_ARMS:
+    config = dataclasses.replace(
+        _base(a.scale, a.seed, epochs), model="psmnet", strategy=strategy, fraction=fraction,
+        lr_drop_epoch=None, val_every=design.val_every, max_val=None)
+    cells.append(Cell(_psmnet_name(strategy, "objects", fraction, a.seed), strategy,
+                      (("data", fraction),), a.seed, config, evals=evals))
+  return cells
+
+
 # Each shipped plan: its cells for one seed, and the arm the others are compared with.
 BUILDERS: dict[str, tuple[Callable[[Seeded], list[Cell]], str]] = {
     "table1": (_table1, "unet-disp"), "table2": (_table2, SINGLE_TASK),
     "table3": (_table3, SINGLE_TASK), "fig7": (_fig7, SINGLE_TASK),
     "table1-v2": (_table1_v2, "unet-disp"), "table2-v2": (_table2_v2, SINGLE_TASK),
     "table3-v2": (_table3_v2, SINGLE_TASK), "fig7-v2": (_fig7_v2, SINGLE_TASK),
-    V3_PILOT: (_v3_pilot, SINGLE_TASK),
+    V3_PILOT: (_v3_pilot, SINGLE_TASK), "v3": (_v3, SINGLE_TASK),
 }
 
 

@@ -31,7 +31,7 @@ from sljax import files, markdown
 from sljax.errors import SljaxError
 from sljax.evaluate import json_safe
 from sljax.experiment import stats
-from sljax.experiment.claims import ALPHA, PAPER, POWER, claims
+from sljax.experiment.claims import ALPHA, CURVE_SET, PAPER, POWER, claims
 from sljax.experiment.plans import FIXED, HELDOUT, PLANS, TEST_SEED, Plan
 from sljax.experiment.runner import (DONE_FILE, EVAL_DIR, WINDOWS_FILE, cell_dir,
                                      curve, plan_args, read_json, registered_plans)
@@ -41,6 +41,10 @@ from sljax.train.config import dumps
 METRICS = (("mae", "Full MAE px"), ("seg_mae", "Seg MAE px"), ("bad_2", "bad-2 %"),
            ("iqr", "IQR px"), ("pattern_acc", "pattern acc % (left)"),
            ("pattern_acc_right", "pattern acc % (right)"))
+# v3's pseudo set (claims.CURVE_SET): a cell's own validation curve, with its overfitting rise
+# (final minus lowest validation Full MAE).
+CURVE_METRICS = (("rise", "overfitting rise px"), ("final_val", "final validation MAE px"),
+                 ("min_val", "lowest validation MAE px"))
 DEPTH_METRICS = (("depth_mae_mm", "depth MAE mm (capped)"), ("depth_iqr_mm", "depth IQR mm"),
                  ("depth_capped", "depth capped %"))
 HIGHER_BETTER = ("pattern_acc", "pattern_acc_right")
@@ -56,10 +60,26 @@ TITLES = {
     "fig7": "Fig. 7: fine-tuning the full-data models on scarce data",
 }
 TITLES.update({f"{k}-v2": f"{v} (v2: fixed test sets)" for k, v in TITLES.items()})
+TITLES["v3"] = ("v3: stl, unc and epr where stl overfits (the pilot's regime; "
+                "docs/plan-v3.md)")
+
+
+def curve_metrics(out: Path, name: str) -> dict[str, float] | None:
+  """A finished cell's validation curve: its last value, its lowest and the rise between them
+  (px; None when the cell has not finished)."""
+  if not (cell_dir(out, name) / DONE_FILE).exists():
+    return None
+  values = [v for _, v in sorted(curve(out, name)) if v is not None and math.isfinite(v)]
+  if not values:
+    return None
+  return {"rise": values[-1] - min(values), "final_val": values[-1], "min_val": min(values)}
 
 
 def cell_metrics(out: Path, name: str, set_name: str) -> dict[str, float] | None:
-  """The pooled metrics of a cell's final checkpoint on a set (None when not scored yet)."""
+  """The pooled metrics of a cell's final checkpoint on a set, or its curve's (CURVE_SET);
+  None when not scored yet."""
+  if set_name == CURVE_SET:
+    return curve_metrics(out, name)
   rep = read_json(cell_dir(out, name) / EVAL_DIR / f"{set_name}.json")
   if rep is None:
     return None
@@ -158,6 +178,8 @@ def delta_m(arm: dict[str, float], base: dict[str, float]) -> float:
   """Delta_m (%) of one seed: each task's primary metric both arms have (disparity MAE; SL
   pattern accuracy where both predict patterns); > 0 is better."""
   keys = [k for k in PRIMARY if k in arm and k in base]
+  if not keys:  # a set without a task's primary metric (v3's validation curve)
+    return math.nan
   return stats.delta_m({k: arm[k] for k in keys}, {k: base[k] for k in keys},
                        higher_better=HIGHER_BETTER)
 
@@ -168,7 +190,7 @@ def aggregate(out: Path, plan: Plan) -> dict[str, Any]:
   arms = _arms(plan)
   for factors in _groups(plan):
     cells = [c for c in plan.cells if c.factors == factors]
-    sets = [e.name for e in cells[0].evals]
+    sets = [e.name for e in cells[0].evals] + ([CURVE_SET] if plan.name == "v3" else [])
     group = {"factors": dict(factors), "sets": {}}
     for set_name in sets:
       per_arm: dict[str, dict[int, dict[str, float]]] = {a: {} for a in arms}
@@ -179,7 +201,7 @@ def aggregate(out: Path, plan: Plan) -> dict[str, Any]:
           missing.append(c.name)
         else:
           per_arm[c.arm][c.seed] = m
-      keys = [k for k, _ in METRICS + DEPTH_METRICS
+      keys = [k for k, _ in METRICS + DEPTH_METRICS + CURVE_METRICS
               if any(k in m for seeds in per_arm.values() for m in seeds.values())]
       summary = {a: {k: dict(stats.mean_ci([m[k] for m in seeds.values() if k in m]),
                              values={s: m.get(k) for s, m in sorted(seeds.items())})
@@ -321,15 +343,22 @@ def _plan_markdown(out: Path, plan: Plan, agg: dict[str, Any], cl: list[dict[str
     label = ", ".join(f"{k} {v}" for k, v in g["factors"].items())
     for set_name, res in g["sets"].items():
       lines += [f"### {label}: scored on {_set_label(plan, set_name)}", ""]
-      keys = [k for k, _ in METRICS + DEPTH_METRICS
+      keys = [k for k, _ in METRICS + DEPTH_METRICS + CURVE_METRICS
               if any(k in a for a in res["arms"].values())]
-      headers = dict(METRICS + DEPTH_METRICS)
+      headers = dict(METRICS + DEPTH_METRICS + CURVE_METRICS)
       rows = [[a, str(next(iter(s.values()))["n"])] + [_fmt_ci(s[k]) if k in s else "-"
                                                          for k in keys]
               for a, s in res["arms"].items()]
       lines += ["Mean [95% interval] over seeds:", ""]
       lines += _md_table(["arm", "seeds"] + [headers[k] for k in keys], rows)
-      if res["paired"]:
+      if res["paired"] and set_name == CURVE_SET:
+        prow = [[a, f"{_fmt_ci(p['rise'])}; p = {_fmt(p['rise']['p'])}; {p['rise']['wins']}/"
+                 f"{p['rise']['n']}"] for a, p in res["paired"].items() if "rise" in p]
+        lines += [f"Paired against {plan.baseline} (arm - {plan.baseline}; negative = a "
+                  "smaller rise; p: paired t-test, unadjusted; seeds where the arm rose less):",
+                  ""]
+        lines += _md_table(["arm", "Δ overfitting rise px"], prow)
+      elif res["paired"]:
         prow = []
         for a, p in res["paired"].items():
           cells = [a]
@@ -377,13 +406,18 @@ def _plan_markdown(out: Path, plan: Plan, agg: dict[str, Any], cl: list[dict[str
 
 
 def _set_label(plan: Plan, set_name: str) -> str:
+  if set_name == CURVE_SET:
+    return ("each cell's own validation curve (every validation scene; the rise is the final "
+            "value minus the lowest)")
   if set_name == HELDOUT:
     return "the held-out split (v1: also the split training validated on)"
   for c in plan.cells:
     for e in c.evals:
       if e.name == set_name and e.kind == FIXED:
+        which = ("" if e.checkpoint == "final" else
+                 f"; each cell's {e.checkpoint} checkpoint by validation MAE")
         return (f"the fixed test set {set_name} ({e.n} {e.domain} scenes rendered from dataset "
-                f"seed {TEST_SEED}, the same for every seed and arm)")
+                f"seed {TEST_SEED}, the same for every seed and arm{which})")
   return set_name
 
 

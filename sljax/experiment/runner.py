@@ -4,8 +4,9 @@ OUT/plan.json            the plans run here and the spec of every cell (see Cell
 OUT/.sljax.lock          while a runner holds OUT (a second one is refused; sljax.files)
 OUT/cells/NAME/          the cell's training workdir (config.json, checkpoints/, *.jsonl)
 OUT/cells/NAME/train.log its training output
-OUT/cells/NAME/done.json written once training finished: final step, seconds, the CPU
-OUT/cells/NAME/eval/SET.json  the final checkpoint's evaluation report on that set
+OUT/cells/NAME/done.json written once training finished: final step (and best step, where the
+                         plan scores the best checkpoint), seconds, the CPU
+OUT/cells/NAME/eval/SET.json  the final (or best) checkpoint's evaluation report on that set
 OUT/cells/NAME/eval/windows.json  v2 unet-sl: validation MAE per candidate correlation window
                          and the window chosen (the lowest; ties: the smaller)
 
@@ -15,8 +16,10 @@ whose spec changed under an existing OUT is refused, never mixed in. Cells are s
 their final checkpoint (the last step), not the best by validation: in v1 validation uses the
 held-out split that is also scored, and choosing on it would leak the test set into the
 result. In v2 the held-out split is validation only (the window is chosen there) and the
-score comes from a fixed test set, touched once per cell. A finished cell keeps its final
-checkpoint only (the earlier ones are deleted), about 55-85 MB for a PSMNet at the cpu scale.
+score comes from a fixed test set, touched once per cell. v3 also scores each cell's best
+checkpoint by validation MAE (what early stopping would give) as a secondary set. A finished
+cell keeps its final checkpoint (and that best one) only, about 55-85 MB for a PSMNet at the
+cpu scale.
 """
 
 import dataclasses
@@ -148,10 +151,16 @@ def curve(out: Path, name: str) -> list[tuple[int, float]]:
   return [(r["epoch"], r["val_mae"]) for r in recs if r.get("val_mae") is not None]
 
 
-def final_checkpoint(out: Path, name: str) -> Path:
-  """The checkpoint folder of a finished cell's last step."""
+def final_checkpoint(out: Path, name: str, which: str = "final") -> Path:
+  """The checkpoint folder of a finished cell's last step, or of its best by validation MAE
+  (which="best"; kept and recorded in done.json when the plan scores it)."""
   done = read_json(cell_dir(out, name) / DONE_FILE)
   require(done is not None, f"{cell_dir(out, name)}: cell {name} has not finished training")
+  if which == "best":
+    require(done.get("best_step") is not None,
+            f"{cell_dir(out, name)}: cell {name} kept no best checkpoint (it finished under a "
+            "plan that scores the final one only)")
+    return cell_dir(out, name) / ckpt.CHECKPOINT_DIR / str(done["best_step"])
   return cell_dir(out, name) / ckpt.CHECKPOINT_DIR / str(done["step"])
 
 
@@ -237,11 +246,11 @@ def _eval_source(cell: Cell, evalset: EvalSet):
   return source, list(range(len(source)))
 
 
-def _final_predictor(out: Path, cell: Cell) -> inference.Predictor:
-  """The cell's final checkpoint (resize protocol) with the compiler and kernel choices it
-  trained with: scoring never tunes, and at the smoke scale nothing is tuned at all."""
+def _predictor(out: Path, cell: Cell, which: str = "final") -> inference.Predictor:
+  """The cell's final (or best) checkpoint (resize protocol) with the compiler and kernel
+  choices it trained with: scoring never tunes, and at the smoke scale nothing is tuned."""
   saved = trained.read_config(cell_dir(out, cell.name))
-  return inference.load(final_checkpoint(out, cell.name), mode="resize",
+  return inference.load(final_checkpoint(out, cell.name, which), mode="resize",
                         kernels=tune.KernelChoice.from_name(saved.get("ynn", "on")),
                         conv_impl=config_from_json(saved).model_conv_impl)
 
@@ -261,7 +270,7 @@ def choose_window(out: Path, cell: Cell) -> int | None:
     return int(saved["chosen"])
   source, indices = validation_indices(cell)
   maes = {}
-  predictor = _final_predictor(out, cell)
+  predictor = _predictor(out, cell)
   for window in cell.windows:
     rep = evaluate(predictor.with_options(window=window), source, indices, progress=False)
     maes[window] = rep["pooled"]["full"]["mae"]
@@ -273,12 +282,14 @@ def choose_window(out: Path, cell: Cell) -> int | None:
 
 
 def evaluate_cell(out: Path, cell: Cell, evalset: EvalSet) -> dict[str, Any]:
-  """Scores the cell's final checkpoint on a set (resize protocol, the one metrics function;
-  a v2 unet-sl cell with the window chosen on validation) and writes eval/SET.json."""
+  """Scores the cell's final (or best) checkpoint on a set (resize protocol, the one metrics
+  function; a v2 unet-sl cell with the window chosen on validation); writes eval/SET.json."""
   window = choose_window(out, cell)
   source, indices = _eval_source(cell, evalset)
-  predictor = _final_predictor(out, cell)
+  predictor = _predictor(out, cell, evalset.checkpoint)
   info = {"cell": cell.name, "set": evalset.name, "kind": evalset.kind}
+  if evalset.checkpoint != "final":
+    info["checkpoint"] = f"{evalset.checkpoint} by validation MAE"
   if window is not None:
     predictor = predictor.with_options(window=window)
     info["corr_window"] = window
@@ -306,16 +317,31 @@ def train_cell(out: Path, cell: Cell, bar, weight: float) -> dict[str, Any]:
     _advance(bar, max(saved, default=0) * weight)  # a resumed cell's steps already done
     # resume=True also restarts a cell killed before its first checkpoint (nothing to keep).
     result = train(config, wd, resume=True, log=cell_bar.write, progress=cell_bar)
-  for path in ckpt_dir.iterdir():  # a finished cell needs its final checkpoint only
-    if path.name.isdigit() and int(path.name) != result.step:
+  # A finished cell needs its final checkpoint only, and its best when the plan scores it.
+  best = best_step(ckpt_dir) if any(e.checkpoint == "best" for e in cell.evals) else None
+  for path in ckpt_dir.iterdir():
+    if path.name.isdigit() and int(path.name) not in (result.step, best):
       shutil.rmtree(path)
   epochs = [json.loads(l) for l in (wd / "epochs.jsonl").read_text().splitlines()]
   done = {"step": result.step, "epochs": result.epochs_done, "last_val_mae": result.last_val,
           "train_seconds": sum(r["seconds"] for r in epochs),
           "wall_seconds_last_call": time.perf_counter() - t0,
           "machine": machine.cpu_description()}  # a grid may span machines
+  if best is not None:
+    done["best_step"] = best
   write_json(wd / DONE_FILE, done)
   return done
+
+
+def best_step(checkpoints: Path) -> int:
+  """The step of a finished run's best checkpoint by validation MAE (orbax's record)."""
+  manager = ckpt.make_manager(checkpoints, read_only=True)
+  try:
+    step = manager.best_step()
+  finally:
+    manager.close()
+  require(step is not None, f"{checkpoints}: no checkpoint with a validation MAE")
+  return int(step)
 
 
 def pending(out: Path, plan: Plan) -> list[tuple[Cell, bool, list[EvalSet]]]:

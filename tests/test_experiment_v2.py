@@ -81,8 +81,8 @@ def test_v2_test_sets_are_the_same_for_every_seed_and_arm_and_disjoint_from_trai
 
 def test_v2_plans_at_the_cpu_scales():
   cpu = plans.SCALES["cpu"]
-  assert cpu.test_n >= 400 and cpu.test_n // SynthConfig().views_per_object >= 40
-  assert 17 in plans.SCALES["cpu128"].windows
+  assert cpu.v2.test_n >= 400 and cpu.v2.test_n // SynthConfig().views_per_object >= 40
+  assert 17 in plans.SCALES["cpu128"].v2.windows
   # A v2 cell trains exactly as the v1 cell of the same name: the designs share training runs.
   v1 = {c.name: c for c in plans.build_plan("table2", "cpu", 2).cells}
   v2 = plans.build_plan("table2-v2", "cpu", 2).cells

@@ -125,7 +125,9 @@ def test_export_cli_and_bad_inputs(tmp_path, capsys, unet_disp_vars):
   one_error(["export", str(model), str(tmp_path / "b.jax"), "--size", "8x8", "--mode", "resize"],
             "training size")
   one_error(["export", str(model), str(tmp_path / "b.jax"), "--size", "8x8", "--maxdisp", "16"],
-            "does not apply to unet-disp")
+            "maxdisp is a PSMNet's cost volume depth; unet-disp has none")
+  one_error(["export", str(model), str(tmp_path / "b.jax"), "--size", "8x8",
+             "--search-range", "16"], "search_range is unet-sl's correlation range")
   assert not (tmp_path / "b.jax").exists()
   with pytest.raises(SljaxError, match="HEIGHTxWIDTH"):
     export.parse_size("1x2x3")

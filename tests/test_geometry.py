@@ -79,7 +79,7 @@ def test_predict_ply_uses_fy_for_y(tmp_path):
   write_calib(scene / "calib.txt", _calib(w, h))
   out = tmp_path / "out"
   assert cli.main(["predict", "sgbm", str(scene / "im0.png"), str(scene / "im1.png"),
-                   "--out", str(out), "--maxdisp", "16"]) == 0
+                   "--out", str(out), "--num-disparities", "16"]) == 0
   disp = read_pfm(out / "disparity.pfm")
   want = _points_loop(disp)
   got = _read_ply_xyz(out / "cloud.ply")

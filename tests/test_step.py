@@ -158,6 +158,7 @@ _SHARDED = textwrap.dedent("""
     import jax, jax.numpy as jnp, numpy as np
     assert jax.device_count() == 8, jax.devices()
     from sljax.nets import ModelConfig, build_model
+    from sljax.nets.model_config import INIT_COMPILER_OPTIONS, init_variables
     from sljax.train import state as st, step as stp
     model = build_model("unet-disp", in_channels=3, depth=2, base_width=8)
     v = init_variables(model, 0, 32, 32, 3)

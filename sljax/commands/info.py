@@ -169,7 +169,7 @@ def _pattern_problems(counts: list[int], declared: Any) -> list[str]:
   """The pre-flight check's pattern rule (preflight.expected_patterns), summarised: a mixed
   dataset would fail in its first training batch, later and less clearly."""
   expected = preflight.expected_patterns(declared, counts)
-  if all(t == expected for t in counts):
+  if all(preflight.fits_patterns(t, expected, declared) for t in counts):
     return []
   found = ", ".join(f"{t} ({_plural(v, 'scene')})"
                     for t, v in sorted(collections.Counter(counts).items()))

@@ -173,6 +173,13 @@ def assign_roles(paths: Sequence[Path], config: ImportConfig, what: str) -> dict
   for key in ("white", "black"):
     require(key in named, f"{what}: no {key} frame (the sljax layout names it {key}.png)")
   t = count_patterns(named, what)
+  inverses = {int(k[1:]) for k in named if k[0] == "i"}
+  if inverses:  # all or none: decoding compares every pattern with its inverse
+    odd = sorted(inverses ^ set(range(t)))
+    if odd:
+      k = odd[0]
+      raise SljaxError(f"{what}: " + (f"inverse i{k:03d} has no pattern p{k:03d}" if k in inverses
+                                      else f"pattern p{k:03d} has no inverse i{k:03d}"))
   if config.projector is not None:
     n = bit_counts(config.projector)[0]
     require(t == n, f"{what}: {t} column patterns, but a {config.projector[0]}-column projector "

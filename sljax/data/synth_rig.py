@@ -106,8 +106,12 @@ def undistort_normalised(xd: np.ndarray, yd: np.ndarray, dist: np.ndarray
   for _ in range(200):
     r2 = x * x + y * y
     radial = 1 + k1 * r2 + k2 * r2 ** 2 + k3 * r2 ** 3
-    x = (xd - (2 * p1 * x * y + p2 * (r2 + 2 * x * x))) / radial
-    y = (yd - (p1 * (r2 + 2 * y * y) + 2 * p2 * x * y)) / radial
+    x_new = (xd - (2 * p1 * x * y + p2 * (r2 + 2 * x * x))) / radial
+    y_new = (yd - (p1 * (r2 + 2 * y * y) + 2 * p2 * x * y)) / radial
+    step = max(np.abs(x_new - x).max(initial=0), np.abs(y_new - y).max(initial=0))
+    x, y = x_new, y_new
+    if step < 1e-15:
+      break
   r2 = x * x + y * y
   radial = 1 + k1 * r2 + k2 * r2 ** 2 + k3 * r2 ** 3
   resid = np.hypot(x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) - xd,
@@ -307,7 +311,8 @@ def _confirmed(d_a: np.ndarray, d_b: np.ndarray, sign: float, tol: float) -> np.
   xb = np.rint(np.arange(w)[None, :] - sign * np.where(finite, d_a, 0)).astype(np.int64)
   inside = finite & (xb >= 0) & (xb < w)
   back = d_b[np.arange(h)[:, None], np.clip(xb, 0, w - 1)]
-  ok = inside & np.isfinite(back) & (np.abs(np.where(inside, d_a - back, 0)) <= tol)
+  ok = inside & np.isfinite(back)
+  ok &= np.abs(np.where(ok, d_a, 0) - np.where(ok, back, 0)) <= tol
   return np.where(ok, d_a, np.inf).astype(np.float32)
 
 

@@ -656,7 +656,8 @@ def test_charuco_command_calibrates_imports_and_writes_the_yaml(rendered, tmp_pa
   written = rigs.read_calibration(out / captures.CALIBRATION_FILE)
   assert written.size == big.size
   # A 12 mm baseline seen from 450 mm: T's x well, its z (a few views) within 2 mm.
-  np.testing.assert_allclose(written.t.ravel(), cal.t.ravel(), atol=[0.3, 0.3, 2.0])
+  err = np.abs(written.t.ravel() - cal.t.ravel())
+  assert err[0] < 0.3 and err[1] < 0.3 and err[2] < 2.0, (written.t.ravel(), cal.t.ravel())
   assert json.loads((out / "meta.json").read_text())["calibration"].startswith("ChArUco")
   assert min(np.isfinite(read_pfm(out / f"disp{v}.pfm")).mean() for v in (0, 1)) > 0.55
   rc, got = _import([tmp_path / "cam1", tmp_path / "cam2", out, "--charuco", tmp_path / "L",

@@ -142,9 +142,8 @@ def coarse_codes(view: Decoded, code: str, bits: int, count: int | None = None
   b = view.bits[..., :bits]
   unknown = np.isnan(b)
   n_unknown = unknown.sum(axis=-1)
-  known = np.nan_to_num(b, nan=0.0).astype(np.int32)
-  low = codes.decode(known, code)
-  high = codes.decode(np.where(unknown, 1, known), code)
+  low = codes.decode(b > 0.5, code)  # unknown bits read 0 (NaN > 0.5 is False) ...
+  high = codes.decode(~(b <= 0.5), code)  # ... and 1
   # Codes of fewer bits cover 2^(n - bits) columns each: the projector's last code is
   # ceil(count / 2^(n - bits)) - 1.
   limit = None if count is None else -(-count // 2 ** (view.bits.shape[-1] - bits))

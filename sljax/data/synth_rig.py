@@ -27,6 +27,7 @@ they happen in the camera.
 
 import dataclasses
 import math
+from collections.abc import Iterator
 
 import cv2
 import numpy as np
@@ -171,31 +172,29 @@ def _axis(axis: int, angle: float) -> np.ndarray:
 
 
 def rectified_frames(scene: SyntheticScene, cfg: SynthConfig, projector: tuple[int, int],
-                     oversample: int = 1) -> tuple[list[np.ndarray], list[np.ndarray]]:
-  """Both views' frames in OpenCV's GrayCodePattern order (column bits and inverses, row bits
-  and inverses, white, black), float32 in the rectified frame at cfg.size / oversample."""
+                     view: int, oversample: int = 1) -> Iterator[np.ndarray]:
+  """One view's frames in OpenCV's GrayCodePattern order (column bits and inverses, row bits
+  and inverses, white, black), float32 in the rectified frame at cfg.size / oversample, one at
+  a time (a 2048-pixel capture's 46 frames would not all fit in memory as floats)."""
   cfg = cfg.resolved()
   width_p = 2 ** cfg.t
   w_proj, h_proj = projector
   n, m = captures.bit_counts(projector)
-  coords = projector_coordinates(scene, cfg)
-  views = []
-  for raw, (col, row) in zip((scene.raw0, scene.raw1), coords):
-    black = raw["black"].astype(np.float32)
-    signal = np.maximum(raw["white"] - raw["black"], 0).astype(np.float32)
-    lit = np.isfinite(col)
-    c_int = np.clip(np.floor(np.where(lit, col, 0) * w_proj / width_p), 0, w_proj - 1)
-    r_int = np.clip(np.floor(np.where(lit, row, 0) * h_proj / width_p), 0, h_proj - 1)
-    planes = []
-    for value, bits in ((c_int.astype(np.int64), n), (r_int.astype(np.int64), m)):
-      gray = value ^ (value >> 1)
-      for k in range(bits):
-        on = ((gray >> (bits - 1 - k)) & 1).astype(np.float32)
-        planes += [on, 1.0 - on]
-    planes += [np.ones_like(black), np.zeros_like(black)]
-    frames = [black + signal * (p * lit) for p in planes]
-    views.append([_downsample(f, oversample) for f in frames])
-  return views[0], views[1]
+  col, row = projector_coordinates(scene, cfg)[view]
+  raw = (scene.raw0, scene.raw1)[view]
+  black = raw["black"].astype(np.float32)
+  lit = np.isfinite(col)
+  signal = np.where(lit, np.maximum(raw["white"] - raw["black"], 0), 0).astype(np.float32)
+  c_int = np.clip(np.floor(np.where(lit, col, 0) * w_proj / width_p), 0, w_proj - 1)
+  r_int = np.clip(np.floor(np.where(lit, row, 0) * h_proj / width_p), 0, h_proj - 1)
+  for value, bits in ((c_int.astype(np.int64), n), (r_int.astype(np.int64), m)):
+    gray = value ^ (value >> 1)
+    for k in range(bits):
+      on = ((gray >> (bits - 1 - k)) & 1).astype(np.float32)
+      for plane in (on, 1.0 - on):
+        yield _downsample(black + signal * plane, oversample)
+  yield _downsample(black + signal, oversample)
+  yield _downsample(black, oversample)
 
 
 def _downsample(image: np.ndarray, factor: int) -> np.ndarray:
@@ -206,49 +205,46 @@ def _downsample(image: np.ndarray, factor: int) -> np.ndarray:
   return image.reshape(h // factor, factor, w // factor, factor).mean(axis=(1, 3))
 
 
-def warp_to_real(frames: list[np.ndarray], maps: tuple[np.ndarray, np.ndarray]
-                 ) -> list[np.ndarray]:
-  """Rectified frames resampled into a real camera (bilinear; black outside the render)."""
-  mx, my = (m.astype(np.float32) for m in maps)
-  return [cv2.remap(f.astype(np.float32), mx, my, cv2.INTER_LINEAR,
-                    borderMode=cv2.BORDER_CONSTANT, borderValue=0.0) for f in frames]
+def warp_to_real(frame: np.ndarray, maps: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+  """A rectified frame resampled into a real camera (bilinear; black outside the render)."""
+  return cv2.remap(frame.astype(np.float32), maps[0], maps[1], cv2.INTER_LINEAR,
+                   borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
 
 
-def degrade(frames: list[np.ndarray], how: Degradation, view: int) -> list[np.ndarray]:
-  """Frames (black last, as in OpenCV's layout) as a real camera records them: blurred, plus
-  indirect projector light (each frame's own projector light, low-passed, times global_light:
-  about half the white frame's under a fine pattern and under its inverse alike, none under
-  black), times an exposure gain that overexposes the share `saturated` of the white frame's
-  pixels, plus noise, clipped to [0, 1]."""
-  rng = np.random.default_rng([how.seed, view])
-  black = frames[-1]
-  sigma = how.global_sigma * black.shape[1]
+class Camera:
+  """What a real camera records of a frame (values in [0, 1]): blurred, plus indirect
+  projector light (the frame's own projector light, low-passed, times global_light: about half
+  the white frame's under a fine pattern and under its inverse alike, none under black), times
+  an exposure gain that overexposes the share `saturated` of the white frame's pixels, plus
+  noise, clipped to [0, 1]. Noise is drawn from (seed, view) in the order frames come."""
 
-  def light(f):
+  def __init__(self, how: Degradation, view: int, white: np.ndarray, black: np.ndarray):
+    self.how, self.black = how, black
+    self.rng = np.random.default_rng([how.seed, view])
+    self.gain = 1.0
+    if how.saturated > 0:  # the exposure that drives that share of the white frame to 1
+      self.gain = 1.0 / max(float(np.quantile(self._light(white), 1.0 - how.saturated)), 1e-6)
+
+  def _light(self, f: np.ndarray) -> np.ndarray:
+    how = self.how
     g = cv2.GaussianBlur(f, (0, 0), how.blur_px) if how.blur_px > 0 else f
     if how.global_light > 0:
-      g = g + how.global_light * cv2.GaussianBlur(f - black, (0, 0), sigma,
+      sigma = how.global_sigma * f.shape[1]
+      g = g + how.global_light * cv2.GaussianBlur(f - self.black, (0, 0), sigma,
                                                   borderType=cv2.BORDER_REFLECT)
     return g
 
-  lit = [light(f) for f in frames]
-  gain = 1.0
-  if how.saturated > 0:  # the exposure that drives that share of the white frame to 1
-    gain = 1.0 / max(float(np.quantile(lit[-2], 1.0 - how.saturated)), 1e-6)
-  out = []
-  for g in lit:
-    g = gain * g
-    if how.noise > 0:
-      g = g + rng.normal(0.0, how.noise, g.shape)
-    out.append(np.clip(g, 0.0, 1.0).astype(np.float32))
-  return out
+  def __call__(self, frame: np.ndarray) -> np.ndarray:
+    g = self.gain * self._light(frame)
+    if self.how.noise > 0:
+      g = g + self.rng.normal(0.0, self.how.noise, g.shape)
+    return np.clip(g, 0.0, 1.0).astype(np.float32)
 
 
-def quantize(frames: list[np.ndarray], bits: int = 8) -> list[np.ndarray]:
-  """Frames in [0, 1] as uint8 (bits 8) or uint16 holding `bits`-bit values (12 or 16)."""
+def quantize(frame: np.ndarray, bits: int = 8) -> np.ndarray:
+  """A frame in [0, 1] as uint8 (bits 8) or uint16 holding `bits`-bit values (12 or 16)."""
   top = 2 ** bits - 1
-  dtype = np.uint8 if bits == 8 else np.uint16
-  return [np.round(np.clip(f, 0, 1) * top).astype(dtype) for f in frames]
+  return np.round(np.clip(frame, 0, 1) * top).astype(np.uint8 if bits == 8 else np.uint16)
 
 
 def ground_truth(scene: SyntheticScene, cfg: SynthConfig, rig: RigConfig, rect,
@@ -320,10 +316,16 @@ def real_captures(scene: SyntheticScene, cfg: SynthConfig, rig: RigConfig,
                   oversample: int = 1, how: Degradation = Degradation(), bits: int = 8
                   ) -> tuple[list[np.ndarray], list[np.ndarray]]:
   """Both real cameras' frames in OpenCV's GrayCodePattern order, quantized to `bits`."""
-  frames = rectified_frames(scene, cfg, rig.projector, oversample)
   k_rect = rectified_intrinsics(cfg, oversample)
   out = []
   for view in (0, 1):
-    warped = warp_to_real(frames[view], real_to_rectified(rig, k_rect, view))
-    out.append(quantize(degrade(warped, how, view), bits))
+    maps = tuple(m.astype(np.float32) for m in real_to_rectified(rig, k_rect, view))
+    raw = (scene.raw0, scene.raw1)[view]
+    lit = np.isfinite((scene.proj_col0, scene.proj_col1)[view])
+    black = raw["black"].astype(np.float32)
+    white = black + np.where(lit, np.maximum(raw["white"] - black, 0), 0).astype(np.float32)
+    camera = Camera(how, view, *(warp_to_real(_downsample(f, oversample), maps)
+                                 for f in (white, black)))
+    out.append([quantize(camera(warp_to_real(f, maps)), bits)
+                for f in rectified_frames(scene, cfg, rig.projector, view, oversample)])
   return out[0], out[1]

@@ -131,6 +131,10 @@ def test_opencv_layout_is_sljax_gray_code(projector):
     if role[-4] == "i":
       want = 1 - want
     np.testing.assert_array_equal(frame, np.broadcast_to(want * 255, (h, w)), err_msg=role)
+  projected = list(captures.projector_frames(projector))
+  assert [r for r, _ in projected] == roles
+  for (role, image), frame in zip(projected, frames + [np.full((h, w), 255), np.zeros((h, w))]):
+    np.testing.assert_array_equal(image, frame, err_msg=role)
   assert len(captures.opencv_roles((1920, 1080))) == 46
   assert captures.opencv_roles((1920, 1080))[44:] == ["white", "black"]
 

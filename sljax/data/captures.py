@@ -31,7 +31,7 @@ import os
 import re
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import cv2
@@ -96,6 +96,24 @@ def opencv_roles(projector: tuple[int, int]) -> list[str]:
   cols = [f"{kind}{k:03d}" for k in range(n) for kind in ("p", "i")]
   rows = [f"r{kind}{j:03d}" for j in range(m) for kind in ("p", "i")]
   return cols + rows + ["white", "black"]
+
+
+def projector_frames(projector: tuple[int, int]) -> Iterator[tuple[str, np.ndarray]]:
+  """(role, HxW uint8 image, 255 lit) of every frame to project for the opencv layout, in
+  order: what OpenCV's GrayCodePattern.generate gives, then white and black."""
+  w, h = projector
+  n, m = bit_counts(projector)
+  cols, rows = codes.patterns("gray", w), codes.patterns("gray", h)
+  for k in range(n):
+    lit = np.broadcast_to(cols[k][None, :] * np.uint8(255), (h, w))
+    yield f"p{k:03d}", lit.copy()
+    yield f"i{k:03d}", 255 - lit
+  for j in range(m):
+    lit = np.broadcast_to(rows[j][:, None] * np.uint8(255), (h, w))
+    yield f"rp{j:03d}", lit.copy()
+    yield f"ri{j:03d}", 255 - lit
+  yield "white", np.full((h, w), 255, np.uint8)
+  yield "black", np.zeros((h, w), np.uint8)
 
 
 def parse_projector(text: str) -> tuple[int, int]:

@@ -564,6 +564,13 @@ def test_sljax_layout_errors(capture, tmp_path, capsys):
   shutil.copy(left / "p007.png", left / "p006.png")
   rc, out = _import(base + ["--projector", "300x10"], capsys)
   assert rc == 2 and "LEFT: 8 column patterns, but a 300-column projector has 9" in out.err
+  right = tmp_path / "r"
+  shutil.copytree(left, right)
+  for p in right.glob("i*.png"):
+    p.unlink()
+  rc, out = _import([left, right, *base[2:]], capsys)
+  assert rc == 2 and "RIGHT: its frames differ from LEFT's (i000, i001, i002, i003 in one " \
+      "camera only)" in out.err
   shutil.copy(left / "p006.png", left / "extra.png")
   rc, out = _import(base, capsys)
   assert rc == 2 and "extra.png: not a frame name of the sljax layout" in out.err

@@ -315,6 +315,41 @@ def _share_and_range(d: np.ndarray) -> tuple[float, tuple[float, float] | None]:
       else None
 
 
+def _read_views(roles: list[dict[str, Path]], keep: list[str], ambient: list[Path] | None,
+                calibration: rigs.StereoCalibration, progress: bool, seconds: dict[str, float]
+                ) -> tuple[list[_View], rigs.Rectification, int]:
+  """Both cameras' frames (the roles in keep) and colour views, rectified; 12-bit data scaled
+  to the 16-bit range. Returns (views, rectification, bits of the frames: 8, 12 or 16)."""
+  first = read_frame(roles[0]["white"])
+  size = (first.shape[1], first.shape[0])
+  rigs.check_size(calibration, size, f"the frame {roles[0]['white']}")
+  rect = rigs.rectify(calibration, size)
+  maps = rigs.rectify_maps(calibration, rect)
+  total = 2 * (len(keep) + (ambient is not None))
+  with tqdm(total=total, desc="import-captures: frames", unit="frame", file=sys.stderr,
+            disable=not progress or None, leave=False) as bar:
+    views = [_rectify_view(roles[i], keep, "white" if ambient is None else ambient[i],
+                           maps[i], size, what, bar, seconds)
+             for i, what in enumerate(("LEFT", "RIGHT"))]
+  require(views[0].dtype == views[1].dtype, f"RIGHT frames are {views[1].dtype.itemsize * 8}-bit, "
+          f"LEFT frames {views[0].dtype.itemsize * 8}-bit")
+  if not holds_12_bit(max(v.peak for v in views), views[0].dtype):
+    return views, rect, views[0].dtype.itemsize * 8
+  for v in views:
+    v.frames = {k: _to_16_bit(f) for k, f in v.frames.items()}
+    v.colour = _to_16_bit(v.colour)
+  return views, rect, 12
+
+
+def _timed(seconds: dict[str, float], stage: str, fn, *args, **kwargs):
+  """fn(*args, **kwargs), its wall time added to seconds[stage]."""
+  start = time.perf_counter()
+  try:
+    return fn(*args, **kwargs)
+  finally:
+    seconds[stage] += time.perf_counter() - start
+
+
 def import_captures(left: str | os.PathLike, right: str | os.PathLike, out: str | os.PathLike,
                     calibration: rigs.StereoCalibration, config: ImportConfig = ImportConfig(),
                     *, ambient: tuple[str | os.PathLike, str | os.PathLike] | None = None,
@@ -330,76 +365,55 @@ def import_captures(left: str | os.PathLike, right: str | os.PathLike, out: str 
   rigs.check_rig(calibration, "are LEFT and RIGHT, or the cameras of the calibration, swapped?")
   roles = [assign_roles(list_frames(spec, what), config, what)
            for spec, what in ((left, "LEFT"), (right, "RIGHT"))]
+  differ = sorted(set(roles[0]) ^ set(roles[1]))
+  require(not differ, f"RIGHT: its frames differ from LEFT's ({', '.join(differ[:4])} in one "
+          "camera only)")
   ambient_paths = None if ambient is None else [Path(p) for p in ambient]
   for p in ambient_paths or []:
     require(p.is_file(), f"--ambient {p}: {'is a folder' if p.exists() else 'missing'}")
-  first = read_frame(roles[0]["white"])
-  size = (first.shape[1], first.shape[0])
-  rigs.check_size(calibration, size, f"the frame {roles[0]['white']}")
-  rect = rigs.rectify(calibration, size)
-  maps = rigs.rectify_maps(calibration, rect)
 
   columns = [k for k in roles[0] if k[0] in "pi" or k in ("white", "black")]
   rows = [k for k in roles[0] if k.startswith("r")] if config.row_check else []
-  keep = columns + rows
   seconds = {"read": 0.0, "rectify": 0.0, "decode": 0.0, "match": 0.0, "write": 0.0}
-  total = 2 * (len(keep) + (ambient_paths is not None))
-  with tqdm(total=total, desc="import-captures: frames", unit="frame", file=sys.stderr,
-            disable=not progress or None, leave=False) as bar:
-    views = [_rectify_view(roles[i], keep, "white" if ambient_paths is None else ambient_paths[i],
-                           maps[i], size, what, bar, seconds)
-             for i, what in enumerate(("LEFT", "RIGHT"))]
-  require(views[0].dtype == views[1].dtype, f"RIGHT frames are {views[1].dtype.itemsize * 8}-bit, "
-          f"LEFT frames {views[0].dtype.itemsize * 8}-bit")
-  twelve = holds_12_bit(max(v.peak for v in views), views[0].dtype)
-  bits = 12 if twelve else views[0].dtype.itemsize * 8
-  if twelve:
-    for v in views:
-      v.frames = {k: _to_16_bit(f) for k, f in v.frames.items()}
-      v.colour = _to_16_bit(v.colour)
-
-  start = time.perf_counter()
+  views, rect, bits = _read_views(roles, columns + rows, ambient_paths, calibration, progress,
+                                  seconds)
   raws = [{k: v.frames[k] for k in columns} for v in views]
-  row_raws = None
-  if rows:
-    row_raws = [{"white": v.frames["white"], "black": v.frames["black"],
-                 **{k[1:]: v.frames[k] for k in rows}} for v in views]
+  row_raws = None if not rows else [
+      {"white": v.frames["white"], "black": v.frames["black"],
+       **{k[1:]: v.frames[k] for k in rows}} for v in views]
   code = "gray" if config.layout == "opencv" else config.code
   projector = config.projector or (None, None)
-  result = decode_views(raws[0], raws[1], code, config.decode, projector=projector,
-                        rows=row_raws, where=("LEFT (rectified)", "RIGHT (rectified)"))
-  seconds["decode"] += time.perf_counter() - start
-  start = time.perf_counter()
-  match_views(result, config.match)
-  seconds["match"] += time.perf_counter() - start
+  result = _timed(seconds, "decode", decode_views, raws[0], raws[1], code, config.decode,
+                  projector=projector, rows=row_raws,
+                  where=("LEFT (rectified)", "RIGHT (rectified)"))
+  _timed(seconds, "match", match_views, result, config.match)
 
-  w, h = rigs.scaled_length(size[0], config.scale), rigs.scaled_length(size[1], config.scale)
-  disp = [result.disp0, result.disp1]
-  ims = [v.colour for v in views]
-  bits_out = [result.left.bits, result.right.bits]
+  size = (rigs.scaled_length(rect.size[0], config.scale),
+          rigs.scaled_length(rect.size[1], config.scale))
+  disp, ims = [result.disp0, result.disp1], [v.colour for v in views]
+  patterns = [result.left.bits, result.right.bits]
   if config.scale != 1.0:
-    start = time.perf_counter()
-    disp = [resize_disparity(d, (w, h), config.scale) for d in disp]
-    ims = [_resize(im, (w, h)) for im in ims]
-    raws = [{k: _resize(f, (w, h)) for k, f in raw.items()} for raw in raws]
-    small = decode_views(raws[0], raws[1], code, config.decode, projector=projector)
-    bits_out = [small.left.bits, small.right.bits]
-    seconds["decode"] += time.perf_counter() - start
+    disp = [resize_disparity(d, size, config.scale) for d in disp]
+    ims = [_resize(im, size) for im in ims]
+    raws = [{k: _resize(f, size) for k, f in raw.items()} for raw in raws]
+    # The patterns of the written (resized) raw frames, as sljax decode would find them.
+    small = _timed(seconds, "decode", decode_views, raws[0], raws[1], code, config.decode,
+                   projector=projector)
+    patterns = [small.left.bits, small.right.bits]
 
-  calib = rect.calib(rigs.UNITS_MM[config.unit], disp, config.scale)
   shares = [_share_and_range(d) for d in disp]
-  meta = _meta(out, roles, ambient_paths, config, calibration, rect, bits, shares, result)
   scene = Scene(name=out.name, im0=image_to_float(ims[0], str(out / "im0.png")),
                 im1=image_to_float(ims[1], str(out / "im1.png")), disp0=disp[0], disp1=disp[1],
-                sl0=bits_out[0], sl1=bits_out[1], raw0=raws[0], raw1=raws[1], calib=calib,
-                meta=meta)
-  start = time.perf_counter()
-  write_scene(out, scene, overwrite=overwrite, bit_depth=8 if bits == 8 else 16)
+                sl0=patterns[0], sl1=patterns[1], raw0=raws[0], raw1=raws[1],
+                calib=rect.calib(rigs.UNITS_MM[config.unit], disp, config.scale),
+                meta=_meta(out, roles, ambient_paths, config, calibration, rect, bits, shares,
+                           result))
+  _timed(seconds, "write", write_scene, out, scene, overwrite=overwrite,
+         bit_depth=8 if bits == 8 else 16)
   if save_calibration:
-    rigs.write_calibration(out / CALIBRATION_FILE, calibration)
-  seconds["write"] += time.perf_counter() - start
+    _timed(seconds, "write", rigs.write_calibration, out / CALIBRATION_FILE, calibration)
   decoded = tuple(float(np.isfinite(v.column).mean()) for v in (result.left, result.right))
-  return ImportReport(out=out, size=(w, h), valid=(shares[0][0], shares[1][0]),
+  return ImportReport(out=out, size=size, valid=(shares[0][0], shares[1][0]),
                       ranges=(shares[0][1], shares[1][1]), decoded=decoded,
                       row_rejected=result.row_rejected, match_bits=result.bits, bit_depth=bits,
                       views="white" if ambient_paths is None else "ambient", seconds=seconds)

@@ -103,10 +103,11 @@ def decode_views(raw0: Mapping[str, np.ndarray], raw1: Mapping[str, np.ndarray],
   return out
 
 
-def column_rate(columns: tuple[np.ndarray, ...], step: int = 4) -> float:
+def column_rate(columns: tuple[np.ndarray, ...], step: int = 16) -> float:
   """Median projector columns per camera pixel along the rows (NaN when nothing is decoded):
-  from code differences over `step` pixels, where both ends are decoded and no depth edge lies
-  between (a difference above 4 columns per pixel)."""
+  from code differences over `step` pixels (long enough that whole codes measure fractions of a
+  column per pixel to 1/step), where both ends are decoded and no depth edge lies between (a
+  difference above 4 columns per pixel)."""
   rates = []
   for col in columns:
     diff = np.abs(col[:, step:] - col[:, :-step]) / step

@@ -28,7 +28,8 @@ from sljax.sl.stereo import decode_views, match_views
 RENDER = SynthConfig(size=256, domain="objects", t=9, raw_noise=0.0, raw_blur=0.0)
 OVERSAMPLE = 2  # the rectified frames are 128 px, rendered at 256 and area-averaged
 RIG = sr.RigConfig(size=(128, 96), projector=(160, 120))  # W, H not powers of two
-DEGRADED = sr.Degradation(blur_px=1.0, global_light=0.3, noise=0.01, saturated=0.03, seed=1)
+DEGRADED = sr.Degradation(blur_px=1.0, global_light=0.3, offset=0.1, noise=0.01, saturated=0.03,
+                          seed=1)
 PROJ = "160x120"
 
 

@@ -81,10 +81,10 @@ def calibrate_stereo(left: str, right: str, board: Board, progress: bool = True
   cb = opencv_board(board)
   detector = cv2.aruco.CharucoDetector(cb)
   chess = cb.getChessboardCorners().astype(np.float32)
-  pairs = list(zip(_images(left, "--charuco LEFT"), _images(right, "--charuco RIGHT")))
-  n_left, n_right = len(_images(left, "--charuco LEFT")), len(_images(right, "--charuco RIGHT"))
-  require(n_left == n_right, f"--charuco: {n_left} left images but {n_right} right images; each "
-          "left image pairs with the right image of the same number")
+  lefts, rights = _images(left, "--charuco LEFT_DIR"), _images(right, "--charuco RIGHT_DIR")
+  require(len(lefts) == len(rights), f"--charuco: {len(lefts)} left images but {len(rights)} "
+          "right images; the i-th left image pairs with the i-th right one")
+  pairs = list(zip(lefts, rights))
   size = None
   per_camera = ([], []), ([], [])  # (object points, image points) per camera
   stereo = [], [], []
@@ -124,10 +124,10 @@ def calibrate_stereo(left: str, right: str, board: Board, progress: bool = True
   rms, m1, d1, m2, d2, r, t, _, _ = cv2.stereoCalibrate(
       stereo[0], stereo[1], stereo[2], mono[0][1], mono[0][2], mono[1][1], mono[1][2], size,
       flags=cv2.CALIB_FIX_INTRINSIC)
-  cal = StereoCalibration(m1=np.asarray(m1, np.float64), d1=np.asarray(d1, np.float64).reshape(1, -1),
-                          m2=np.asarray(m2, np.float64), d2=np.asarray(d2, np.float64).reshape(1, -1),
-                          r=np.asarray(r, np.float64), t=np.asarray(t, np.float64).reshape(3, 1),
-                          size=size, where=f"ChArUco calibration of {left} + {right}")
+  as64 = lambda a, *shape: np.asarray(a, np.float64).reshape(*shape)  # noqa: E731
+  cal = StereoCalibration(m1=as64(m1, 3, 3), d1=as64(d1, 1, -1), m2=as64(m2, 3, 3),
+                          d2=as64(d2, 1, -1), r=as64(r, 3, 3), t=as64(t, 3, 1), size=size,
+                          where=f"ChArUco calibration of {left} + {right}")
   if not np.all(np.isfinite(np.concatenate([a.ravel() for a in cal.as_dict().values()]))):
     raise SljaxError("--charuco: the calibration did not converge (NaN values); more board "
                      "images at varied angles help")

@@ -55,6 +55,7 @@ class Degradation:
   blur_px: float = 0.0        # Gaussian sigma (defocus)
   global_light: float = 0.0   # indirect light: share of each frame's low-passed projector light
   global_sigma: float = 0.15  # low-pass sigma, share of the image width
+  offset: float = 0.0         # share of the low-passed white frame added to every frame
   noise: float = 0.0          # std of additive Gaussian noise
   saturated: float = 0.0      # share of the white frame's pixels overexposed (clipped at 1)
   seed: int = 0
@@ -214,13 +215,18 @@ def warp_to_real(frame: np.ndarray, maps: tuple[np.ndarray, np.ndarray]) -> np.n
 class Camera:
   """What a real camera records of a frame (values in [0, 1]): blurred, plus indirect
   projector light (the frame's own projector light, low-passed, times global_light: about half
-  the white frame's under a fine pattern and under its inverse alike, none under black), times
+  the white frame's under a fine pattern and under its inverse alike, none under black), plus
+  an offset (the low-passed white frame times `offset`, in every frame, black included), times
   an exposure gain that overexposes the share `saturated` of the white frame's pixels, plus
   noise, clipped to [0, 1]. Noise is drawn from (seed, view) in the order frames come."""
 
   def __init__(self, how: Degradation, view: int, white: np.ndarray, black: np.ndarray):
     self.how, self.black = how, black
     self.rng = np.random.default_rng([how.seed, view])
+    self.offset = 0.0
+    if how.offset > 0:
+      self.offset = how.offset * cv2.GaussianBlur(white, (0, 0), how.global_sigma * white.shape[1],
+                                                  borderType=cv2.BORDER_REFLECT)
     self.gain = 1.0
     if how.saturated > 0:  # the exposure that drives that share of the white frame to 1
       self.gain = 1.0 / max(float(np.quantile(self._light(white), 1.0 - how.saturated)), 1e-6)
@@ -232,7 +238,7 @@ class Camera:
       sigma = how.global_sigma * f.shape[1]
       g = g + how.global_light * cv2.GaussianBlur(f - self.black, (0, 0), sigma,
                                                   borderType=cv2.BORDER_REFLECT)
-    return g
+    return g + self.offset
 
   def __call__(self, frame: np.ndarray) -> np.ndarray:
     g = self.gain * self._light(frame)

@@ -20,6 +20,8 @@ COMMANDS = {
     "experiment": ("experiment",
                      "run the grids behind the paper's tables, resumably, and report them"),
     "export": ("export", "write a deployable file (serialised StableHLO) of a trained model"),
+    "import-captures": ("import_captures",
+                        "rectify, decode and match a stereo rig's Gray-code capture into a scene"),
     "import-scared": ("import_scared", "convert a SCARED keyframe into a scene folder"),
     "info": ("info", "summarise a dataset folder"),
     "make-data": ("make_data", "render a synthetic stereo + structured-light dataset"),

@@ -65,6 +65,15 @@ def unit_image(image: Any, what: str, allow_nan: bool = False) -> np.ndarray:
   return np.clip(a, 0.0, 1.0)
 
 
+TWELVE_BIT_MAX = 4095  # the largest value of 12-bit sensor data
+
+
+def holds_12_bit(max_value: int, dtype: Any) -> bool:
+  """Whether 16-bit samples whose largest value is max_value are 12-bit data (at most 4095):
+  read as value / 65535 they would come out 16x darker than they are."""
+  return np.dtype(dtype) == np.uint16 and int(max_value) <= TWELVE_BIT_MAX
+
+
 def image_to_float(raw: np.ndarray, where: str = "image") -> np.ndarray:
   """An OpenCV-decoded 8/16-bit array (HxW or BGR(A)) -> float32 HxWxC RGB in [0, 1]."""
   if raw.dtype == np.uint8:

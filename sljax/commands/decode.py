@@ -13,11 +13,11 @@ from sljax.data.pfm import write_pfm
 from sljax.data.scene import write_patterns
 from sljax.images import read_image
 from sljax.errors import SljaxError, require
-from sljax.sl.decode import DecodeConfig, count_patterns, decode_captures
-from sljax.sl.match import disparity_from_codes
+from sljax.sl.decode import DecodeConfig, count_patterns
+from sljax.sl.stereo import decode_views, match_views
 
 _DEFAULT_SHADOW = 10.0  # 8-bit grey levels; mirrors sljax.sl.decode.DecodeConfig
-_DEFAULT_BIT = 4.0
+_DEFAULT_BIT = 6.0
 
 
 def register(subparsers) -> None:
@@ -27,7 +27,8 @@ def register(subparsers) -> None:
       description="For every scene below DATASET holding raw0/ and raw1/ (white, black, p000..., "
       "optional inverses i000...), classify each pattern bit, write sl0/ and sl1/ "
       "(0 dark, 255 lit, 128 unknown) and, where absent, disp0.pfm / disp1.pfm from matching "
-      "equal codes along the rectified scanlines (inf = unknown). Existing disparity files are "
+      "equal codes along the rectified scanlines, left-right checked (inf = unknown; the same "
+      "decoding and matching as import-captures). Existing disparity files are "
       "never replaced (they may be ground truth); delete them to recompute.")
   p.add_argument("dataset", metavar="DATASET", help="dataset root (or one scene folder)")
   p.add_argument("--overwrite", action="store_true", help="replace existing sl0/ and sl1/")
@@ -94,17 +95,20 @@ def run(args: argparse.Namespace) -> int:
   for i in tqdm(todo, desc="decode", unit="scene", file=sys.stderr, disable=None):
     path = src.paths[i]
     scene = src.get(i, parts={"raw"})  # load_scene checks sizes and that raw0, raw1 agree
-    dec = [decode_captures(raw, codes[i], None, config, where=f"scene {path}: raw{cam}")
-           for cam, raw in enumerate((scene.raw0, scene.raw1))]
-    for cam, d in enumerate(dec):
+    # The projector's width (written by import-captures) makes codes beyond it unknown.
+    width = (src.meta(i).get("projector") or [None])[0]
+    dec = decode_views(scene.raw0, scene.raw1, codes[i], config, projector=(width, None),
+                       where=(f"scene {path}: raw0", f"scene {path}: raw1"))
+    for cam, d in enumerate((dec.left, dec.right)):
       write_patterns(path / f"sl{cam}", d.bits, overwrite=args.overwrite)
-    coverage.append(float(np.mean([np.isfinite(d.column).mean() for d in dec])))
+    coverage.append(float(np.mean([np.isfinite(d.column).mean() for d in (dec.left, dec.right)])))
     if args.no_disparity:
       continue
     targets = [path / f"disp{cam}.pfm" for cam in (0, 1)]
     absent = [not p.exists() for p in targets]
     if any(absent):
-      disps = disparity_from_codes(dec[0].column, dec[1].column)
+      match_views(dec)
+      disps = (dec.disp0, dec.disp1)
       disp_known.append(float(np.isfinite(disps[0]).mean()))
       for p, missing, disp in zip(targets, absent, disps):
         if missing:

@@ -17,6 +17,7 @@ from sljax.data.calib import read_calib
 from sljax.data.dataset import FolderSource, split_indices
 from sljax.data.pfm import read_pfm
 from sljax.data.scene import negative_share, present_parts
+from sljax.images import holds_12_bit
 from sljax.errors import SljaxError
 
 _FILES = ("im1.png", "disp0.pfm", "disp1.pfm", "mask0.png", "sl0", "sl1", "raw0", "raw1",
@@ -141,7 +142,7 @@ def _low_bit_note(rows: list[dict]) -> str | None:
   if row is None:
     return None
   image = cv2.imread(os.fspath(row["path"] / "im0.png"), cv2.IMREAD_UNCHANGED)
-  if image is None or int(image.max()) >= 4096:
+  if image is None or not holds_12_bit(image.max(), image.dtype):
     return None
   return (f"note:    {row['name']}/im0.png is 16-bit with values up to {int(image.max())} "
           "(12-bit data?); sljax reads 16-bit PNGs as value / 65535, so it looks "
@@ -169,7 +170,7 @@ def _pattern_problems(counts: list[int], declared: Any) -> list[str]:
   """The pre-flight check's pattern rule (preflight.expected_patterns), summarised: a mixed
   dataset would fail in its first training batch, later and less clearly."""
   expected = preflight.expected_patterns(declared, counts)
-  if all(t == expected for t in counts):
+  if all(preflight.fits_patterns(t, expected, declared) for t in counts):
     return []
   found = ", ".join(f"{t} ({_plural(v, 'scene')})"
                     for t, v in sorted(collections.Counter(counts).items()))

@@ -61,7 +61,8 @@ def find_scenes(root: str | os.PathLike) -> list[Path]:
 
 
 class FolderSource:
-  """Scenes below a root folder, loaded on access; reads the optional dataset.json."""
+  """Scenes below a root folder, loaded on access; reads the optional dataset.json (whose
+  "patterns" t, where given, cuts every scene's sl0/sl1 to its t coarsest patterns)."""
 
   def __init__(self, root: str | os.PathLike, gray: bool | None = None):
     self.root = files.require_folder(root, "dataset folder")
@@ -124,6 +125,9 @@ class FolderSource:
     i = self._index(i)
     scene = load_scene(self.paths[i], gray=self.gray if gray is None else gray, parts=parts)
     scene.name = self._names[i]
+    t = self.info.get("patterns")
+    if t:  # a network of t patterns takes the t coarsest of a scene that holds more
+      scene.sl0, scene.sl1 = (None if p is None else p[..., :t] for p in (scene.sl0, scene.sl1))
     if parts is None or "meta" not in parts:
       scene.meta = self.meta(i)
     return scene

@@ -14,7 +14,8 @@ the run's scene parts need, cheaply:
   parsing).
 - calib.txt, meta.json: parsed with the loader's own readers (they are small).
 - Shapes: every view, disparity, pattern and mask of a scene has im0's size; sl1 holds as many
-  patterns as sl0, and every scene as many as the first (the network's input is built for it).
+  patterns as sl0, and every scene as many as the first (the network's input is built for it),
+  or at least as many as dataset.json's "patterns", of which the loader takes the coarsest.
 
 Results are cached per dataset, keyed by each file's size and mtime (and the listing times of
 the folders read), in the user's cache folder (SLJAX_CACHE_DIR, else XDG_CACHE_HOME/sljax,
@@ -319,11 +320,17 @@ def scan(source, jobs: Sequence[tuple[Iterable[int], Iterable[str]]], *,
   whose = (f"{root / 'dataset.json'} declares" if declared is not None else
            f"scene {source.name(counted[0][0])} holds" if counted else "")
   for i, t in counted:
-    if t != expected:
+    if not fits_patterns(t, expected, declared):
       problems.setdefault(i, f"{source.paths[i] / 'sl0'}: holds {t} patterns, {whose} "
                              f"{expected}")
   return ([problems[i] for i in sorted(problems)],
           {"scenes": len(wanted), "cached": len(wanted) - len(todo)})
+
+
+def fits_patterns(t: int, expected: int | None, declared: Any) -> bool:
+  """Whether a scene holding t patterns gives a run its `expected` patterns: exactly, or, where
+  dataset.json declares the count, t or more (FolderSource then takes the coarsest)."""
+  return t == expected or (declared is not None and expected is not None and t >= expected)
 
 
 def expected_patterns(declared: Any, counts: Sequence[int]) -> int | None:

@@ -24,7 +24,6 @@ smooth and leaves no holes to fill.
 """
 
 import os
-import re
 from pathlib import Path
 
 import cv2
@@ -33,91 +32,21 @@ import numpy as np
 from sljax import files
 from sljax.data.calib import Calib
 from sljax.data.pfm import write_pfm
+from sljax.data.rig import (RECTIFY_ALPHA, check_rig, read_calibration, rectify, rectify_maps,
+                            remap)
 from sljax.data.scene import Scene, write_scene
 from sljax.images import image_to_float
 from sljax.errors import SljaxError
 
 LEFT, RIGHT = "Left_Image.png", "Right_Image.png"
 DEPTH, CALIB = "left_depth_map.tiff", "endoscope_calibration.yaml"
-RECTIFY_ALPHA = 0.0
 ORIGINAL_DEPTH = "depth0_orig.pfm"  # ground-truth depth of the original left view (scene file)
 MIN_COVERAGE = 0.1  # scared_toolkit: frames with less known ground truth are not scored
 
 
-CALIB_KEYS = ("M1", "D1", "M2", "D2", "R", "T")
-DIST_COUNTS = (4, 5, 8, 12, 14)  # the distortion models OpenCV's rectification accepts
-
-
-def _calib_matrix(fs, key: str) -> np.ndarray | None:
-  """Matrix key of an open FileStorage as float64, or None when absent or not a whole
-  !!opencv-matrix (OpenCV asserts, a cv2.error, on a scalar or a cut-off entry)."""
-  try:
-    if not fs.root().isMap():
-      return None
-    node = fs.getNode(key)
-    m = None if node.empty() or not node.isMap() else node.mat()
-  except cv2.error:
-    return None
-  return None if m is None else np.asarray(m, dtype=np.float64)
-
-
 def read_scared_calibration(path: str | os.PathLike) -> dict[str, np.ndarray]:
   """Reads M1 D1 M2 D2 R T (float64) from an OpenCV FileStorage YAML."""
-  path = os.fspath(path)
-  if not os.path.exists(path):
-    raise SljaxError(f"{path}: missing")
-  needs = f"an OpenCV FileStorage YAML with the matrices {' '.join(CALIB_KEYS)}"
-  if os.path.getsize(path) == 0:  # OpenCV asserts on it (a SystemError from the binding)
-    raise SljaxError(f"{path}: empty file (0 bytes); expected {needs}")
-  try:
-    fs = cv2.FileStorage(path, cv2.FILE_STORAGE_READ)
-  except (cv2.error, SystemError) as e:  # the binding wraps parse errors in a SystemError
-    cause = e if isinstance(e, cv2.error) else e.__context__
-    where = re.search(r"in function '(.+)'", str(cause))  # OpenCV's line number and reason
-    detail = f" OpenCV: {where.group(1)}" if where else ""
-    raise SljaxError(f"{path}: not readable as {needs} (damaged or half-written?{detail})"
-                     ) from None
-  if not fs.isOpened():
-    raise SljaxError(f"{path}: cannot open as OpenCV FileStorage")
-  try:
-    out = {key: _calib_matrix(fs, key) for key in CALIB_KEYS}
-  finally:
-    fs.release()
-  missing = [k for k, m in out.items() if m is None]
-  if missing:
-    raise SljaxError(f"{path}: lacks the {'matrix' if len(missing) == 1 else 'matrices'} "
-                     f"{' '.join(missing)} (absent, cut off or not an !!opencv-matrix; "
-                     f"expected {needs})")
-  expect = {"M1": 9, "M2": 9, "R": 9, "T": 3}
-  for key, size in expect.items():
-    if out[key].size != size:
-      raise SljaxError(f"{path}: {key} has {out[key].size} values, expected {size}")
-  out["M1"], out["M2"], out["R"] = (out[k].reshape(3, 3) for k in ("M1", "M2", "R"))
-  out["T"] = out["T"].reshape(3, 1)
-  out["D1"], out["D2"] = out["D1"].reshape(1, -1), out["D2"].reshape(1, -1)
-  _check_calibration_values(out, path)
-  if out["R"].shape != (3, 3) or abs(np.linalg.det(out["R"]) - 1) > 1e-3:
-    raise SljaxError(f"{path}: R is not a rotation matrix")
-  return out
-
-
-def _check_calibration_values(cal: dict[str, np.ndarray], path: str) -> None:
-  """SljaxError unless every value is finite, M1 and M2 have positive focal lengths and D1, D2
-  hold a distortion model OpenCV knows."""
-  # cv2.stereoRectify asserts on a bad distortion length or a NaN T (a traceback) and turns a
-  # NaN or zero intrinsic into NaN matrices, which would be written to calib.txt as is.
-  for key in CALIB_KEYS:
-    if not np.all(np.isfinite(cal[key])):
-      raise SljaxError(f"{path}: {key} holds NaN or infinite values")
-  for key in ("M1", "M2"):
-    fx, fy = cal[key][0, 0], cal[key][1, 1]
-    if not (fx > 0 and fy > 0):
-      raise SljaxError(f"{path}: {key} has focal lengths fx = {fx:g}, fy = {fy:g}; both must "
-                       "be positive")
-  for key in ("D1", "D2"):
-    if cal[key].size not in DIST_COUNTS:
-      raise SljaxError(f"{path}: {key} has {cal[key].size} values, expected 4, 5, 8, 12 or 14 "
-                       "(OpenCV's distortion models: k1 k2 p1 p2 [k3 [k4 k5 k6 [s1..s4 [tx ty]]]])")
+  return read_calibration(path).as_dict()
 
 
 def read_scared_points(path: str | os.PathLike) -> np.ndarray:
@@ -185,18 +114,6 @@ def rectified_disparity(xyz: np.ndarray, r1: np.ndarray, p1: np.ndarray, baselin
   return disp
 
 
-def _check_rig(t: np.ndarray, path: Path) -> None:
-  """SljaxError unless T (right camera from left) puts the right camera to the left one's right."""
-  if abs(t[0]) <= abs(t[1]):
-    raise SljaxError(f"{path}: T = {t.tolist()} is not a horizontal stereo rig")
-  # stereoRectify takes either order, but with T x > 0 the true disparity is negative and the
-  # f*B/Z written as disp0 would have the wrong sign.
-  if t[0] > 0:
-    raise SljaxError(f"{path}: T = {t.tolist()} puts the right camera to the left of the left "
-                     f"one (T x > 0, SCARED's rigs have T x < 0): are {LEFT} and {RIGHT}, or "
-                     "the cameras of the calibration, swapped?")
-
-
 def _check_depth_scale(known_disp: np.ndarray, xyz: np.ndarray, width: int, path: Path) -> None:
   """SljaxError when most known disparities exceed the image width, which no pair can show:
   depths in metres instead of mm make them 1000x too large."""
@@ -221,34 +138,22 @@ def import_scared(keyframe_dir: str | os.PathLike, out_dir: str | os.PathLike,
   if xyz.shape[:2] != (h, w):
     raise SljaxError(f"{kf / DEPTH}: size {xyz.shape[1]}x{xyz.shape[0]} differs from "
                      f"{LEFT} ({w}x{h})")
-  cal = read_scared_calibration(kf / CALIB)
-  _check_rig(cal["T"].ravel(), kf / CALIB)
+  cal = read_calibration(kf / CALIB)
+  check_rig(cal, f"are {LEFT} and {RIGHT}, or the cameras of the calibration, swapped?")
 
-  r1, r2, p1, p2, _, _, _ = cv2.stereoRectify(
-      cal["M1"], cal["D1"], cal["M2"], cal["D2"], (w, h), cal["R"], cal["T"],
-      flags=cv2.CALIB_ZERO_DISPARITY, alpha=RECTIFY_ALPHA)
-  f = float(p1[0, 0])
-  baseline = float(abs(p2[0, 3]) / p2[0, 0])  # equals |T| for a horizontal rig
-  maps0 = cv2.initUndistortRectifyMap(cal["M1"], cal["D1"], r1, p1, (w, h), cv2.CV_32FC1)
-  maps1 = cv2.initUndistortRectifyMap(cal["M2"], cal["D2"], r2, p2, (w, h), cv2.CV_32FC1)
-  im0 = cv2.remap(left, maps0[0], maps0[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-  im1 = cv2.remap(right, maps1[0], maps1[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-  disp = rectified_disparity(xyz, r1, p1, baseline, (h, w), lookup=maps0)
+  rect = rectify(cal, (w, h))
+  maps0, maps1 = rectify_maps(cal, rect)
+  im0, im1 = remap(left, maps0), remap(right, maps1)
+  disp = rectified_disparity(xyz, rect.r1, rect.p1, rect.baseline, (h, w), lookup=maps0)
 
   finite = disp[np.isfinite(disp)]
   _check_depth_scale(finite, xyz, w, kf / DEPTH)
-  vmin = float(np.floor(finite.min())) if finite.size else None
-  vmax = float(np.ceil(finite.max())) if finite.size else None
-  ndisp = int(16 * np.ceil(max(vmax or 0.0, 1.0) / 16))
-  cam = np.array([[f, 0, p1[0, 2]], [0, p1[1, 1], p1[1, 2]], [0, 0, 1]], np.float64)
-  cam1 = np.array([[p2[0, 0], 0, p2[0, 2]], [0, p2[1, 1], p2[1, 2]], [0, 0, 1]], np.float64)
-  calib = Calib(cam0=cam, cam1=cam1, doffs=float(p2[0, 2] - p1[0, 2]), baseline=baseline,
-                width=w, height=h, ndisp=ndisp, vmin=vmin, vmax=vmax)
+  calib = rect.calib(1.0, [disp])  # SCARED's calibrations are in mm
   group = f"{kf.resolve().parent.name}/{kf.resolve().name}"
   meta = {"group": group, "source": "SCARED", "keyframe": kf.resolve().name,
           "rectify_alpha": RECTIFY_ALPHA, "known_pixels": int(finite.size),
-          "original": {"M1": cal["M1"].tolist(), "D1": cal["D1"].ravel().tolist(),
-                       "R1": np.asarray(r1).tolist(), "width": w, "height": h}}
+          "original": {"M1": cal.m1.tolist(), "D1": cal.d1.ravel().tolist(),
+                       "R1": rect.r1.tolist(), "width": w, "height": h}}
   scene = Scene(name=out.name, im0=image_to_float(im0, str(kf / LEFT)),
                 im1=image_to_float(im1, str(kf / RIGHT)), disp0=disp,
                 calib=calib, meta=meta)

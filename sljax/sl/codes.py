@@ -49,15 +49,20 @@ def encode(columns: Any, code: str, t: int, xp: ModuleType = np) -> Any:
 def decode(bits: Any, code: str, xp: ModuleType = np) -> Any:
   """Inverse of encode: (..., t) bits (0/1, any numeric dtype) -> (...,) int32 columns."""
   _check_code(code)
-  b = xp.asarray(bits).astype(xp.int32)
+  b = xp.asarray(bits)  # each bit plane becomes int32 on its own (no full-size copy)
   require(b.ndim >= 1 and 1 <= b.shape[-1] <= 31,
           f"code bits must be (..., t) with t in 1..31, got shape {b.shape}")
   t = b.shape[-1]
-  if code == "gray":
-    # Binary bit k is the XOR of Gray bits 0..k: a running sum taken modulo 2.
-    b = xp.cumsum(b, axis=-1) % 2
-  weights = (1 << xp.arange(t - 1, -1, -1, dtype=xp.int32)).astype(xp.int32)
-  return xp.sum(b * weights, axis=-1).astype(xp.int32)
+  # One pass per bit over (...,) planes: a cumsum or weighted sum along a short last axis of a
+  # large array is many times slower (per-element inner loops).
+  value = xp.zeros(b.shape[:-1], xp.int32)
+  bit = xp.zeros(b.shape[:-1], xp.int32)
+  for k in range(t):
+    # Binary bit k is the XOR of Gray bits 0..k.
+    plane = b[..., k].astype(xp.int32)
+    bit = (bit ^ plane) if code == "gray" else plane
+    value = (value << 1) | bit
+  return value
 
 
 def pattern_columns(width: int, t: int | None = None) -> np.ndarray:

@@ -701,7 +701,7 @@ def test_imported_scene_works_with_info_evaluate_predict_and_training_data(captu
   assert cli.main(["evaluate", "sgbm", str(data), "--out", str(tmp_path / "eval")]) == 0
   assert (tmp_path / "eval" / "per_scene.csv").exists()
   assert cli.main(["predict", "sgbm", str(data / "a"), "--out", str(tmp_path / "pred"),
-                   "--maxdisp", "32"]) == 0
+                   "--num-disparities", "32"]) == 0
   assert (tmp_path / "pred").is_dir()
   (data / "dataset.json").write_text(json.dumps({"patterns": 6}))
   src = FolderSource(data)

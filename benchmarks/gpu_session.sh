@@ -12,9 +12,8 @@
 #          paper preset in float32 and bf16, one process each, alone on the GPU.
 # `dry` runs the same at a tiny size, on any machine (check a part on a CPU before a GPU call):
 #   OUT=/tmp/gpu bash benchmarks/gpu_session.sh step dry
-# From the device tool, with a PyTorch PSMNet checkout for `speed`:
-#   here, once: echo /.ref/ >> .git/info/exclude && mkdir -p .ref && cp -r PSMNET_CHECKOUT .ref/PSMNet
-#   run(command="bash benchmarks/gpu_session.sh speed", carry=[".ref"], timeout_s=600)
+# `speed` compares with the reference PyTorch PSMNet when a checkout of it is in .ref/PSMNet
+# (mkdir -p .ref && cp -r PSMNET_CHECKOUT .ref/PSMNet); without one it times sljax alone.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 part=${1:-}

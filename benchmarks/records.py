@@ -1,4 +1,4 @@
-"""The benchmark records of every CPU measured, as one Markdown table (the README's Benchmarks).
+"""The benchmark records of every CPU measured, as one Markdown table (docs/benchmarks.md).
 
 Every benchmark appends its rows, with the machine, to `benchmarks/results/<cpu>.jsonl`
 (`common.record`). This prints, per CPU kind, the latest record of each headline figure:

@@ -24,7 +24,7 @@ since caching the default after one burst of load would keep it for good. The
 winner is kept in a JSON cache in the user's cache directory (`$SLJAX_CACHE_DIR`, else
 `$XDG_CACHE_HOME/sljax`, else `~/.cache/sljax`), keyed by the CPU kind
 (`sljax.machine.cpu_key`) and the jax and jaxlib versions: measured once per machine kind and
-upgrade. `sljax tune` runs it and prints the table; `SLJAX_TUNE=0` (or `--no-tune`, `--ynn on`)
+upgrade. `sljax tune` runs it and prints the table; `SLJAX_TUNE=0` (or `--ynn on`)
 keeps XLA's defaults. Off the CPU nothing is measured.
 """
 

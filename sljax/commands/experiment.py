@@ -7,7 +7,8 @@ from sljax.experiment import (calibrate as cal, plans, regime as reg, report as 
 
 
 def register(subparsers) -> None:
-  """Adds the `experiment` subcommand and its run / report / status / calibrate / plans actions."""
+  """Adds the `experiment` subcommand and its run / report / status / calibrate / regime / plans
+  actions."""
   p = subparsers.add_parser(
       "experiment",
       description="Runs a plan (a grid of training runs: model and strategy, training fraction, "
@@ -20,8 +21,8 @@ def register(subparsers) -> None:
   r.add_argument("plan", metavar="PLAN",
                  help="table1, table2, table3, fig7 (v1: scored on the held-out split) or "
                       "table1-v2, table2-v2, table3-v2, fig7-v2 (fixed test sets; "
-                      "docs/plan-v2.md) or v3-pilot (stl's curves at small fractions; "
-                      "docs/plan-v3.md)")
+                      "docs/plan-v2.md), v3-pilot (stl's curves at small fractions) or v3 (the test "
+                      "grid in the pilot's regime; docs/plan-v3.md)")
   r.add_argument("out", metavar="OUT", help="experiment folder (shared by plans that share cells)")
   r.add_argument("--scale", default="cpu",
                  help="smoke (minutes, for tests), cpu (a 2-core CPU, 64x64), cpu128 (128x128) or "

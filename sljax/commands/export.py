@@ -18,7 +18,8 @@ def register(subparsers) -> None:
                   "it (OUT with the suffix .json: input size, channels, mode, outputs, scaling). "
                   "Load and run it with jax alone: exp = jax.export.deserialize(open(OUT, "
                   "'rb').read()); out = exp.call(left, right), left and right float32 "
-                  "BxHxWxC in [0, 1]. The artifact runs on the platform it was made on.")
+                  "BxHxWxC in [0, 1]. The artifact is lowered for CPU and CUDA GPU (and the platform it "
+                  "is made on).")
   p.add_argument("model", metavar="MODEL",
                  help="a training workdir, its checkpoints folder or a converted PSMNet folder")
   p.add_argument("out", metavar="OUT", help="the file to write, e.g. psmnet_1024x1280.jax")

@@ -52,7 +52,7 @@ def test_smoke_plan_runs_end_to_end_and_a_second_run_trains_nothing(smoke_out, c
   # training and in scoring alike.
   assert cfg["conv_impl"] == "lax" and cfg["ynn"] == "on"
   cell = next(c for c in plan.cells if c.name == "unet-sl-tissue-ft-s0")
-  assert runner._final_predictor(smoke_out, cell).model.conv_impl == "lax"
+  assert runner._predictor(smoke_out, cell).model.conv_impl == "lax"
   md = (smoke_out / "report.md").read_text()
   assert "Table 1" in md and "unet-sl" in md and "figures/table1_bars.png" in md
   assert (smoke_out / "figures" / "table1_bars.png").stat().st_size > 1000

@@ -8,9 +8,11 @@ equals `nn.max_pool` (gradient to the first maximum, ties included) and the regr
 plain composition of upsampling, softmax and regression. Guarded by tests/test_conv3d.py
 (each kernel against lax, every blocking, bfloat16, the modules against flax's),
 tests/test_conv_impl.py (whole networks built with "lax" and "fast" in one process: outputs
-and parameter gradients in float64), tests/test_convT_gpu.py (the GPU forms against lax in
-float64, their programs' convolution patterns, PSMNet with them), tests/test_unet.py::test_max_pool_equals_flax_max_pool
-and tests/test_psmnet.py::test_regress_upsampled_equals_the_composition.
+and parameter gradients in float64), tests/test_conv_transpose_gpu.py (the GPU forms against
+lax in float64, their programs' convolution patterns, PSMNet's hourglass with them),
+tests/test_reference_psmnet.py (PSMNet with "gpu" against the PyTorch reference's outputs),
+tests/test_unet.py::test_max_pool_equals_flax_max_pool and
+tests/test_psmnet.py::test_regress_upsampled_equals_the_composition.
 
 Why. XLA:CPU's 3D convolution is slow (tens of GFLOP/s on 2 cores, and its stride-2 and
 transposed gradients take seconds at PSMNet's sizes), while its 2D convolution is close to

@@ -156,13 +156,15 @@ def step_inputs(h: int, w: int, maxdisp: int, batch: int, patterns: int | None =
   return {k: v.astype(np.float32) for k, v in out.items()}
 
 
-def timed_steps(run_step, sync, warmup: int, steps: int, t0: float) -> dict:
-  """Runs the first step (the time from the child's launch t0 to its end, and from the call),
-  the rest of the warm-up, then `steps` timed steps: their mean, synchronised at both ends."""
+def timed_steps(run_step, sync, warmup: int, steps: int, t0: float, setup: float) -> dict:
+  """Runs the first step (the time from the child's launch t0 to its end, and from the call;
+  the setup before it: since `setup`, a perf_counter time), the rest of the warm-up, then
+  `steps` timed steps: their mean, synchronised at both ends."""
   start = time.perf_counter()
   run_step()
   sync()
-  first = {"first_step_s": time.time() - t0, "first_call_s": time.perf_counter() - start}
+  first = {"first_step_s": time.time() - t0, "first_call_s": time.perf_counter() - start,
+           "setup_s": start - setup}
   for _ in range(warmup - 1):
     run_step()
   sync()
@@ -207,8 +209,8 @@ def sljax_step_child(args) -> dict:
     metrics[:] = [m]
 
   sync = lambda: jax.block_until_ready((state[0], metrics))
-  out = timed_steps(run_step, sync, args.warmup, args.steps, args.t0)
-  out["setup_s"] = time.perf_counter() - start - out["first_call_s"]  # init, its compile, data
+  # setup_s: the model's initialisation (its compile or cache load), state and batch
+  out = timed_steps(run_step, sync, args.warmup, args.steps, args.t0, start)
   out.update(device_of_process(), impl=model.conv_impl, cache=str(cache), cache_hits=len(hits),
              loss=float(metrics[0]["loss"]))
   stats = jax.devices()[0].memory_stats() or {}
@@ -253,8 +255,7 @@ def reference_step_child(args) -> dict:
     losses[:] = [loss]
 
   sync = torch.cuda.synchronize if cuda else (lambda: None)
-  out = timed_steps(run_step, sync, args.warmup, args.steps, args.t0)
-  out["setup_s"] = time.perf_counter() - start - out["first_call_s"]
+  out = timed_steps(run_step, sync, args.warmup, args.steps, args.t0, start)
   out.update(impl="cudnn.benchmark" if cuda else "cpu", loss=losses[0].item(),
              torch=torch.__version__, device_kind=torch.cuda.get_device_name() if cuda else "cpu")
   if cuda:

@@ -67,12 +67,11 @@ def headlines(entry: dict) -> list[tuple[str, str]]:
                   f"{r['step_s'] * 1e3:.0f} ms{ratio}, first step {r['first_step_s']:.0f} s, "
                   f"peak {r['peak_gib']:.1f} GiB"))
     elif b == "bench_convT":
-      size = "x".join(map(str, r["x"][1:4]))
-      what = f"transposed conv {r['layer']} {size}x{r['x'][4]} b{r['x'][0]} {r['form']} {r['dtype']}"
+      size = f"{'x'.join(map(str, r['x'][1:4]))}x{r['x'][4]} b{r['x'][0]}"
       value = ", ".join(f"{p} {r[f'{p}_ms']:.2f} ms" for p in ("fwd", "dx", "dk", "both")
                         if f"{p}_ms" in r)
-      out.append((what, value + (f" ({r['both_over_lax']:.2f}x lax)" if "both_over_lax" in r
-                                 else "")))
+      lax = f" ({r['both_over_lax']:.2f}x lax)" if "both_over_lax" in r else ""
+      out.append((f"transposed conv {r['layer']} {size} {r['form']} {r['dtype']}", value + lax))
     elif b == "main_job":
       out.append((r["what"], r["value"]))
   return out

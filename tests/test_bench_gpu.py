@@ -92,10 +92,12 @@ def test_step_shapes_and_inputs():
 
 def test_timed_steps_by_hand():
   calls, syncs = [], []
+  setup = time.perf_counter() - 5.0
   out = bench_gpu.timed_steps(lambda: calls.append(1), lambda: syncs.append(len(calls)),
-                              warmup=3, steps=4, t0=0.0)
+                              warmup=3, steps=4, t0=0.0, setup=setup)
   assert len(calls) == 7 and syncs == [1, 3, 7]  # the first step, the warm-up, the timed
   assert out["steps"] == 4 and out["warmup"] == 3 and out["step_s"] >= 0
+  assert 5.0 <= out["setup_s"] < 6.0  # up to the first step only
   assert out["first_step_s"] > 1e9  # since t0 (the epoch here): the launch in a child
 
 
@@ -121,7 +123,8 @@ def fake_run_child(script, args, env=None, timeout=None, check=True):
   second = sum(1 for l in launched if l["impl"] == a["--impl"]) == 2
   return {"first_step_s": 5.0 if second else 60.0, "step_s": {"gpu": 0.2, "lax": 0.6}.get(
               a["--impl"], 0.3), "impl": a["--impl"], "cache_hits": 2 if second else 0,
-          "backend": "gpu", "device_kind": "NVIDIA H200", "machine": "Xeon; 1 x NVIDIA H200"}, 2048.0
+          "backend": "gpu", "device_kind": "NVIDIA H200",
+          "machine": "Xeon; 1 x NVIDIA H200"}, 2048.0
 
 bench_gpu.run_child = fake_run_child
 args = bench_gpu.argparse.Namespace(
@@ -207,3 +210,13 @@ def test_reference_child_trains_a_stand_in_of_the_reference(tmp_path):
   assert res["steps"] == 2 and res["warmup"] == 1 and res["step_s"] > 0
   assert 0 < res["first_call_s"] <= res["first_step_s"] < 120
   assert np.isfinite(res["loss"]) and res["loss"] > 0
+
+
+def test_records_of_the_transposed_conv_benchmark_by_hand():
+  import records  # noqa: E402  (benchmarks/ is on the path above)
+  entry = {"benchmark": "bench_convT", "rows": [
+      {"table": "convT", "shape": "paper", "layer": "conv6", "form": "gpu", "dtype": "float32",
+       "x": [12, 12, 32, 32, 64], "cout": 32, "fwd_ms": 0.41, "dk_ms": 1.5, "both_ms": 2.5,
+       "both_over_lax": 0.05}]}
+  assert records.headlines(entry) == [("transposed conv conv6 12x32x32x64 b12 gpu float32",
+                                       "fwd 0.41 ms, dk 1.50 ms, both 2.50 ms (0.05x lax)")]

@@ -350,8 +350,9 @@ def step_part(args) -> None:
         print(f"| {shape} {w}x{h} d{maxdisp} b{batch} | {precision} | {label} | "
               f"{row['first_step_s']:.1f} | {row['step_s']:.3f} | {batch / row['step_s']:.3g} | "
               f"{row['peak_gib']:.2f} | {ratio} |", flush=True)
-        for k in row.get("kernels", []):  # ms per step, share of the kernels' time
-          print(f"|  |  | {k['where']} kernel, {100 * k['share']:.0f}%: {k['kernel'][:80]} |  | "
+        for k in row.get("kernels", []):  # s per step, share of the kernels' time
+          what = "kernel" if k["where"] == "device" else "XLA op (host time)"
+          print(f"|  |  | {what}, {100 * k['share']:.0f}%: {k['kernel'][:80]} |  | "
                 f"{k['ms_per_call'] / 1e3:.4f} |  |  |  |", flush=True)
       pending.append(rows)  # recorded once a child has said where it ran: a run cut short
       while where and pending:  # keeps what it measured

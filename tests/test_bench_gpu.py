@@ -220,3 +220,27 @@ def test_records_of_the_transposed_conv_benchmark_by_hand():
        "both_over_lax": 0.05}]}
   assert records.headlines(entry) == [("transposed conv conv6 12x32x32x64 b12 gpu float32",
                                        "fwd 0.41 ms, dk 1.50 ms, both 2.50 ms (0.05x lax)")]
+
+
+def test_device_kernels_of_a_gpu_trace_by_hand():
+  """A trace as XProf writes a GPU's (a process per device, a thread per stream and derived
+  lines of XLA operations and modules): kernels summed by name from the stream lines only."""
+  import profile_step  # noqa: E402  (benchmarks/ is on the path above)
+  meta = lambda kind, pid, tid, name: {"ph": "M", "name": kind, "pid": pid, "tid": tid,
+                                       "args": {"name": name}}
+  fallback = "sm80_xmma_fprop_implicit_gemm_indexed_wo_smem_tf32f32"
+  events = [meta("process_name", 1, None, "/host:CPU"), meta("thread_name", 1, 7, "python"),
+            meta("process_name", 2, None, "/device:GPU:0"),
+            meta("thread_name", 2, 10, "Stream #13(Compute)"),
+            meta("thread_name", 2, 11, "XLA Ops"), meta("thread_name", 2, 12, "XLA Modules"),
+            {"ph": "X", "pid": 1, "tid": 7, "name": "PjitFunction(step)", "ts": 0, "dur": 900},
+            {"ph": "X", "pid": 2, "tid": 12, "name": "jit_step", "ts": 0, "dur": 800},
+            {"ph": "X", "pid": 2, "tid": 11, "name": "cudnn-conv.3", "ts": 0, "dur": 500}]
+  for i, (name, dur) in enumerate([(fallback, 450), ("sm90_xmma_wgrad", 100), (fallback, 150)]):
+    events.append({"ph": "X", "pid": 2, "tid": 10, "name": name, "ts": 10 * i, "dur": dur,
+                   "args": {"hlo_op": "cudnn-conv.3"} if name == fallback else {}})
+  rows = profile_step.kernel_rows(events, calls=3, top=5)
+  assert [(r["kernel"], r["where"], r["hlo_op"]) for r in rows] == [
+      (fallback, "device", "cudnn-conv.3"), ("sm90_xmma_wgrad", "device", "")]
+  assert rows[0]["ms_per_call"] == pytest.approx(0.2)  # 600 us over 3 calls
+  assert rows[0]["share"] == pytest.approx(600 / 700)

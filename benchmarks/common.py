@@ -9,6 +9,7 @@ import json
 import os
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -61,16 +62,28 @@ def best_time(fn: Callable[[], object], repeats: int) -> float:
   return best
 
 
-def run_child(script: str, args: list[str]) -> tuple[dict, float]:
-  """Runs `script` with args in a fresh process; its last stdout line (JSON) and peak RSS (MiB)."""
+def run_child(script: str, args: list[str], env: dict | None = None, timeout: float | None = None,
+              check: bool = True) -> tuple[dict | None, float]:
+  """Runs `script` with args in a fresh process; its last stdout line (JSON) and peak RSS (MiB).
+
+  env replaces the environment; past `timeout` seconds the child is killed. A failed child
+  ends the benchmark, or with check=False gives None (its stderr is left on the console)."""
   proc = subprocess.Popen([sys.executable, os.path.abspath(script)] + args,
-                          stdout=subprocess.PIPE, text=True)
+                          stdout=subprocess.PIPE, text=True, env=env)
+  timer = threading.Timer(timeout, proc.kill) if timeout else None
+  if timer:
+    timer.start()
   out = proc.stdout.read()
   _, status, usage = os.wait4(proc.pid, 0)
+  if timer:
+    timer.cancel()
   code = os.waitstatus_to_exitcode(status)
+  rss = usage.ru_maxrss / 1024  # Linux: KiB
   if code != 0:
-    raise SystemExit(f"benchmark child {' '.join(args)} failed with exit code {code}")
-  return json.loads(out.strip().splitlines()[-1]), usage.ru_maxrss / 1024  # Linux: KiB
+    if check:
+      raise SystemExit(f"benchmark child {' '.join(args)} failed with exit code {code}")
+    return None, rss
+  return json.loads(out.strip().splitlines()[-1]), rss
 
 
 RESULTS = Path(os.environ.get("SLJAX_BENCH_RESULTS", os.path.join(ROOT, "benchmarks", "results")))
@@ -98,27 +111,38 @@ def records_key(cpu: dict, backend: str, device_kind: str) -> str:
   return "-".join(filter(None, slug.split("-")))
 
 
+def device_of_process(torch_module=None) -> dict:
+  """Where this process runs: jax's backend, its first device's kind and the machine line
+  (initialises jax's backend: on a GPU, its memory)."""
+  import jax
+  return {"backend": jax.default_backend(), "device_kind": jax.devices()[0].device_kind,
+          "machine": machine(torch_module)}
+
+
 def record(benchmark: str, rows: list[dict], torch_module=None, quiet: bool = False,
-           **extra) -> Path:
+           where: dict | None = None, **extra) -> Path:
   """Appends one run's rows, with the machine, versions, commit, command line and the load
   average (the machines are shared: a high load marks a contended run) to the CPU's records file;
-  returns its path. SLJAX_BENCH_RESULTS moves the folder."""
+  returns its path. SLJAX_BENCH_RESULTS moves the folder. `where` (device_of_process() of the
+  process that measured) spares a parent process that launches the measuring ones its own
+  accelerator: on a GPU, jax's backend would hold memory the children need."""
   import jax
   import jaxlib
   cpu = cpu_info()
+  where = where or device_of_process(torch_module)
   versions = {"jax": jax.__version__, "jaxlib": jaxlib.__version__}
   if torch_module is not None:
     versions.update(torch=torch_module.__version__, torch_threads=torch_module.get_num_threads())
   entry = {"time": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
            "benchmark": benchmark, "argv": sys.argv[1:], "cpu": cpu,
-           "machine": machine(torch_module), "backend": jax.default_backend(),
+           "machine": where["machine"], "backend": where["backend"],
            "versions": versions, "commit": git_commit(),
            "loadavg_1min": round(os.getloadavg()[0], 2), "rows": rows, **extra}
   flags = os.environ.get("XLA_FLAGS", "").strip()
   if flags:  # a figure under other compiler flags is another figure
     entry["xla_flags"] = flags
   RESULTS.mkdir(parents=True, exist_ok=True)
-  path = RESULTS / f"{records_key(cpu, jax.default_backend(), jax.devices()[0].device_kind)}.jsonl"
+  path = RESULTS / f"{records_key(cpu, where['backend'], where['device_kind'])}.jsonl"
   with open(path, "a", encoding="utf-8") as f:
     f.write(json.dumps(entry) + "\n")
   if not quiet:

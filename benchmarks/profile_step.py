@@ -19,6 +19,7 @@ import gzip
 import json
 import re
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 
 import jax
@@ -28,7 +29,9 @@ from bench_nets import jax_loss, inputs
 from sljax import tune
 from sljax.nets import build_model
 
-RUNTIME = ("$", "ThunkExecutor", "PjitFunction")  # host-side spans, not XLA operations
+# Host-side spans, not XLA operations.
+RUNTIME = ("$", "ThunkExecutor", "PjitFunction", "CommonPjRt", "SlinkyThreadPool",
+           "AllocateOutputBuffers")
 
 
 def exclusive_times(events: list[dict]) -> collections.Counter:
@@ -61,15 +64,64 @@ def by_kind(exclusive: collections.Counter) -> collections.Counter:
   return kinds
 
 
-def traced_call(fn, args) -> list[dict]:
-  """The trace events of one call of a compiled function."""
+def traced(run: Callable[[], object], keep: Path | None = None) -> list[dict]:
+  """The trace events of run() (its result waited for); the trace files are kept in `keep`
+  when given, for a trace viewer."""
   with tempfile.TemporaryDirectory() as d:
-    jax.profiler.start_trace(d, create_perfetto_trace=True)
-    jax.block_until_ready(fn(*args))
+    folder = Path(keep or d)
+    jax.profiler.start_trace(str(folder), create_perfetto_trace=True)
+    jax.block_until_ready(run())
     jax.profiler.stop_trace()
-    path = sorted(Path(d).rglob("*.trace.json.gz"))[-1]
+    path = sorted(folder.rglob("*.trace.json.gz"), key=lambda f: f.stat().st_mtime)[-1]
     data = json.loads(gzip.decompress(path.read_bytes()))
   return data["traceEvents"] if isinstance(data, dict) else data
+
+
+def traced_call(fn, args, calls: int = 1, keep: Path | None = None) -> list[dict]:
+  """The trace events of `calls` calls of a compiled function."""
+  return traced(lambda: [fn(*args) for _ in range(calls)][-1], keep)
+
+
+# Trace lines of an accelerator that summarise its kernels (XLA modules and operations, steps):
+# counted once, through the kernels on the stream lines.
+DERIVED_LINES = ("XLA Modules", "XLA Ops", "Async XLA Ops", "Steps", "TensorFlow", "Framework",
+                 "Source", "Launch Stats")
+
+
+def device_kernel_times(events: list[dict]) -> tuple[collections.Counter, dict[str, str]]:
+  """Microseconds per kernel name on the accelerators' stream lines of a trace (an empty
+  Counter on a CPU-only trace), and the XLA operation of each kernel where the trace names it."""
+  procs, threads = {}, {}
+  for e in events:
+    if e.get("ph") == "M" and e.get("name") in ("process_name", "thread_name"):
+      table = procs if e["name"] == "process_name" else threads
+      table[e["pid"] if e["name"] == "process_name" else (e["pid"], e.get("tid"))] = str(
+          e.get("args", {}).get("name", ""))
+  devices = {pid for pid, name in procs.items()
+             if "/device:" in name and "/device:CPU" not in name.upper()}
+  kernels, ops = collections.Counter(), {}
+  for e in events:
+    line = threads.get((e.get("pid"), e.get("tid")), "")
+    if (e.get("ph") == "X" and "dur" in e and e.get("pid") in devices
+        and not line.startswith(DERIVED_LINES)):
+      kernels[e["name"]] += e["dur"]
+      op = (e.get("args") or {}).get("hlo_op")
+      if op:
+        ops.setdefault(e["name"], str(op))
+  return kernels, ops
+
+
+def kernel_rows(events: list[dict], calls: int, top: int) -> list[dict]:
+  """The `top` kernels of a trace of `calls` calls, ms per call and share of the device's
+  kernel time; off an accelerator, XLA's operations by kind (exclusive host time) instead."""
+  kernels, ops = device_kernel_times(events)
+  where = "device"
+  if not kernels:
+    kernels, ops, where = by_kind(exclusive_times(events)), {}, "host"
+  total = sum(kernels.values()) or 1.0
+  return [{"kernel": name, "ms_per_call": us / 1e3 / calls, "share": us / total,
+           "hlo_op": ops.get(name, ""), "where": where}
+          for name, us in kernels.most_common(top)]
 
 
 def main() -> None:

@@ -58,6 +58,20 @@ def headlines(entry: dict) -> list[tuple[str, str]]:
                f"{ms('torch_tf32_s')}" if r.get("torch_fp32_s") else "")
       out.append((f"{r['model']} {r['mode']}, {r['size']}px b{r['batch']} (ms a call)",
                   f"default {ms('sljax_default_s')}, highest {ms('sljax_highest_s')}{torch}"))
+    elif b == "bench_gpu" and r.get("table") == "step" and not r.get("failed"):
+      who = "reference" if r["side"] == "reference" else f"sljax {r['net']} {r.get('impl')}"
+      run = ", second run (warm cache)" if r.get("run") == "second" else ""
+      ratio = f" ({r['ratio']:.2f}x reference)" if r.get("ratio") else ""
+      out.append((f"training step {who}, {r['width']}x{r['height']} maxdisp {r['maxdisp']} b"
+                  f"{r['batch']} {r['precision']}{run}",
+                  f"{r['step_s'] * 1e3:.0f} ms{ratio}, first step {r['first_step_s']:.0f} s, "
+                  f"peak {r['peak_gib']:.1f} GiB"))
+    elif b == "bench_convT":
+      size = f"{'x'.join(map(str, r['x'][1:4]))}x{r['x'][4]} b{r['x'][0]}"
+      value = ", ".join(f"{p} {r[f'{p}_ms']:.2f} ms" for p in ("fwd", "dx", "dk", "both")
+                        if f"{p}_ms" in r)
+      lax = f" ({r['both_over_lax']:.2f}x lax)" if "both_over_lax" in r else ""
+      out.append((f"transposed conv {r['layer']} {size} {r['form']} {r['dtype']}", value + lax))
     elif b == "main_job":
       out.append((r["what"], r["value"]))
   return out

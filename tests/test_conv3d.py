@@ -157,8 +157,13 @@ def test_impl_selection(monkeypatch):
   monkeypatch.setenv("SLJAX_CONV3D", "lax")
   assert c3.conv_impl() == "lax"
   monkeypatch.setenv("SLJAX_CONV3D", "auto")
-  assert c3.conv_impl() == ("fast" if jax.default_backend() == "cpu" else "lax")
-  with pytest.raises(ValueError):
+  assert c3.conv_impl() == c3.auto_impl(jax.default_backend())
+  monkeypatch.setenv("SLJAX_CONV3D", "gpu-phase")
+  assert c3.conv_impl() == "gpu-phase" and c3.conv_impl("gpu") == "gpu"
+  # auto: the exact CPU kernels on a CPU, the native transposed conv on a GPU, else XLA's.
+  assert [c3.auto_impl(b) for b in ("cpu", "gpu", "cuda", "rocm", "tpu")] == [
+      "fast", "gpu", "gpu", "gpu", "lax"]
+  with pytest.raises(ValueError, match="auto, lax, fast, gpu or gpu-phase"):
     c3.conv_impl("bogus")
 
 
@@ -169,7 +174,7 @@ def test_bfloat16_inputs_compute_in_bfloat16():
   x = rng.standard_normal((1, 4, 6, 6, 3)).astype(np.float32)
   k = rng.standard_normal((3, 3, 3, 3, 5)).astype(np.float32)
   for fn, kw in ((c3.conv3d, {}), (c3.conv_transpose3d, {})):
-    for impl in ("lax", "fast"):
+    for impl in ("lax", "fast", "gpu", "gpu-phase"):
       want = fn(jnp.asarray(x), jnp.asarray(k), impl=impl, **kw)
       got = fn(jnp.asarray(x, jnp.bfloat16), jnp.asarray(k, jnp.bfloat16), impl=impl, **kw)
       assert got.dtype == jnp.bfloat16

@@ -134,7 +134,7 @@ def test_environment_is_only_the_default_read_when_built(monkeypatch):
   auto = build_model("psmnet", maxdisp=MAXDISP, conv_impl="auto")  # the backend's, not env
   assert (explicit.conv_impl, default.conv_impl, twin.conv_impl, unet.conv_impl) == (
       "fast", "lax", "lax", "lax")
-  assert auto.conv_impl == ("fast" if jax.default_backend() == "cpu" else "lax")
+  assert auto.conv_impl == {"cpu": "fast", "gpu": "gpu"}.get(jax.default_backend(), "lax")
 
   monkeypatch.setenv("SLJAX_CONV3D", "fast")  # too late for the models above
   assert set(_impls_seen(default, left, right)) == {"lax"}
@@ -148,5 +148,5 @@ def test_environment_is_only_the_default_read_when_built(monkeypatch):
 
   monkeypatch.delenv("SLJAX_CONV3D")
   assert build_model("unet-disp").conv_impl == auto.conv_impl
-  with pytest.raises(SljaxError, match="auto, lax or fast"):  # bad config: a clear error
+  with pytest.raises(SljaxError, match="auto, lax, fast, gpu or gpu-phase"):  # a clear error
     build_model("psmnet", conv_impl="bogus")

@@ -97,9 +97,12 @@ def _values_per_channel(model, *args):
   return seen
 
 
-def test_train_mode_outputs_and_batch_statistics_match_the_reference(fixture, variables):
+# "gpu": the transposed convolutions in the GPU's native form (sljax.kernels.conv3d), which
+# converted weights must drive unchanged; None: this machine's default ("fast" on a CPU).
+@pytest.mark.parametrize("impl", [None, "gpu"])
+def test_train_mode_outputs_and_batch_statistics_match_the_reference(fixture, variables, impl):
   case = CASES["train"]
-  model = PSMNet(maxdisp=case.maxdisp)
+  model = PSMNet(maxdisp=case.maxdisp, conv_impl=impl)
   args = (variables,) + _inputs(case)
   out, updates = jax.jit(lambda v, a, b: model.apply(v, a, b, train=True,
                                                      mutable=["batch_stats"]))(*args)

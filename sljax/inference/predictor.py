@@ -239,7 +239,7 @@ def load(checkpoint: str | os.PathLike, mode: str = "pad", maxdisp: int | None =
   network sees. tune_kernels: use this CPU's tuned compiler choice (sljax.tune; measured on
   first use and cached); None follows $SLJAX_TUNE (on unless 0), False keeps XLA's defaults.
   kernels, when given, is the choice itself (e.g. the one a run trained with) and nothing is
-  tuned. conv_impl: the convolution kernels ("auto", "lax" or "fast"; None: $SLJAX_CONV3D's).
+  tuned. conv_impl: the convolution kernels (sljax.kernels.IMPLS; None: $SLJAX_CONV3D's).
   """
   if not isinstance(checkpoint, (str, os.PathLike)) or not os.fspath(checkpoint):
     raise SljaxError(f"checkpoint must be a folder path (a training workdir, its checkpoints "

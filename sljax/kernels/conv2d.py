@@ -11,7 +11,7 @@ from jax import lax
 from sljax.kernels.args import explicit_padding, ntuple
 from sljax.kernels.blocks import (BLOCK_VALUES, block_shape, blocked, conv2d_kernel_grad,
                                   plain_conv2d)
-from sljax.kernels.impl import conv_impl
+from sljax.kernels.impl import XLA_IMPLS, conv_impl
 from sljax.kernels.vjp import vjp_saving_inputs
 
 
@@ -60,6 +60,6 @@ def conv2d(x: jax.Array, kernel: jax.Array, strides: Sequence[int] = (1, 1), pad
   """
   strides, dilation = ntuple(strides, 2), ntuple(dilation, 2)
   padding = explicit_padding(padding, x.shape[1:3], kernel.shape[:2], strides, dilation)
-  if conv_impl(impl) == "lax":
+  if conv_impl(impl) in XLA_IMPLS:
     return plain_conv2d(x, kernel, strides, padding, dilation)
   return _conv2d_blocked(x, kernel, strides, padding, dilation, int(block_values))

@@ -4,6 +4,12 @@ Each fast form is a custom VJP (`vjp_saving_inputs`) whose backward reuses the s
 machinery: a folded conv's dL/dx is another folded conv (stride 1) or the phases (strides),
 its dL/dkernel a sum of blocked 2D kernel gradients; a transposed conv's dL/dx is the
 adjoint strided (folded) conv and its dL/dkernel that conv's kernel gradient.
+
+The GPU forms (`gpu_conv_transpose3d`) take the same adjoint backward with XLA's convolutions:
+differentiating the transposed conv as written (a conv of the s-dilated input) makes its
+kernel gradient a conv of the dilated input with the output gradient as a kernel as large as
+the output, which XLA:GPU cannot hand to cuDNN's weight-gradient kernel and runs in a slow
+forward fallback (issue 36: 65% of PSMNet's GPU step).
 """
 
 from __future__ import annotations
@@ -19,7 +25,7 @@ from sljax.kernels.args import explicit_padding, ntuple, pairs
 from sljax.kernels.blocks import BLOCK_VALUES
 from sljax.kernels.fold import (fold_forward, fold_kernel_grad, input_grad_padding,
                                 tap_products_conv3d)
-from sljax.kernels.impl import conv_impl
+from sljax.kernels.impl import XLA_IMPLS, conv_impl
 from sljax.kernels.phase import adjoint_padding, interleave_phases, phase_plan
 from sljax.kernels.vjp import vjp_saving_inputs
 
@@ -54,10 +60,15 @@ def _fold_bwd(strides, padding, block_values, inputs, dy):
 _fold = vjp_saving_inputs(fold_forward, _fold_bwd, nondiff_argnums=(2, 3, 4))
 
 
-def _phase_forward(x, kernel, strides, padding, block_values):
+def _phases(x, kernel, strides, padding, conv):
+  """The transposed conv as its interleaved phases; conv(x, kernel, pads): the shared conv."""
   comb, pads, lq, lengths = phase_plan(x.shape, kernel, strides, padding)
-  y = fold_conv3d(x, comb, (1, 1, 1), pads, block_values)
-  return interleave_phases(y, strides, lq, lengths)
+  return interleave_phases(conv(x, comb, pads), strides, lq, lengths)
+
+
+def _phase_forward(x, kernel, strides, padding, block_values):
+  return _phases(x, kernel, strides, padding,
+                 lambda x, k, pads: fold_conv3d(x, k, (1, 1, 1), pads, block_values))
 
 
 def _phase_bwd(strides, padding, block_values, inputs, dy):
@@ -73,6 +84,36 @@ def _phase_bwd(strides, padding, block_values, inputs, dy):
 
 
 _phase = vjp_saving_inputs(_phase_forward, _phase_bwd, nondiff_argnums=(2, 3, 4))
+
+
+def _backward_data_forward(x, kernel, strides, padding):
+  # XLA:GPU hands a conv of the dilated input to cuDNN's backward-data kernel only when the
+  # kernel is visibly reversed in the program; flax's kernel is unflipped, so it is reversed
+  # twice, the first behind a barrier, which the simplifier cannot fold (XLA:GPU removes
+  # barriers only after choosing the cuDNN calls). Otherwise the input is dilated explicitly:
+  # 8x the multiplications at stride 2.
+  reversed_once = lax.optimization_barrier(lax.rev(kernel, (0, 1, 2)))
+  return lax_conv3d(x, lax.rev(reversed_once, (0, 1, 2)), (1, 1, 1), padding,
+                    lhs_dilation=strides)
+
+
+def _xla_phase_forward(x, kernel, strides, padding):
+  return _phases(x, kernel, strides, padding,
+                 lambda x, k, pads: lax_conv3d(x, k, (1, 1, 1), pads))
+
+
+def _adjoint_bwd(strides, padding, inputs, dy):
+  # As _phase_bwd, with XLA's convolutions: the transposed conv is the adjoint of the stride-s
+  # conv with kernel w (flipped, in/out swapped), so dL/dx is that conv of dy (cuDNN's forward
+  # kernel) and dL/dw the gradient of <that conv of dy, x> in w (its weight-gradient kernel).
+  x, kernel = inputs
+  pads = adjoint_padding(kernel.shape, strides, padding, x.shape, dy.shape)
+  dx, kernel_vjp = jax.vjp(lambda w: lax_conv3d(dy, w, strides, pads), _flipped(kernel))
+  return dx, _flipped(kernel_vjp(x)[0])
+
+
+_backward_data = vjp_saving_inputs(_backward_data_forward, _adjoint_bwd, nondiff_argnums=(2, 3))
+_xla_phase = vjp_saving_inputs(_xla_phase_forward, _adjoint_bwd, nondiff_argnums=(2, 3))
 
 
 def fold_conv3d(x: jax.Array, kernel: jax.Array, strides: Sequence[int], padding,
@@ -106,11 +147,24 @@ def phase_conv_transpose3d(x: jax.Array, kernel: jax.Array, strides: Sequence[in
   return _phase(x, kernel, strides, pairs(padding), int(block_values))
 
 
+def gpu_conv_transpose3d(x: jax.Array, kernel: jax.Array, strides: Sequence[int],
+                         padding: Sequence[tuple[int, int]], phases: bool = False) -> jax.Array:
+  """Exact stride-s transposed conv in XLA convolutions that cuDNN runs natively, both ways.
+
+  Forward: cuDNN's backward-data convolution (the dilated-input conv with a reversed kernel),
+  or with `phases` the phase decomposition's one stride-1 conv (s^3 * cout outputs) and a
+  pixel shuffle. Backward: the adjoint stride-s conv of the output gradient (dL/dx) and that
+  conv's weight gradient against x (dL/dkernel). Same kernel layout and values as the lax form.
+  """
+  strides = ntuple(strides, 3)
+  return (_xla_phase if phases else _backward_data)(x, kernel, strides, pairs(padding))
+
+
 def conv3d(x: jax.Array, kernel: jax.Array, strides: Sequence[int] = (1, 1, 1),
            padding=((1, 1),) * 3, impl: str | None = None,
            block_values: int = BLOCK_VALUES) -> jax.Array:
   """NDHWC 3D convolution, numerically equal to lax.conv_general_dilated."""
-  if conv_impl(impl) == "lax":
+  if conv_impl(impl) in XLA_IMPLS:
     return lax_conv3d(x, kernel, strides, padding)
   return fold_conv3d(x, kernel, strides, padding, block_values)
 
@@ -119,11 +173,13 @@ def conv_transpose3d(x: jax.Array, kernel: jax.Array, strides: Sequence[int] = (
                      padding=((1, 2),) * 3, impl: str | None = None,
                      block_values: int = BLOCK_VALUES) -> jax.Array:
   """Transposed 3D conv = conv of the s-dilated input (flax's unflipped kernel layout)."""
-  strides = ntuple(strides, 3)
-  if conv_impl(impl) == "lax":
+  strides, impl = ntuple(strides, 3), conv_impl(impl)
+  if impl == "lax" or (impl in XLA_IMPLS and strides == (1, 1, 1)):
     return lax_conv3d(x, kernel, (1, 1, 1), padding, lhs_dilation=strides)
   if isinstance(padding, str):
     raise ValueError(f"conv_transpose3d needs explicit (lo, hi) padding pairs, got {padding!r}")
+  if impl in XLA_IMPLS:
+    return gpu_conv_transpose3d(x, kernel, strides, padding, phases=impl == "gpu-phase")
   if strides == (1, 1, 1):
     return fold_conv3d(x, kernel, strides, pairs(padding), block_values)
   return phase_conv_transpose3d(x, kernel, strides, padding, block_values)

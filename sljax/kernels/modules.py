@@ -39,7 +39,7 @@ class ConvBase(nn.Module):
   kernel_init: Initializer = nn.initializers.lecun_normal()
   bias_init: Initializer = nn.initializers.zeros_init()
   dtype: Any = None  # computation dtype; None: that of the input and kernel (as nn.Conv)
-  impl: str | None = None  # "auto" | "lax" | "fast"; None: $SLJAX_CONV3D (sljax.kernels.impl)
+  impl: str | None = None  # an IMPLS name (sljax.kernels.impl); None: $SLJAX_CONV3D
   block_values: int = BLOCK_VALUES
 
   @nn.compact

@@ -63,7 +63,7 @@ class ConvBN2D(ResolvesConvImpl, nn.Module):
   strides: int = 1
   padding: int = 1
   dilation: int = 1
-  conv_impl: str | None = None  # "auto" | "lax" | "fast"; None: $SLJAX_CONV3D (sljax.kernels)
+  conv_impl: str | None = None  # an IMPLS name (sljax.kernels.impl); None: $SLJAX_CONV3D
 
   @nn.compact
   def __call__(self, x: jax.Array, train: bool) -> jax.Array:
@@ -83,7 +83,7 @@ class ConvBN3D(ResolvesConvImpl, nn.Module):
   kernel_size: int = 3
   strides: int = 1
   padding: int = 1
-  conv_impl: str | None = None  # "auto" | "lax" | "fast"; None: $SLJAX_CONV3D (sljax.kernels)
+  conv_impl: str | None = None  # an IMPLS name (sljax.kernels.impl); None: $SLJAX_CONV3D
 
   @nn.compact
   def __call__(self, x: jax.Array, train: bool) -> jax.Array:

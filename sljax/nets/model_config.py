@@ -33,7 +33,7 @@ class ModelConfig:
   maxdisp is the disparity range of the network (PSMNets: the cost volume) and of its
   disparity loss and validation mask (every network); t the patterns of SL networks (None for
   the others); options the module options beyond these (align_corners, depth, base_width);
-  conv_impl 'lax' or 'fast' (resolved here from None, "auto", "lax" or "fast":
+  conv_impl 'lax', 'fast', 'gpu' or 'gpu-phase' (resolved here from None or an IMPLS name:
   sljax.kernels.impl.conv_impl; None takes $SLJAX_CONV3D); precision a COMPUTE_DTYPES key.
   """
   net: str
@@ -112,7 +112,7 @@ def build_model(name: str, **kwargs: Any):
 
   maxdisp (PSMNets; multiple of 16), t (patterns; psmnet-mtl, unet-sl), gray or in_channels
   (channels per view: 1 or 3) apply where relevant; align_corners (PSMNets) and depth,
-  base_width (UNets) are model options; conv_impl ("auto" | "lax" | "fast", every network;
+  base_width (UNets) are model options; conv_impl (sljax.kernels.impl.IMPLS, every network;
   left out: $SLJAX_CONV3D, else "auto") chooses the convolution kernels (sljax.kernels) and
   is resolved here, when the model is constructed. Unknown names or options raise SljaxError.
   """

@@ -146,7 +146,7 @@ class BasicBlock(ResolvesConvImpl, nn.Module):
   strides: int = 1
   dilation: int = 1
   downsample: bool = False
-  conv_impl: str | None = None  # "auto" | "lax" | "fast"; None: $SLJAX_CONV3D (sljax.kernels)
+  conv_impl: str | None = None  # an IMPLS name (sljax.kernels.impl); None: $SLJAX_CONV3D
 
   @nn.compact
   def __call__(self, x: jax.Array, train: bool) -> jax.Array:
@@ -165,7 +165,7 @@ class FeatureExtraction(ResolvesConvImpl, nn.Module):
   """Shared 2D feature extractor with SPP: [B, H, W, C] -> [B, H/4, W/4, 32]."""
 
   align_corners: bool = False
-  conv_impl: str | None = None  # "auto" | "lax" | "fast"; None: $SLJAX_CONV3D (sljax.kernels)
+  conv_impl: str | None = None  # an IMPLS name (sljax.kernels.impl); None: $SLJAX_CONV3D
 
   @nn.compact
   def __call__(self, x: jax.Array, train: bool) -> jax.Array:
@@ -202,7 +202,7 @@ class FeatureExtraction(ResolvesConvImpl, nn.Module):
 class Dres0(ResolvesConvImpl, nn.Module):
   """Two 3D conv-BN-ReLU: 64 -> 32 -> 32 on the cost volume."""
 
-  conv_impl: str | None = None  # "auto" | "lax" | "fast"; None: $SLJAX_CONV3D (sljax.kernels)
+  conv_impl: str | None = None  # an IMPLS name (sljax.kernels.impl); None: $SLJAX_CONV3D
 
   @nn.compact
   def __call__(self, x: jax.Array, train: bool) -> jax.Array:
@@ -214,7 +214,7 @@ class Dres0(ResolvesConvImpl, nn.Module):
 class Dres1(ResolvesConvImpl, nn.Module):
   """3D conv-BN-ReLU then conv-BN (the caller adds the residual)."""
 
-  conv_impl: str | None = None  # "auto" | "lax" | "fast"; None: $SLJAX_CONV3D (sljax.kernels)
+  conv_impl: str | None = None  # an IMPLS name (sljax.kernels.impl); None: $SLJAX_CONV3D
 
   @nn.compact
   def __call__(self, x: jax.Array, train: bool) -> jax.Array:
@@ -227,7 +227,7 @@ class ConvTransposeBN3D(ResolvesConvImpl, nn.Module):
   """ConvTranspose3d(k=3, stride 2, padding 1, output_padding 1, no bias) + BN: doubles D, H, W."""
 
   features: int
-  conv_impl: str | None = None  # "auto" | "lax" | "fast"; None: $SLJAX_CONV3D (sljax.kernels)
+  conv_impl: str | None = None  # an IMPLS name (sljax.kernels.impl); None: $SLJAX_CONV3D
 
   @nn.compact
   def __call__(self, x: jax.Array, train: bool) -> jax.Array:
@@ -246,7 +246,7 @@ class Hourglass(ResolvesConvImpl, nn.Module):
   """
 
   inplanes: int = 32
-  conv_impl: str | None = None  # "auto" | "lax" | "fast"; None: $SLJAX_CONV3D (sljax.kernels)
+  conv_impl: str | None = None  # an IMPLS name (sljax.kernels.impl); None: $SLJAX_CONV3D
 
   @nn.compact
   def __call__(self, x: jax.Array, presqu: jax.Array | None, postsqu: jax.Array | None,
@@ -267,7 +267,7 @@ class Hourglass(ResolvesConvImpl, nn.Module):
 class Classifier(ResolvesConvImpl, nn.Module):
   """3D conv-BN-ReLU 32->32 then 3D conv 32->1 (no bias): one cost per disparity."""
 
-  conv_impl: str | None = None  # "auto" | "lax" | "fast"; None: $SLJAX_CONV3D (sljax.kernels)
+  conv_impl: str | None = None  # an IMPLS name (sljax.kernels.impl); None: $SLJAX_CONV3D
 
   @nn.compact
   def __call__(self, x: jax.Array, train: bool) -> jax.Array:
@@ -349,7 +349,7 @@ class PSMNet(ResolvesConvImpl, nn.Module):
   maxdisp: int = 96
   in_channels: int = 3
   align_corners: bool = False
-  conv_impl: str | None = None  # "auto" | "lax" | "fast"; None: $SLJAX_CONV3D (sljax.kernels)
+  conv_impl: str | None = None  # an IMPLS name (sljax.kernels.impl); None: $SLJAX_CONV3D
 
   @nn.compact
   def __call__(self, left: jax.Array, right: jax.Array, train: bool = False) -> dict:

@@ -49,7 +49,7 @@ class SLPath(ResolvesConvImpl, nn.Module):
 
   t: int = 8
   align_corners: bool = False
-  conv_impl: str | None = None  # "auto" | "lax" | "fast"; None: $SLJAX_CONV3D (sljax.kernels)
+  conv_impl: str | None = None  # an IMPLS name (sljax.kernels.impl); None: $SLJAX_CONV3D
 
   @nn.compact
   def __call__(self, cost: jax.Array, height: int, width: int, train: bool) -> jax.Array:
@@ -83,7 +83,7 @@ class PSMNetMTL(ResolvesConvImpl, nn.Module):
   t: int = 8
   in_channels: int = 3
   align_corners: bool = False
-  conv_impl: str | None = None  # "auto" | "lax" | "fast"; None: $SLJAX_CONV3D (sljax.kernels)
+  conv_impl: str | None = None  # an IMPLS name (sljax.kernels.impl); None: $SLJAX_CONV3D
 
   @nn.compact
   def __call__(self, left: jax.Array, right: jax.Array, train: bool = False) -> dict:
@@ -112,7 +112,7 @@ class SLOnly(ResolvesConvImpl, nn.Module):
   t: int = 8
   in_channels: int = 3
   align_corners: bool = False
-  conv_impl: str | None = None  # "auto" | "lax" | "fast"; None: $SLJAX_CONV3D (sljax.kernels)
+  conv_impl: str | None = None  # an IMPLS name (sljax.kernels.impl); None: $SLJAX_CONV3D
 
   @nn.compact
   def __call__(self, left: jax.Array, right: jax.Array, train: bool = False) -> jax.Array:

@@ -37,7 +37,7 @@ class DoubleConv(ResolvesConvImpl, nn.Module):
   """Two 3x3 conv-BN-ReLU."""
 
   features: int
-  conv_impl: str | None = None  # "auto" | "lax" | "fast"; None: $SLJAX_CONV3D (sljax.kernels)
+  conv_impl: str | None = None  # an IMPLS name (sljax.kernels.impl); None: $SLJAX_CONV3D
 
   @nn.compact
   def __call__(self, x: jax.Array, train: bool) -> jax.Array:
@@ -54,7 +54,7 @@ class UNet(ResolvesConvImpl, nn.Module):
   depth: int = 4
   base_width: int = 32
   in_channels: int = 3
-  conv_impl: str | None = None  # "auto" | "lax" | "fast"; None: $SLJAX_CONV3D (sljax.kernels)
+  conv_impl: str | None = None  # an IMPLS name (sljax.kernels.impl); None: $SLJAX_CONV3D
 
   @nn.compact
   def __call__(self, left: jax.Array, right: jax.Array, train: bool = False) -> dict:

@@ -22,7 +22,7 @@ MODELS = registry.MODELS
 PRESETS = ("auto", "paper", "quick")
 PRECISIONS = ("fp32", "bf16")
 YNN = ("auto", "on", "off", "forward-off", "train-off")
-CONV_IMPLS = ("auto", "lax", "fast")  # sljax.kernels.impl.IMPLS (kept light: no jax here)
+CONV_IMPLS = ("auto", "lax", "fast", "gpu", "gpu-phase")  # sljax.kernels.impl.IMPLS (no jax here)
 
 
 def parse_size(text: str) -> tuple[int, int]:
@@ -84,9 +84,11 @@ class TrainConfig:
                     "default), on, off, forward-off (validation programs) or train-off; the "
                     "resolved value is saved in config.json, so a resume compiles the same "
                     "programs", choices=YNN)
-  conv_impl: str = option("auto", "convolution kernels: auto (sljax's exact CPU kernels on a "
-                          "CPU, XLA's elsewhere), lax or fast (sljax.kernels; equal in value "
-                          "and gradient); $SLJAX_CONV3D sets what auto means", choices=CONV_IMPLS)
+  conv_impl: str = option("auto", "convolution kernels: auto (fast on a CPU, gpu on a GPU, "
+                          "else lax), lax (XLA's as written), fast (sljax's exact CPU kernels), "
+                          "gpu or gpu-phase (XLA's, the transposed 3D conv in forms cuDNN runs "
+                          "natively); all equal in value and gradient (sljax.kernels); "
+                          "$SLJAX_CONV3D sets what auto means", choices=CONV_IMPLS)
   val_every: int = option(1, "epochs between validations", resumable=True)
   save_every: int = option(0, "also checkpoint every N steps (default: at each epoch end only)")
   keep: int = option(3, "checkpoints kept (the last N, plus the best by validation MAE)",

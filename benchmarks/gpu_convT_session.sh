@@ -1,5 +1,7 @@
 #!/usr/bin/env bash
-# Issue 36's first GPU session in one device call (about 8 minutes of the 15 a session has):
+# usage: bash benchmarks/gpu_convT_session.sh [dry]
+#
+# The transposed-convolution study on a GPU in one call (about 8 minutes):
 #
 #   1. convT: PSMNet's transposed 3D convolutions (conv6, conv5) at the paper preset's shapes,
 #      every form (lax, gpu, gpu-phase, gpu-autodiff, fast) and program (fwd, dx, dk, both),
@@ -13,12 +15,8 @@
 #   3. if the deadline allows: the same at PSMNet's training crop (256x512, maxdisp 192,
 #      batch 8), gpu against the reference.
 #
-# From the device tool, with a local checkout of JiaRenChang/PSMNet (the device has no network;
-# sljax neither ships nor fetches it) at .ref/PSMNet, ignored by git so that it travels only
-# when carried:
-#   here, once:  mkdir -p .ref && cp -r PSMNET_CHECKOUT .ref/PSMNet
-#                echo /.ref/ >> "$(git rev-parse --git-common-dir)/info/exclude"
-#   run(command="bash benchmarks/gpu_convT_session.sh", carry=[".ref"], timeout_s=500)
+# The reference side needs a local checkout of JiaRenChang/PSMNet (sljax neither ships nor
+# fetches it) at .ref/PSMNet: mkdir -p .ref && cp -r PSMNET_CHECKOUT .ref/PSMNet.
 # Logs and the records come back under $OUT (session.log first; records/*.jsonl go to
 # benchmarks/results/). DEADLINE (seconds, default 450) bounds the whole; a part that would
 # start too late is skipped and says so. A dry run on a CPU does the same at tiny sizes

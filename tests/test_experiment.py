@@ -203,7 +203,8 @@ def test_every_plan_builds_at_every_scale():
         if name in plans.V3_PLANS:  # v3: scales with a v3 design, and a regime for the tests
           design = plans.SCALES[scale].v3
           assert ("runs at" in str(e) if design is None else
-                  design.regime is None and "no regime yet" in str(e)), (name, scale, e)
+                  "no regime yet" in str(e) if design.regime is None else
+                  design.regime == plans.NO_REGIME and "found no" in str(e)), (name, scale, e)
           continue
         # a v2 plan whose arms this scale has not calibrated yet
         assert name in plans.V2_PLANS and "no calibrated budget" in str(e), (name, scale, e)

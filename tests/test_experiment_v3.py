@@ -112,12 +112,27 @@ def test_v3_cells_train_in_the_regime_and_score_final_and_best():
   assert dataclasses.replace(plan.cells[0].evals[0], checkpoint="final") == v2
 
 
-def test_v3_waits_for_the_regime():
-  design = plans.SCALES["cpu"].v3
-  if design.regime is not None:
-    pytest.skip("the cpu scale's regime is committed")
+def test_v3_waits_for_the_regime_and_ends_without_one(monkeypatch):
+  cpu = plans.SCALES["cpu"]
+  # The committed outcome: the pilot found no fraction where stl overfits (docs/plan-v3.md).
+  assert cpu.v3.regime == plans.NO_REGIME
+  with pytest.raises(SljaxError, match="found no training fraction where stl overfits"):
+    plans.build_plan("v3", "cpu", 10)
+  waiting = dataclasses.replace(cpu, v3=dataclasses.replace(cpu.v3, regime=None))
+  monkeypatch.setitem(plans.SCALES, "cpu", waiting)
   with pytest.raises(SljaxError, match="no regime yet"):
     plans.build_plan("v3", "cpu", 10)
+
+
+def test_the_committed_pilot_gives_the_committed_outcome():
+  """The rule applied by main's code to the committed pilot records: no regime, as committed."""
+  from pathlib import Path
+  records = Path(__file__).resolve().parents[1] / "docs" / "results" / "v3-pilot"
+  res = regime.regime(records, "cpu", 2)
+  assert not res["missing"] and res["regime"]["fraction"] is None
+  committed = json.loads((records / "regime.json").read_text())
+  assert {f: r["rise"] for f, r in res["fractions"].items()} == pytest.approx(
+      {f: r["rise"] for f, r in committed["fractions"].items()})
 
 
 def test_v3_claims_on_fake_records(tmp_path):

@@ -58,7 +58,8 @@ V1_PLANS = ("table1", "table2", "table3", "fig7")
 V2_PLANS = ("table1-v2", "table2-v2", "table3-v2", "fig7-v2")
 V3_PILOT = "v3-pilot"
 V3_PLANS = (V3_PILOT, "v3")
-V3_ARMS = ("stl", "unc", "epr")  # the baseline, the claims' arm, the exploratory arm
+V3_ARMS = ("stl", "unc", "epr")
+NO_REGIME = "no fraction overfits"  # the baseline, the claims' arm, the exploratory arm
 PLANS = V1_PLANS + V2_PLANS + V3_PLANS
 HELDOUT = "heldout"
 FIXED = "fixed"           # EvalSet kind of a v2 test set
@@ -97,8 +98,9 @@ class V3Design:
   val_every: int
   first_seed: int
   # (training fraction, epochs) the regime rule chose on the pilot (committed with the pilot's
-  # outcome in docs/plan-v3.md); None: not chosen yet.
-  regime: tuple[str, int] | None = None
+  # outcome in docs/plan-v3.md); NO_REGIME: the rule found none (v3 ends there); None: the
+  # pilot has not been run yet.
+  regime: tuple[str, int] | str | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -164,7 +166,8 @@ SCALES = {s.name: s for s in (
                       budgets=((("*", "objects"), 12), (("*", "1/16"), 96),
                                (("*", "finetune"), 40)),
                       calib_epochs=(("objects", 36), ("1/16", 288), ("finetune", 120))),
-          v3=V3Design(("1/16", "1/32", "1/64"), pilot_epochs=240, val_every=4, first_seed=100)),
+          v3=V3Design(("1/16", "1/32", "1/64"), pilot_epochs=240, val_every=4, first_seed=100,
+                      regime=NO_REGIME)),
     Scale("cpu128", size=128, t=7, maxdisp=32, objects_n=400, tissue_n=80, batch_size=4,
           lr=1e-3, lr_drop=True, corr_window=9, unet_width=16, unet_depth=4, max_val=40,
           schedule=Schedule(12, 96, 40, val_every=1, small_val_every=8),
@@ -421,6 +424,10 @@ def _v3(a: Seeded) -> list[Cell]:
           f"plan v3: scale {a.scale.name} has no regime yet: run the pilot (`sljax experiment "
           "run v3-pilot`), apply the rule (`sljax experiment regime`) and commit the regime "
           "with the outcome in docs/plan-v3.md")
+  require(design.regime != NO_REGIME,
+          f"plan v3: at scale {a.scale.name} the pilot found no training fraction where stl "
+          "overfits (docs/plan-v3.md, the pilot's outcome), so by the pre-registered rule v3 "
+          "ends there and no test cell runs")
   fraction, epochs = design.regime
   evals = (test_set("objects", a.scale), test_set("tissue", a.scale),
            test_set("objects", a.scale, "best"))

@@ -30,14 +30,19 @@ PLATEAU_TOL = 0.05
 SMOOTH = 3
 
 
+def smooth(values: Sequence[float], window: int = SMOOTH) -> list[float]:
+  """Trailing mean over the last `window` values (fewer at the start): rule 2, also v3's."""
+  v = np.asarray(values, float)
+  return [float(v[max(0, i - window + 1):i + 1].mean()) for i in range(len(v))]
+
+
 def plateau(curve: Sequence[tuple[int, float]], epochs: int, drop: bool) -> dict[str, Any]:
   """The rule above applied to (epoch, validation MAE) pairs of a run of `epochs` epochs;
   `drop`: the phase's schedule drops the learning rate for its last quarter."""
   pts = sorted((int(e), float(v)) for e, v in curve if v is not None and math.isfinite(v))
   if not pts:
     return {"plateau_epoch": None, "reached": False, "budget": epochs, "smoothed": []}
-  values = np.array([v for _, v in pts])
-  smoothed = [float(values[max(0, i - SMOOTH + 1):i + 1].mean()) for i in range(len(values))]
+  smoothed = smooth([v for _, v in pts])
   best = min(smoothed)
   first = next(i for i, s in enumerate(smoothed) if s <= (1.0 + PLATEAU_TOL) * best)
   p = pts[first][0]

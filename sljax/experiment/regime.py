@@ -27,7 +27,7 @@ from matplotlib.figure import Figure
 
 from sljax import files
 from sljax.experiment import plans, runner
-from sljax.experiment.calibrate import SMOOTH
+from sljax.experiment.calibrate import SMOOTH, smooth
 
 OVERFIT_RISE = 0.10
 
@@ -42,12 +42,6 @@ def mean_curve(curves: Sequence[Curve]) -> list[tuple[int, float]]:
     return []
   common = sorted(set.intersection(*(set(t) for t in tables)))
   return [(e, float(np.mean([t[e] for t in tables]))) for e in common]
-
-
-def smooth(values: Sequence[float], window: int = SMOOTH) -> list[float]:
-  """Trailing mean over the last `window` values (fewer at the start)."""
-  v = np.asarray(values, float)
-  return [float(v[max(0, i - window + 1):i + 1].mean()) for i in range(len(v))]
 
 
 def fraction_rise(curve: Curve) -> dict[str, Any]:

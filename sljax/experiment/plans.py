@@ -39,6 +39,9 @@ Plans:
   fraction and a budget), constant learning rate, validated as the pilot; the final checkpoint
   scored on the fixed objects and tissue test sets, and the best checkpoint by validation on
   the objects test set.
+- v4-pilot: stl with budgets in optimizer steps (docs/plan-v4.md), validated every few steps:
+  from scratch on objects with a few training scenes, and the paper's setting (an objects model
+  of all the data fine-tuned on a few tissue scenes); curves only. Seeds 200, 201, ...
 """
 
 
@@ -51,16 +54,18 @@ from sljax import files
 from sljax.data.dataset import FolderSource
 from sljax.errors import SljaxError, require
 from sljax.losses.weighting import SINGLE_TASK, STRATEGIES
-from sljax.train.config import QUICK, TrainConfig
+from sljax.train.config import FIELDS, LATER_FIELDS, QUICK, TrainConfig
 from sljax.train.state import LR_DROP
 
 V1_PLANS = ("table1", "table2", "table3", "fig7")
 V2_PLANS = ("table1-v2", "table2-v2", "table3-v2", "fig7-v2")
 V3_PILOT = "v3-pilot"
 V3_PLANS = (V3_PILOT, "v3")
+V4_PILOT = "v4-pilot"
+V4_PLANS = (V4_PILOT,)
 V3_ARMS = ("stl", "unc", "epr")
 NO_REGIME = "no fraction overfits"  # the baseline, the claims' arm, the exploratory arm
-PLANS = V1_PLANS + V2_PLANS + V3_PLANS
+PLANS = V1_PLANS + V2_PLANS + V3_PLANS + V4_PLANS
 HELDOUT = "heldout"
 FIXED = "fixed"           # EvalSet kind of a v2 test set
 TEST_SEED = 1_000_003     # dataset seed of the v2 test sets (no training seed is near it)
@@ -104,6 +109,23 @@ class V3Design:
 
 
 @dataclasses.dataclass(frozen=True)
+class V4Design:
+  """The v4 pilot at a scale (docs/plan-v4.md): budgets in optimizer steps, validation every
+  val_every steps. From scratch: stl on objects at scratch_fractions. The paper's setting: an
+  objects model of pretrain_steps on all the data, fine-tuned on finetune_fractions of the
+  tissue training split at finetune_lr. Learning rates constant."""
+  scratch_fractions: tuple[str, ...]   # largest first (objects training split)
+  scratch_steps: int
+  pretrain_steps: int
+  pretrain_val_every: int
+  finetune_fractions: tuple[str, ...]  # largest first (tissue training split)
+  finetune_steps: int
+  val_every: int
+  finetune_lr: float
+  first_seed: int
+
+
+@dataclasses.dataclass(frozen=True)
 class Scale:
   """The sizes of a plan: images and patterns, data, optimiser, networks, and the schedules and
   designs of v1, v2 and v3 at this scale."""
@@ -125,6 +147,7 @@ class Scale:
   note: str
   v2: V2Design = V2Design()
   v3: V3Design | None = None
+  v4: V4Design | None = None
   # --ynn and --conv-impl of every cell: "auto" tunes and chooses per machine; the smoke scale
   # keeps XLA's defaults and lax, since its programs run for seconds (benchmarks/bench_smoke.py).
   ynn: str = "auto"
@@ -153,6 +176,9 @@ SCALES = {s.name: s for s in (
                       calib_epochs=(("objects", 3), ("1/16", 3), ("finetune", 3))),
           v3=V3Design(("1/4", "1/8"), pilot_epochs=4, val_every=2, first_seed=100,
                       regime=("1/4", 4)),
+          v4=V4Design(("1/4", "1/8"), scratch_steps=6, pretrain_steps=4, pretrain_val_every=2,
+                      finetune_fractions=("1/2",), finetune_steps=4, val_every=2,
+                      finetune_lr=1e-4, first_seed=200),
           ynn="on", conv_impl="lax"),
     Scale("cpu", size=64, t=6, maxdisp=16, objects_n=400, tissue_n=80, batch_size=4, lr=1e-3,
           lr_drop=True, corr_window=5, unet_width=16, unet_depth=4, max_val=40,
@@ -167,7 +193,11 @@ SCALES = {s.name: s for s in (
                                (("*", "finetune"), 40)),
                       calib_epochs=(("objects", 36), ("1/16", 288), ("finetune", 120))),
           v3=V3Design(("1/16", "1/32", "1/64"), pilot_epochs=240, val_every=4, first_seed=100,
-                      regime=NO_REGIME)),
+                      regime=NO_REGIME),
+          # 10 and 5 of the 320 objects training scenes; 10 and 5 of the 60 tissue ones.
+          v4=V4Design(("1/32", "1/64"), scratch_steps=6000, pretrain_steps=2400,
+                      pretrain_val_every=200, finetune_fractions=("1/6", "1/12"),
+                      finetune_steps=4000, val_every=100, finetune_lr=1e-4, first_seed=200)),
     Scale("cpu128", size=128, t=7, maxdisp=32, objects_n=400, tissue_n=80, batch_size=4,
           lr=1e-3, lr_drop=True, corr_window=9, unet_width=16, unet_depth=4, max_val=40,
           schedule=Schedule(12, 96, 40, val_every=1, small_val_every=8),
@@ -220,7 +250,8 @@ class Cell:
     # tensorboard is an output only, ynn and conv_impl change float rounding only (the fast
     # kernels equal lax's) and are chosen per machine (each cell's config.json keeps them).
     config = {k: v for k, v in self.config.to_json().items()
-              if k not in ("init_from", "tensorboard", "ynn", "conv_impl")}
+              if k not in ("init_from", "tensorboard", "ynn", "conv_impl")
+              and not (k in LATER_FIELDS and v == FIELDS[k].default)}
     return {"arm": self.arm, "factors": [list(f) for f in self.factors], "seed": self.seed,
             "config": config, "init_cell": self.init_cell}
 
@@ -441,6 +472,34 @@ def _v3(a: Seeded) -> list[Cell]:
   return cells
 
 
+def _v4_pilot(a: Seeded) -> list[Cell]:
+  """stl with budgets in steps, constant learning rates, every validation scene every
+  val_every steps; curves only. From scratch on objects at each scratch fraction; and the
+  paper's setting: an objects model on all the data, fine-tuned on each tissue fraction."""
+  design = a.scale.v4
+  base = dataclasses.replace(_base(a.scale, a.seed), model="psmnet", strategy=SINGLE_TASK,
+                             lr_drop_epoch=None, max_val=None)
+  cells = []
+  for fraction in design.scratch_fractions:
+    config = dataclasses.replace(base, fraction=fraction, steps=design.scratch_steps,
+                                 val_every_steps=design.val_every)
+    cells.append(Cell("pilot4-" + _psmnet_name(SINGLE_TASK, "objects", fraction, a.seed),
+                      SINGLE_TASK, (("setting", "scratch"), ("data", fraction)), a.seed, config))
+  pre = dataclasses.replace(base, steps=design.pretrain_steps,
+                            val_every_steps=design.pretrain_val_every)
+  pre_name = "pilot4-" + _psmnet_name(SINGLE_TASK, "objects", "1", a.seed)
+  cells.append(Cell(pre_name, SINGLE_TASK, (("setting", "pretrain"), ("data", "all")), a.seed,
+                    pre))
+  for fraction in design.finetune_fractions:
+    config = dataclasses.replace(pre, domain="tissue", synth_n=a.scale.tissue_n,
+                                 fraction=fraction, lr=design.finetune_lr,
+                                 steps=design.finetune_steps, val_every_steps=design.val_every)
+    cells.append(Cell("pilot4-" + _psmnet_name(SINGLE_TASK, "tissue-ft", fraction, a.seed),
+                      SINGLE_TASK, (("setting", "finetune"), ("data", fraction)), a.seed, config,
+                      init_cell=pre_name))
+  return cells
+
+
 # Each shipped plan: its cells for one seed, and the arm the others are compared with.
 BUILDERS: dict[str, tuple[Callable[[Seeded], list[Cell]], str]] = {
     "table1": (_table1, "unet-disp"), "table2": (_table2, SINGLE_TASK),
@@ -448,6 +507,7 @@ BUILDERS: dict[str, tuple[Callable[[Seeded], list[Cell]], str]] = {
     "table1-v2": (_table1_v2, "unet-disp"), "table2-v2": (_table2_v2, SINGLE_TASK),
     "table3-v2": (_table3_v2, SINGLE_TASK), "fig7-v2": (_fig7_v2, SINGLE_TASK),
     V3_PILOT: (_v3_pilot, SINGLE_TASK), "v3": (_v3, SINGLE_TASK),
+    V4_PILOT: (_v4_pilot, SINGLE_TASK),
 }
 
 
@@ -463,8 +523,9 @@ def _pattern_count(data: str | None, scale: Scale) -> int:
 
 
 def plan_seeds(name: str, scale: str, seeds: int) -> tuple[int, ...]:
-  """The seeds of a plan run with --seeds N: 0..N-1, or from the v3 pilot's first seed."""
-  first = SCALES[scale].v3.first_seed if name == V3_PILOT else 0
+  """The seeds of a plan run with --seeds N: 0..N-1, or from a pilot's first seed."""
+  first = {V3_PILOT: lambda: SCALES[scale].v3.first_seed,
+           V4_PILOT: lambda: SCALES[scale].v4.first_seed}.get(name, lambda: 0)()
   return tuple(range(first, first + seeds))
 
 
@@ -475,6 +536,9 @@ def _check_args(name: str, scale: str, seeds: int, data: str | None,
   v3_scales = [s.name for s in SCALES.values() if s.v3 is not None]
   require(name not in V3_PLANS or scale in v3_scales,
           f"--scale {scale}: plan {name} runs at {' or '.join(v3_scales)} (docs/plan-v3.md)")
+  v4_scales = [s.name for s in SCALES.values() if s.v4 is not None]
+  require(name not in V4_PLANS or scale in v4_scales,
+          f"--scale {scale}: plan {name} runs at {' or '.join(v4_scales)} (docs/plan-v4.md)")
   require(seeds >= 1, f"--seeds {seeds}: must be at least 1")
   require(name in ("table3", "table3-v2") or not eval_data,
           "--eval-data applies to the table3 plans (scoring trained models on other data)")

@@ -184,6 +184,8 @@ def _n_train(cell: Cell) -> int:
 
 def cell_steps(cell: Cell) -> int:
   """Training steps of the cell."""
+  if cell.config.steps is not None:
+    return cell.config.steps
   used = max(1, int(round(parse_fraction(cell.config.fraction) * _n_train(cell))))
   return used // cell.config.batch_size * cell.config.epochs
 

@@ -28,7 +28,21 @@ class CellState:
   state: str
   epoch: int = 0             # last epoch logged (training cells)
   seconds: float | None = None  # training seconds (finished cells)
+  step: int = 0              # the step of that epoch's end
   machine: str | None = None    # the CPU it finished on
+
+  @property
+  def share(self) -> float:
+    """The share of its budget (steps, else epochs) a training cell has done."""
+    config = self.cell.config
+    return self.step / config.steps if config.steps is not None else self.epoch / config.epochs
+
+  @property
+  def where(self) -> str:
+    """"epoch E of N", or "step S of N" for a budget in steps."""
+    config = self.cell.config
+    return (f"step {self.step} of {config.steps}" if config.steps is not None
+            else f"epoch {self.epoch} of {config.epochs}")
 
   @property
   def group(self) -> tuple:
@@ -36,16 +50,19 @@ class CellState:
     return (self.cell.arm,) + tuple(v for _, v in self.cell.factors)
 
 
-def last_epoch(workdir: Path) -> int:
-  """The last epoch in the workdir's epochs.jsonl (0 when none)."""
+def last_epoch(workdir: Path) -> tuple[int, int]:
+  """The last (epoch, step) in the workdir's epochs.jsonl ((0, 0) when none)."""
   path = workdir / EPOCHS_FILE
   if not path.exists():
-    return 0
+    return 0, 0
   lines = [line for line in path.read_text(encoding="utf-8").splitlines() if line.strip()]
-  try:
-    return int(json.loads(lines[-1])["epoch"]) if lines else 0
-  except (ValueError, KeyError, TypeError):  # a line being written right now
-    return max(0, len(lines) - 1)
+  for line in reversed(lines[-2:]):  # the last may be being written right now
+    try:
+      row = json.loads(line)
+      return int(row["epoch"]), int(row.get("step", 0))
+    except (ValueError, KeyError, TypeError):
+      continue
+  return 0, 0
 
 
 def cell_state(out: Path, cell: Cell) -> CellState:
@@ -53,12 +70,13 @@ def cell_state(out: Path, cell: Cell) -> CellState:
   wd = cell_dir(out, cell.name)
   done = read_json(wd / DONE_FILE)
   if done is None:
-    epoch = last_epoch(wd)
+    epoch, step = last_epoch(wd)
     return CellState(cell, TRAINING if epoch or (wd / CHECKPOINT_DIR).exists() else WAITING,
-                     epoch=epoch)
+                     epoch=epoch, step=step)
   scored = all((wd / EVAL_DIR / f"{e.name}.json").exists() for e in cell.evals)
   seconds = done.get("train_seconds")
   return CellState(cell, DONE if scored else SCORING, epoch=cell.config.epochs,
+                   step=cell.config.steps or 0,
                    seconds=None if seconds is None else float(seconds),
                    machine=done.get("machine"))
 
@@ -71,7 +89,7 @@ def plan_status(out: Path, plan: Plan) -> list[CellState]:
 def seconds_left(states: list[CellState], here: str) -> tuple[float, int]:
   """(estimated training seconds left, unfinished cells with no estimate). A group's estimate
   is the mean of its finished cells on this CPU (`here`), else on any CPU; a training cell
-  counts the share of its epochs still to run."""
+  counts the share of its budget still to run."""
   timed = [s for s in states if s.seconds is not None]
   mean: dict[tuple, float] = {}
   for group in {s.group for s in timed}:
@@ -85,7 +103,7 @@ def seconds_left(states: list[CellState], here: str) -> tuple[float, int]:
     if s.group not in mean:
       unknown += 1
       continue
-    left += mean[s.group] * (1 - s.epoch / s.cell.config.epochs)
+    left += mean[s.group] * (1 - s.share)
   return left, unknown
 
 
@@ -96,7 +114,7 @@ def format_status(plan: Plan, states: list[CellState], here: str) -> str:
            else f"seed {plan.seeds[0]}")
   lines = [f"{plan.name} (scale {plan.scale.name}, {seeds}): "
            + ", ".join(f"{n} {k}" for k, n in count.items() if n) + f" of {len(states)} cells"]
-  lines += [f"  training: {s.cell.name}, epoch {s.epoch} of {s.cell.config.epochs}"
+  lines += [f"  training: {s.cell.name}, {s.where}"
             for s in states if s.state == TRAINING]
   lines += ["", "| arm | factors | finished | seeds finished | minutes a cell on this CPU, "
             "mean (range) | elsewhere, range |", "| --- | --- | --- | --- | --- | --- |"]

@@ -62,6 +62,8 @@ class TrainConfig:
   fraction: str = option("1", "fraction of the training split, e.g. 1/16")
   test_fraction: float = option(0.2, "held-out fraction of the groups (object level, SPEC 1)")
   epochs: int = option(120, "training epochs", resumable=True)
+  steps: int | None = option(None, "training budget in optimizer steps instead of epochs (the "
+                             "last epoch may end part-way)", parse=int, resumable=True)
   batch_size: int = option(12, "global batch (all devices; the reference PSMNet's 12)")
   lr: float = option(1e-4, "Adam learning rate (fixed, paper)")
   lr_drop_epoch: int | None = option(None, "epoch from which the learning rate is 10x lower "
@@ -90,6 +92,9 @@ class TrainConfig:
                           "natively); all equal in value and gradient (sljax.kernels); "
                           "$SLJAX_CONV3D sets what auto means", choices=CONV_IMPLS)
   val_every: int = option(1, "epochs between validations", resumable=True)
+  val_every_steps: int | None = option(
+      None, "validate every K steps and at the last (rows in validation.jsonl, a checkpoint at "
+      "each) instead of every --val-every epochs", parse=int, resumable=True)
   save_every: int = option(0, "also checkpoint every N steps (default: at each epoch end only)")
   keep: int = option(3, "checkpoints kept (the last N, plus the best by validation MAE)",
                      resumable=True)
@@ -142,6 +147,9 @@ class TrainConfig:
 
 
 FIELDS = {f.name: f for f in dataclasses.fields(TrainConfig)}
+# Fields added after experiment records were written: a cell's spec omits them at their default,
+# so the committed plan.json files still name the same runs.
+LATER_FIELDS = ("steps", "val_every_steps")
 # Fields that may differ between a run and its --resume (they do not change the trajectory).
 RESUME_MUTABLE = tuple(name for name, f in FIELDS.items() if f.metadata["resumable"])
 
@@ -189,6 +197,9 @@ def validate(config: TrainConfig) -> None:
   for name in ("epochs", "batch_size", "lr", "val_every", "log_every", "unet_depth",
                "unet_width"):
     require(getattr(config, name) > 0,
+            f"--{name.replace('_', '-')} {getattr(config, name)}: must be positive")
+  for name in ("steps", "val_every_steps"):
+    require(getattr(config, name) is None or getattr(config, name) > 0,
             f"--{name.replace('_', '-')} {getattr(config, name)}: must be positive")
   require(config.lr_drop_epoch is None or config.lr_drop_epoch >= 1,
           f"--lr-drop-epoch {config.lr_drop_epoch}: must be at least 1")

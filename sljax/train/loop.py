@@ -45,7 +45,8 @@ from sljax.train.interrupt import deferred_interrupt
 from sljax.train.feed import (LOADER_THREADS, PREFETCH, RowCache, batch_parts, check_source,
                               open_source, prefetch, row_caches, train_batches)
 from sljax.train.profiler import StepProfiler, check_profile_dir
-from sljax.train.record import Recorder, TrainingDiverged, fetch_metrics, save, write_epoch
+from sljax.train.record import (Recorder, TrainingDiverged, fetch_metrics, save, write_epoch,
+                                write_validation)
 from sljax.train.setup import Setup, merge_init, model_config, resolve_ynn, setup
 from sljax.train.state import LoopState
 from sljax.train.validate import validate_split
@@ -215,8 +216,9 @@ def _train(config: TrainConfig, workdir: Path, resume: bool, overwrite: bool,
   bar = tqdm(total=run.total_steps, initial=loop.step, unit="step", dynamic_ncols=True,
              disable=(not main_process) if progress is None else not progress,
              file=sys.stderr) if own_bar else progress
-  rec = Recorder(run, MetricWriter(workdir, main_process, config.tensorboard, loop.step),
-                 manager, bar)
+  by_steps = config.val_every_steps is not None
+  rec = Recorder(run, MetricWriter(workdir, main_process, config.tensorboard, loop.step,
+                                   by_steps), manager, bar)
   profiler = StepProfiler(profile_dir, loop.step, log)
   stop_at = run.total_steps if stop_after is None else min(stop_after, run.total_steps)
   weights = jnp.asarray(task_weights(config, loop.history))
@@ -235,9 +237,14 @@ def _train(config: TrainConfig, workdir: Path, resume: bool, overwrite: bool,
                                  f"{time.perf_counter() - t_first:.0f} s", refresh=True)
         profiler.after(step, state)
         pending.append((step, metrics))
-        epoch_end = step % spe == 0
-        checkpoint = bool(config.save_every) and step % config.save_every == 0 and not epoch_end
-        if len(pending) == config.log_every or epoch_end or step == stop_at or checkpoint:
+        final = step == run.total_steps
+        # A --steps budget may end part-way through an epoch: that short epoch ends the run.
+        epoch_end = step % spe == 0 or final
+        validation = (step % config.val_every_steps == 0 or final) if by_steps else False
+        saved_anyway = validation or (epoch_end and not by_steps)
+        checkpoint = bool(config.save_every) and step % config.save_every == 0 and not saved_anyway
+        if (len(pending) == config.log_every or epoch_end or validation or step == stop_at
+            or checkpoint):
           loop, last = fetch_metrics(rec, pending, loop)
           pending = []
         if checkpoint:
@@ -245,14 +252,20 @@ def _train(config: TrainConfig, workdir: Path, resume: bool, overwrite: bool,
         if epoch_end:
           loop = loop.close_epoch()
           val: dict[str, float] = {}
-          if len(loop.history) % config.val_every == 0 or step == run.total_steps:
+          if not by_steps and (len(loop.history) % config.val_every == 0 or final):
             val = validate_split(state, eval_step, val_rows, run.val_idx, config, mesh)
             loop = loop.validated(val.get("val_mae"))
           write_epoch(rec, loop, last, val, time.perf_counter() - clock[0],
                       (step - clock[1]) * config.batch_size)
-          save(rec, state, loop, val.get("val_mae", val.get("val_sl")))
+          if not by_steps:  # by steps, the validations checkpoint (an epoch may be one step)
+            save(rec, state, loop, val.get("val_mae", val.get("val_sl")))
           weights = jnp.asarray(task_weights(config, loop.history))  # DWA: from finished epochs
           clock = time.perf_counter(), step
+        if validation:
+          val = validate_split(state, eval_step, val_rows, run.val_idx, config, mesh)
+          write_validation(rec, loop, val)
+          loop = loop.validated(val.get("val_mae"))
+          save(rec, state, loop, val.get("val_mae", val.get("val_sl")))
         if interrupt.asked:  # after the step's own writes, as an interruption between steps
           raise KeyboardInterrupt
       if loop.step < run.total_steps:

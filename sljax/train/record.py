@@ -13,7 +13,7 @@ from sljax.models import checkpoint as ckpt
 from sljax.train import state as st
 from sljax.train.setup import Setup
 from sljax.train.state import LoopState
-from sljax.train.workdir import EPOCHS_FILE, METRICS_FILE, MetricWriter
+from sljax.train.workdir import EPOCHS_FILE, METRICS_FILE, VALIDATION_FILE, MetricWriter
 
 
 class TrainingDiverged(SljaxError):
@@ -61,9 +61,33 @@ def save(rec: Recorder, state: st.TrainState, loop: LoopState, val: float | None
   ckpt.save(rec.manager, loop.step, state, loop.to_meta(), val)
 
 
+def _val_text(val: dict[str, float]) -> list[str]:
+  text = []
+  if val.get("val_mae") is not None:
+    text.append(f"val MAE {val['val_mae']:.3f} px")
+  if val.get("val_sl") is not None:
+    text.append(f"val L_sl {val['val_sl']:.4f}")
+  return text
+
+
+def write_validation(rec: Recorder, loop: LoopState, val: dict[str, float]) -> None:
+  """A validation by steps: its validation.jsonl row (with the mean training losses since the
+  previous one; `loop` is the state before `validated` resets them) and its line."""
+  spe = rec.run.steps_per_epoch
+  loss_sl, loss_disp = loop.interval_means()
+  row = {"step": loop.step, "epoch": loop.step / spe, "train_loss_sl": loss_sl,
+         "train_loss_disp": loss_disp, "train_steps": loop.since_val[2], **val}
+  rec.writer.write(VALIDATION_FILE, [row])
+  needs_sl, needs_disp = rec.run.config.tasks
+  text = ([f"L_sl {loss_sl:.4g}"] * needs_sl + [f"L_disp {loss_disp:.4g}"] * needs_disp
+          + _val_text(val))
+  rec.bar.write(f"step {loop.step}/{rec.run.total_steps}: {' '.join(text)}")
+
+
 def write_epoch(rec: Recorder, loop: LoopState, last: dict[str, float], val: dict[str, float],
                 seconds: float, samples: int) -> None:
-  """The finished epoch's epochs.jsonl row and its line above the progress bar."""
+  """The finished epoch's epochs.jsonl row and its line above the progress bar (none when
+  validating by steps: the validation lines report, and a small set ends an epoch every step)."""
   config = rec.run.config
   epoch = len(loop.history)
   row = {"epoch": epoch, "step": loop.step, "loss_sl": loop.history[-1][0],
@@ -73,10 +97,10 @@ def write_epoch(rec: Recorder, loop: LoopState, last: dict[str, float], val: dic
   row.update(val)
   rec.writer.write(EPOCHS_FILE, [row])
   needs_sl, needs_disp = config.tasks
-  text = [f"L_sl {row['loss_sl']:.4g}"] * needs_sl + [f"L_disp {row['loss_disp']:.4g}"] * needs_disp
-  if val.get("val_mae") is not None:
-    text.append(f"val MAE {val['val_mae']:.3f} px")
-  if val.get("val_sl") is not None:
-    text.append(f"val L_sl {val['val_sl']:.4f}")
-  rec.bar.write(f"epoch {epoch}/{config.epochs}: {' '.join(text)} "
-                f"({row['samples_per_s']:.1f} samples/s)")
+  text = ([f"L_sl {row['loss_sl']:.4g}"] * needs_sl
+          + [f"L_disp {row['loss_disp']:.4g}"] * needs_disp + _val_text(val))
+  if config.val_every_steps is None:
+    epochs = (f"{config.epochs}" if config.steps is None
+              else f"{math.ceil(rec.run.total_steps / rec.run.steps_per_epoch)}")
+    rec.bar.write(f"epoch {epoch}/{epochs}: {' '.join(text)} "
+                  f"({row['samples_per_s']:.1f} samples/s)")

@@ -94,7 +94,9 @@ class Setup:
 
   @property
   def total_steps(self) -> int:
-    """Steps of the whole run."""
+    """Steps of the whole run: --steps, else the epochs' steps."""
+    if self.config.steps is not None:
+      return self.config.steps
     return self.steps_per_epoch * self.config.epochs
 
 
@@ -185,10 +187,18 @@ def announce(config: TrainConfig, preset_note: str, steps_per_epoch: int,
   est = per_sample * steps_per_epoch * config.batch_size
   strategy = f"/{config.strategy}" if registry.spec(config.model).twin else ""
   return (f"sljax train: preset {config.preset}{preset_note}: {config.net}{strategy}, {h}x{w}, "
-          f"maxdisp {config.maxdisp}, {config.epochs} epochs x {steps_per_epoch} steps of "
-          f"{config.batch_size} ({n_train} train / {n_val} val scenes) on "
+          f"maxdisp {config.maxdisp}, {_budget(config, steps_per_epoch)} "
+          f"({n_train} train / {n_val} val scenes) on "
           f"{jax.device_count()} {jax.default_backend()} device(s); estimated "
           f"~{_fmt_seconds(est)} per epoch (measured ETA in the progress bar)")
+
+
+def _budget(config: TrainConfig, steps_per_epoch: int) -> str:
+  """The run's length in the announcement, in epochs or (--steps) in steps."""
+  if config.steps is None:
+    return f"{config.epochs} epochs x {steps_per_epoch} steps of {config.batch_size}"
+  return (f"{config.steps} steps of {config.batch_size} ({config.steps / steps_per_epoch:.4g} "
+          f"epochs of {steps_per_epoch} steps)")
 
 
 def _fmt_seconds(s: float) -> str:

@@ -2,6 +2,7 @@
 loop's bookkeeping saved beside it in each checkpoint."""
 
 import dataclasses
+import math
 from typing import Any
 
 import jax
@@ -51,19 +52,29 @@ class LoopState:
   """The loop's bookkeeping beside the TrainState; each checkpoint's metadata.
 
   history: epoch-mean training (L_sl, L_disp) of the finished epochs (DWA reads it);
-  partial: (sum L_sl, sum L_disp, steps) of the current epoch so far.
+  partial: (sum L_sl, sum L_disp, steps) of the current epoch so far;
+  since_val: the same sums since the last validation (--val-every-steps: each validation row's
+  training loss, so that memorisation can be read beside the validation curve).
   """
   step: int = 0
   history: tuple[tuple[float, float], ...] = ()
   partial: tuple[float, float, int] = (0.0, 0.0, 0)
   best_val: float | None = None
   last_val: float | None = None
+  since_val: tuple[float, float, int] = (0.0, 0.0, 0)
 
   def add_step(self, loss_sl: float, loss_disp: float) -> "LoopState":
     """After one step with these (unweighted) training losses."""
     s_sl, s_disp, n = self.partial
+    v_sl, v_disp, m = self.since_val
     return dataclasses.replace(self, step=self.step + 1,
-                               partial=(s_sl + loss_sl, s_disp + loss_disp, n + 1))
+                               partial=(s_sl + loss_sl, s_disp + loss_disp, n + 1),
+                               since_val=(v_sl + loss_sl, v_disp + loss_disp, m + 1))
+
+  def interval_means(self) -> tuple[float, float]:
+    """Mean training (L_sl, L_disp) over the steps since the last validation."""
+    v_sl, v_disp, m = self.since_val
+    return (v_sl / m, v_disp / m) if m else (math.nan, math.nan)
 
   def close_epoch(self) -> "LoopState":
     """The epoch's mean losses join the history; the partial sums restart."""
@@ -76,18 +87,21 @@ class LoopState:
     best = self.best_val
     if val_mae is not None and (best is None or val_mae < best):
       best = val_mae
-    return dataclasses.replace(self, last_val=val_mae, best_val=best)
+    return dataclasses.replace(self, last_val=val_mae, best_val=best, since_val=(0.0, 0.0, 0))
 
   def to_meta(self) -> dict[str, Any]:
     """JSON metadata saved with a checkpoint."""
     return {"step": self.step, "history": [list(e) for e in self.history],
-            "partial": list(self.partial), "best_val": self.best_val, "last_val": self.last_val}
+            "partial": list(self.partial), "best_val": self.best_val, "last_val": self.last_val,
+            "since_val": list(self.since_val)}
 
   @classmethod
   def from_meta(cls, meta: dict[str, Any]) -> "LoopState":
-    """The LoopState saved by to_meta (runs saved before last_val existed: None)."""
+    """The LoopState saved by to_meta (runs saved before last_val or since_val existed: None,
+    and empty sums)."""
     s_sl, s_disp, n = meta["partial"]
+    v_sl, v_disp, m = meta.get("since_val", (0.0, 0.0, 0))
     return cls(step=int(meta["step"]),
                history=tuple((float(a), float(b)) for a, b in meta["history"]),
                partial=(float(s_sl), float(s_disp), int(n)), best_val=meta.get("best_val"),
-               last_val=meta.get("last_val"))
+               last_val=meta.get("last_val"), since_val=(float(v_sl), float(v_disp), int(m)))

@@ -33,11 +33,13 @@ def summary_writer_class():
 
 
 def tag(file: str, key: str) -> str:
-  """The TensorBoard tag of a metrics.jsonl / epochs.jsonl column."""
+  """The TensorBoard tag of a metrics.jsonl / epochs.jsonl / validation.jsonl column."""
   if file.startswith("metrics"):
     return f"train/{key}"
   if key.startswith("val_"):
     return f"val/{key[4:]}"
+  if file.startswith("validation"):  # the training loss over the steps since the last one
+    return f"interval/{key}"
   if key in ("samples_per_s", "seconds"):
     return f"perf/{key}"
   return f"epoch/{key}"

@@ -31,8 +31,10 @@ from sljax.train.tensorboard import TensorBoardWriter
 
 METRICS_FILE = "metrics.jsonl"
 EPOCHS_FILE = "epochs.jsonl"
+VALIDATION_FILE = "validation.jsonl"  # --val-every-steps: a row per validation
 
-__all__ = ["CHECKPOINT_DIR", "CONFIG_FILE", "EPOCHS_FILE", "METRICS_FILE", "MetricWriter",
+__all__ = ["CHECKPOINT_DIR", "CONFIG_FILE", "EPOCHS_FILE", "METRICS_FILE", "VALIDATION_FILE",
+           "MetricWriter",
            "check_config_kept", "clear_run", "default_workdir", "has_checkpoints", "held",
            "prepare_workdir", "read_config", "restart_logs", "sync", "write_config"]
 
@@ -154,7 +156,7 @@ def clear_run(workdir: Path) -> None:
   if jax.process_index() == 0:
     if (workdir / CHECKPOINT_DIR).exists():  # a failure here is one line, not a mixed run
       shutil.rmtree(workdir / CHECKPOINT_DIR)
-    for name in (METRICS_FILE, EPOCHS_FILE, CONFIG_FILE):
+    for name in (METRICS_FILE, EPOCHS_FILE, VALIDATION_FILE, CONFIG_FILE):
       (workdir / name).unlink(missing_ok=True)
   sync("sljax-workdir-cleared")  # no process may list checkpoints while they are deleted
 
@@ -191,19 +193,22 @@ def restart_logs(workdir: Path, step: int, steps_per_epoch: int) -> None:
     return
   _truncate_jsonl(workdir / METRICS_FILE, lambda r: r.get("step", 0) <= step)
   _truncate_jsonl(workdir / EPOCHS_FILE, lambda r: r.get("epoch", 0) <= step // steps_per_epoch)
+  _truncate_jsonl(workdir / VALIDATION_FILE, lambda r: r.get("step", 0) <= step)
 
 
 class MetricWriter:
   """The run's JSON lines: metrics.jsonl (a row per step), epochs.jsonl (a row per epoch),
-  mirrored to TensorBoard event files with --tensorboard. Writes on the main process only; a
-  full or read-only disk ends the run with one line (checkpoint.storage_guard)."""
+  validation.jsonl (a row per validation, when validating by steps), mirrored to TensorBoard
+  event files with --tensorboard. Writes on the main process only; a full or read-only disk ends
+  the run with one line (checkpoint.storage_guard)."""
 
   def __init__(self, workdir: Path, enabled: bool, tensorboard: bool = False,
-               first_step: int = 0):
+               first_step: int = 0, by_steps: bool = False):
     self.checkpoints = workdir / CHECKPOINT_DIR
+    names = (METRICS_FILE, EPOCHS_FILE) + (VALIDATION_FILE,) * by_steps
     with storage_guard("opening the run's logs", self.checkpoints):
       self.files = ({name: open(workdir / name, "a", encoding="utf-8")
-                     for name in (METRICS_FILE, EPOCHS_FILE)} if enabled else {})
+                     for name in names} if enabled else {})
       self.tensorboard = TensorBoardWriter(workdir, first_step) if enabled and tensorboard \
           else None
 

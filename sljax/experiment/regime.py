@@ -94,6 +94,42 @@ def regime(out: str | Path, scale: str = "cpu", seeds: int = 2) -> dict[str, Any
           "regime": chosen}
 
 
+def memorisation(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
+  """v4's memorisation measure of one cell (docs/plan-v4.md; beside the rule, not part of it):
+  the mean training disparity loss over the last validation interval against its value over
+  the interval ending at the cell's own (unsmoothed) validation minimum."""
+  rows = [r for r in rows if r.get("val_mae") is not None and math.isfinite(r["val_mae"])]
+  if not rows:
+    return {"min_step": None, "train_at_min": None, "train_final": None, "ratio": None}
+  at_min = min(rows, key=lambda r: (r["val_mae"], r["step"]))  # the first step holding it
+  final = rows[-1]
+  return {"min_step": at_min["step"], "train_at_min": at_min["train_loss_disp"],
+          "train_final": final["train_loss_disp"],
+          "ratio": final["train_loss_disp"] / at_min["train_loss_disp"]}
+
+
+def v4_setting(curves: Mapping[str, Mapping[str, Sequence[dict[str, Any]]]],
+               fractions: Sequence[str], val_every: int) -> dict[str, Any]:
+  """v3's rule on steps for one v4 setting: curves[fraction][cell] = its validation.jsonl rows
+  (every seed's cell finished); per fraction the seeds' mean curve, its rise and the cells'
+  memorisation; the regime (largest overfitting fraction, budget twice its minimum's step)."""
+  rows = {}
+  for fraction in fractions:
+    cells = curves.get(fraction)
+    if not cells:
+      continue
+    pts = {name: [(r["step"], r["val_mae"]) for r in rs] for name, rs in cells.items()}
+    mean = mean_curve(list(pts.values()))
+    rise = fraction_rise(mean)
+    rows[fraction] = dict(rise, min_step=rise.pop("min_epoch"), mean=[list(p) for p in mean],
+                          memorisation={n: memorisation(rs) for n, rs in cells.items()})
+  chosen = choose({f: dict(r, min_epoch=r["min_step"]) for f, r in rows.items()}, fractions,
+                  val_every)
+  return {"fractions": rows, "regime": {"fraction": chosen["fraction"],
+                                        "budget_steps": chosen["budget"],
+                                        "min_step": chosen["min_epoch"]}}
+
+
 def markdown(result: dict[str, Any]) -> list[str]:
   """The rule's outcome as a table and a sentence."""
   lines = [f"# v3 pilot: where stl overfits (scale {result['scale']}, seeds "

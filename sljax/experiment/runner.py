@@ -44,6 +44,7 @@ from sljax.experiment.plans import (FIXED, HELDOUT, TEST_SEED, Cell, EvalSet, Pl
 from sljax.models import checkpoint as ckpt
 from sljax.models import load as trained
 from sljax.train.config import config_from_json, dumps
+from sljax.train.workdir import VALIDATION_FILE
 from sljax.train.loop import open_source, train
 
 PLAN_FILE = "plan.json"
@@ -149,6 +150,15 @@ def curve(out: Path, name: str) -> list[tuple[int, float]]:
     return []
   recs = [json.loads(l) for l in path.read_text().splitlines() if l.strip()]
   return [(r["epoch"], r["val_mae"]) for r in recs if r.get("val_mae") is not None]
+
+
+def step_curve(out: Path, name: str) -> list[dict[str, Any]]:
+  """The rows of a cell's validation.jsonl (validation by steps): step, validation MAE and the
+  mean training losses since the previous validation."""
+  path = cell_dir(out, name) / VALIDATION_FILE
+  if not path.exists():
+    return []
+  return [json.loads(l) for l in path.read_text().splitlines() if l.strip()]
 
 
 def final_checkpoint(out: Path, name: str, which: str = "final") -> Path:

@@ -3,7 +3,7 @@ frames per camera (OpenCV's GrayCodePattern layout), 8-bit PNGs.
 
 Usage: JAX_PLATFORMS=cpu python benchmarks/bench_import.py [--repeats 1] [--keep DIR]
 A synthetic capture (seeded: the renderer's scene 0 of seed 0, seen through the unrectified rig
-of sljax.data.synth_rig with mild blur and noise) is written to a temporary folder, then
+of sljax.render.synth_rig with mild blur and noise) is written to a temporary folder, then
 imported twice: in this process, stage by stage (read, rectify, decode, match, write; the
 import's own timers), and as the command a user runs, in a fresh process (imports included).
 The target: the command in at most 60 s on a 2-core CPU with nothing else running. The load
@@ -29,9 +29,9 @@ def make_capture(folder: Path) -> dict:
   """Writes cam1/, cam2/ (pattern_camN_im1.png ... im46.png) and calib.yml; returns facts."""
   import cv2
 
-  from sljax.data import rig as rigs
-  from sljax.data import synth_rig as sr
-  from sljax.data.synthetic import SynthConfig, render_scene
+  from sljax.capture import rig as rigs
+  from sljax.render import synth_rig as sr
+  from sljax.render.synthetic import SynthConfig, render_scene
 
   cfg = SynthConfig(size=2048, domain="tissue", t=8, raw_noise=0.0, raw_blur=0.0).resolved()
   start = time.perf_counter()
@@ -56,8 +56,8 @@ def main() -> None:
   ap.add_argument("--keep", help="generate the capture here (kept) instead of a temporary folder")
   args = ap.parse_args()
 
-  from sljax.data import captures
-  from sljax.data.rig import read_calibration
+  from sljax.capture import captures
+  from sljax.capture.rig import read_calibration
 
   with tempfile.TemporaryDirectory() as tmp:
     folder = Path(args.keep or tmp)

@@ -32,7 +32,7 @@ def main() -> None:
   args = ap.parse_args()
 
   from sljax.data.scene import write_scene
-  from sljax.data.synthetic import SynthConfig, render_scene
+  from sljax.render.synthetic import SynthConfig, render_scene
 
   cfg = SynthConfig(size=args.size, domain=args.domain)
   rows = []

@@ -31,7 +31,7 @@ from common import machine, record
 
 from sljax.data.dataset import split_indices
 from sljax.data.scene import write_scene
-from sljax.data.synthetic import SynthConfig, SyntheticSource
+from sljax.render.synthetic import SynthConfig, SyntheticSource
 from sljax.losses.weighting import step_weights
 from sljax.nets import registry
 from sljax.train import loop

@@ -8,7 +8,7 @@ Regions: "full" = every pixel with finite ground truth; "seg" = those inside mas
 scene has one).
 
 SCARED keyframes imported by `sljax import-scared` (meta.json "source": "SCARED" with the
-original frame kept) are also scored as the SCARED toolkit scores them (sljax.data.scared):
+original frame kept) are also scored as the SCARED toolkit scores them (sljax.capture.scared):
 the predicted disparity is mapped back to the original, unrectified and distorted left view
 and compared with the keyframe's own depth map there; depth MAE in mm per keyframe, keyframes
 whose ground truth covers under 10% of the pixels excluded, and the mean over the scored
@@ -31,7 +31,7 @@ from tqdm import tqdm
 
 from sljax import files, markdown, metrics
 from sljax.corr.uncertainty import pattern_uncertainty
-from sljax.data import scared
+from sljax.capture import scared
 from sljax.data.pfm import read_pfm, write_pfm
 from sljax.data.scene import present_parts
 from sljax.errors import SljaxError

@@ -11,8 +11,8 @@ import pytest
 
 from sljax import geometry, inference, sl
 from sljax.corr import correlation
-from sljax.data import synthetic
-from sljax.data import FolderSource
+from sljax.render import synthetic
+from sljax.data.dataset import FolderSource
 from sljax.data.calib import Calib, depth_from_disparity
 from sljax.data.dataset import iterate_batches
 from sljax.data.scene import Scene, load_scene, write_scene
@@ -214,7 +214,7 @@ def test_decode_captures_scales_8_bit_captures_and_refuses_unscaled_floats():
     sl.decode_captures(_raw(200.0, 20.0), "binary")
 
 
-# ---- sljax.data.synthetic --------------------------------------------------------------------
+# ---- sljax.render.synthetic --------------------------------------------------------------------
 
 
 @pytest.mark.parametrize("kw, message", [
@@ -321,10 +321,3 @@ def test_iterate_batches_checks_the_indices_before_loading(indices, message):
     next(iterate_batches(source, indices, 1, seed=0, epoch=0, shuffle=False))
 
 
-def test_sljax_data_exports_its_main_names():
-  import sljax.data  # pylint: disable=import-outside-toplevel
-  from sljax.data import dataset, scene  # pylint: disable=import-outside-toplevel
-  assert sljax.data.FolderSource is dataset.FolderSource and sljax.data.Scene is scene.Scene
-  assert all(getattr(sljax.data, name) is not None for name in sljax.data.__all__)
-  with pytest.raises(AttributeError):
-    sljax.data.NoSuchThing  # pylint: disable=pointless-statement

@@ -95,7 +95,7 @@ def test_sgbm_row_on_synthetic_scenes_beats_constant_disparity(tmp_path):
 
   from sljax import cli
   from sljax.data.scene import write_scene
-  from sljax.data.synthetic import SynthConfig, render_scene
+  from sljax.render.synthetic import SynthConfig, render_scene
 
   cfg = SynthConfig(size=96, domain="objects", texture_amplitude=1.0)
   scenes = [render_scene(i, 0, cfg) for i in range(3)]

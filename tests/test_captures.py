@@ -1,4 +1,4 @@
-"""`sljax import-captures` on an unrectified rendered rig (sljax.data.synth_rig): the renderer's
+"""`sljax import-captures` on an unrectified rendered rig (sljax.render.synth_rig): the renderer's
 rectified scene, warped into two real cameras (known rotations and lens distortion) with their
 OpenCV calibration, captured in OpenCV's GrayCodePattern layout; the ground truth mapped into
 the importer's own rectified frame in float64."""
@@ -13,14 +13,15 @@ import numpy as np
 import pytest
 
 from sljax import cli
-from sljax.data import captures, charuco, preflight
-from sljax.data import rig as rigs
-from sljax.data import synth_rig as sr
+from sljax.capture import captures, charuco
+from sljax.capture import rig as rigs
+from sljax.data import preflight
 from sljax.data.calib import read_calib
 from sljax.data.dataset import FolderSource, load_batch
 from sljax.data.pfm import read_pfm
 from sljax.data.scene import load_scene
-from sljax.data.synthetic import SynthConfig, render_scene
+from sljax.render import synth_rig as sr
+from sljax.render.synthetic import SynthConfig, render_scene
 from sljax.errors import SljaxError
 from sljax.sl import codes
 from sljax.sl.stereo import decode_views, match_views

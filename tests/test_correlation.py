@@ -264,7 +264,7 @@ def test_normalized_matches_naive_zncc():
 
 
 def test_ground_truth_patterns_of_synthetic_scene_give_its_disparity():
-  from sljax.data.synthetic import SynthConfig, render_scene
+  from sljax.render.synthetic import SynthConfig, render_scene
   scene = render_scene(0, 0, SynthConfig(size=128, domain="tissue"))
   disp, _ = corr.sl_disparity(scene.sl0, scene.sl1, window=17)
   assert disp.shape == scene.disp0.shape

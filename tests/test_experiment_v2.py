@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from sljax.data.dataset import split_indices, split_three
-from sljax.data.synthetic import SynthConfig, render_scene
+from sljax.render.synthetic import SynthConfig, render_scene
 from sljax.errors import SljaxError
 from sljax.experiment import calibrate, plans, runner
 from sljax.train.loop import open_source

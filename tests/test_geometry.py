@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from sljax import cli, geometry
-from sljax.data import scared
+from sljax.capture import scared
 from sljax.data.calib import Calib, write_calib
 from sljax.data.pfm import read_pfm
 from sljax.images import write_image

@@ -15,6 +15,8 @@ FLOORS = (
                 "kernels"}),
     ("structured light", {"sl"}),
     ("data", {"data"}),
+    ("importers of real data", {"capture"}),
+    ("renderer", {"render"}),
     ("networks, losses, correlation", {"nets", "losses", "corr", "metrics", "geometry", "viz"}),
     ("trained models and compiler settings", {"models", "tune"}),
     ("training", {"train"}),

@@ -7,7 +7,7 @@ import pytest
 from sljax import cli
 from sljax.data.calib import read_calib
 from sljax.data.pfm import read_pfm
-from sljax.data.scared import import_scared
+from sljax.capture.scared import import_scared
 from sljax.data.scene import load_scene
 from sljax.errors import SljaxError
 
@@ -227,7 +227,7 @@ def _exact_rectified_disparity(c):
 def test_original_frame_mapping_recovers_the_plane(keyframe):
   """A rectified disparity mapped back to the original, distorted left view gives the depth of
   the plane seen through each original pixel (the fixture's own ray-plane intersection)."""
-  from sljax.data import scared
+  from sljax.capture import scared
   _, out, xyz = keyframe
   s = load_scene(out)
   original = scared.read_original(s.meta, str(out))
@@ -241,7 +241,7 @@ def test_original_frame_mapping_recovers_the_plane(keyframe):
 
 
 def test_keyframe_error_follows_the_toolkit():
-  from sljax.data import scared
+  from sljax.capture import scared
   gt = np.full((10, 10), np.inf, np.float32)
   gt[:3, :3] = 50.0  # 9% coverage: excluded
   r = scared.keyframe_error(gt, np.full((10, 10), 40.0))
@@ -258,7 +258,7 @@ def test_keyframe_error_follows_the_toolkit():
 def test_evaluate_scores_keyframes_in_the_original_frame(keyframe, tmp_path):
   """sljax evaluate on an imported keyframe: a prediction 5% off in disparity is 1/1.05 off in
   depth everywhere, so the keyframe's MAE is (1 - 1/1.05) times the mean assessed depth."""
-  from sljax.data import scared
+  from sljax.capture import scared
   from sljax.data.dataset import FolderSource
   from sljax.evaluate import evaluate
   _, out, _ = keyframe

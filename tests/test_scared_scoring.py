@@ -1,7 +1,7 @@
-"""SCARED scoring (sljax.data.scared through sljax evaluate) over several keyframes, one
+"""SCARED scoring (sljax.capture.scared through sljax evaluate) over several keyframes, one
 excluded for coverage: the hand-computed mean.
 
-The toolkit's rule (sljax.data.scared): a keyframe whose ground truth covers under 10% of its
+The toolkit's rule (sljax.capture.scared): a keyframe whose ground truth covers under 10% of its
 pixels is excluded; the others are scored by the mean absolute depth error over the pixels
 both maps know, and the dataset's number is the mean over the scored keyframes (not over
 their pooled pixels). The keyframes here are imported-style scene folders whose original
@@ -12,7 +12,7 @@ so a constant disparity d maps to the depth fx B / (d + doffs) at every pixel.
 import numpy as np
 import pytest
 
-from sljax.data import scared
+from sljax.capture import scared
 from sljax.data.calib import Calib
 from sljax.data.dataset import FolderSource
 from sljax.data.pfm import write_pfm

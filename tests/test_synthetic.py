@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 
 from sljax import cli
-from sljax.data import synth_geometry as geo
-from sljax.data import synth_sensor
-from sljax.data import synthetic as synth
-from sljax.data.synthetic import SynthConfig, SyntheticSource, render_scene
+from sljax.render import synth_geometry as geo
+from sljax.render import synth_sensor
+from sljax.render import synthetic as synth
+from sljax.render.synthetic import SynthConfig, SyntheticSource, render_scene
 from sljax.sl import codes
 from sljax.sl.decode import decode_captures
 from sljax.sl.match import disparity_from_codes

@@ -3,8 +3,8 @@
 import argparse
 from pathlib import Path
 
-from sljax.data import captures, charuco
-from sljax.data.rig import UNITS_MM, read_calibration
+from sljax.capture import captures, charuco
+from sljax.capture.rig import UNITS_MM, read_calibration
 from sljax.errors import require
 from sljax.sl.decode import DecodeConfig
 from sljax.sl.stereo import MatchConfig

@@ -4,7 +4,7 @@ import argparse
 
 import numpy as np
 
-from sljax.data.scared import import_scared
+from sljax.capture.scared import import_scared
 from sljax.data.scene import load_scene
 
 

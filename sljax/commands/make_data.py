@@ -8,7 +8,7 @@ from tqdm import tqdm
 
 from sljax import files
 from sljax.data.scene import write_scene
-from sljax.data.synthetic import SynthConfig, render_scene
+from sljax.render.synthetic import SynthConfig, render_scene
 from sljax.errors import require
 
 

@@ -36,7 +36,7 @@ from tqdm import tqdm
 from sljax import files, inference, machine, tune
 from sljax.data.dataset import FolderSource, parse_fraction, split_indices
 from sljax.files import read_json_object
-from sljax.data.synthetic import SynthConfig, SyntheticSource
+from sljax.render.synthetic import SynthConfig, SyntheticSource
 from sljax.errors import SljaxError, require
 from sljax.evaluate import evaluate, json_safe
 from sljax.experiment.plans import (FIXED, HELDOUT, TEST_SEED, Cell, EvalSet, Plan, build_plan,

@@ -10,7 +10,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from sljax.data.synth_config import DOMAINS
+from sljax.render.synth_config import DOMAINS
 from sljax import sizes
 from sljax.errors import SljaxError, require
 from sljax.losses.disparity import DISP_LOSSES

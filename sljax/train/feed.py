@@ -16,7 +16,7 @@ from typing import Any
 import jax
 import numpy as np
 
-from sljax.data import synthetic
+from sljax.render import synthetic
 from sljax.data.dataset import PART_FIELD, FolderSource, epoch_order, load_batch
 from sljax.errors import require
 from sljax.train import step as stp

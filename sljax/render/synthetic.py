@@ -52,13 +52,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sljax.data import synth_geometry as geo
-from sljax.data import synth_scenes as scenes
-from sljax.data import synth_sensor as sensor
-from sljax.data import synth_surface as surface
+from sljax.render import synth_geometry as geo
+from sljax.render import synth_scenes as scenes
+from sljax.render import synth_sensor as sensor
+from sljax.render import synth_surface as surface
 from sljax.data.calib import Calib
 from sljax.data.scene import Scene
-from sljax.data.synth_config import SynthConfig, check_seed_index
+from sljax.render.synth_config import SynthConfig, check_seed_index
 from sljax.errors import require
 
 ROOM_LO = (-0.5, -0.5, 0.0)

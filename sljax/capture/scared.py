@@ -32,7 +32,7 @@ import numpy as np
 from sljax import files
 from sljax.data.calib import Calib
 from sljax.data.pfm import write_pfm
-from sljax.data.rig import (RECTIFY_ALPHA, check_rig, read_calibration, rectify, rectify_maps,
+from sljax.capture.rig import (RECTIFY_ALPHA, check_rig, read_calibration, rectify, rectify_maps,
                             remap)
 from sljax.data.scene import Scene, write_scene
 from sljax.images import image_to_float

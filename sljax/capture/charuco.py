@@ -17,8 +17,8 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from sljax.data import captures
-from sljax.data.rig import StereoCalibration, check_calibration
+from sljax.capture import captures
+from sljax.capture.rig import StereoCalibration, check_calibration
 from sljax.errors import SljaxError, require
 
 MIN_CORNERS = 6  # ChArUco corners an image must show to constrain a pose

@@ -1,7 +1,7 @@
 """An unrectified stereo rig with a projector around the synthetic renderer's rectified scenes:
 captures as a real rig takes them, with their calibration and ground truth.
 
-The renderer (sljax.data.synthetic) renders a rectified pair: pinhole cameras K_r (focal f_r,
+The renderer (sljax.render.synthetic) renders a rectified pair: pinhole cameras K_r (focal f_r,
 principal point at the centre), the right one at (B, 0, 0) in the left one's frame. Here each
 real camera i is that rectified camera turned by a rotation Q_i (a point X in rectified camera
 i's frame is Q_i X in real camera i's) and given its own intrinsics M_i and lens distortion D_i.
@@ -9,7 +9,7 @@ Then X_right = Q_2 (Q_1^T X_left - (B, 0, 0)), so the OpenCV calibration is R = 
 T = -Q_2 (B, 0, 0). A real camera's pixel sees the rectified pixel K_r Q_i^T undistort(M_i^-1
 pixel); the captures are the rendered frames resampled there (cv2.remap).
 
-Frames follow OpenCV's GrayCodePattern for a W x H projector (sljax.data.captures): the
+Frames follow OpenCV's GrayCodePattern for a W x H projector (sljax.capture.captures): the
 renderer's projector (2^t columns over a square field of view) lights the pixel's point at the
 continuous projector coordinate (col, row), computed here in closed form from the depth and
 checked against the renderer's own column; a W x H projector over the same field of view shows
@@ -32,9 +32,9 @@ from collections.abc import Iterator
 import cv2
 import numpy as np
 
-from sljax.data import captures
-from sljax.data.rig import StereoCalibration
-from sljax.data.synthetic import SynthConfig, SyntheticScene
+from sljax.capture import captures
+from sljax.capture.rig import StereoCalibration
+from sljax.render.synthetic import SynthConfig, SyntheticScene
 
 
 @dataclasses.dataclass(frozen=True)
@@ -164,7 +164,7 @@ def projector_coordinates(scene: SyntheticScene, cfg: SynthConfig
 
 
 def _axis(axis: int, angle: float) -> np.ndarray:
-  """Rotation about a coordinate axis (as sljax.data.synth_scenes.axis_rotation)."""
+  """Rotation about a coordinate axis (as sljax.render.synth_scenes.axis_rotation)."""
   c, s = math.cos(angle), math.sin(angle)
   i, j = [(1, 2), (2, 0), (0, 1)][axis]
   m = np.eye(3)
@@ -256,7 +256,7 @@ def quantize(frame: np.ndarray, bits: int = 8) -> np.ndarray:
 def ground_truth(scene: SyntheticScene, cfg: SynthConfig, rig: RigConfig, rect,
                  oversample: int = 1, min_signal: float = 0.06, edge_px: float = 0.5
                  ) -> tuple[np.ndarray, np.ndarray]:
-  """(disp0, disp1) in an importer's rectified frame (rect: sljax.data.rig.Rectification of the
+  """(disp0, disp1) in an importer's rectified frame (rect: sljax.capture.rig.Rectification of the
   rig's calibration), inf where unknown: where the rendered disparity is not smooth (its 2x2
   neighbours differ by more than edge_px rendered pixels), where the projector light is weaker
   than min_signal, where the renderer marks the point hidden from the other camera, and where

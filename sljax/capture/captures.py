@@ -17,7 +17,7 @@ coarsest first), so column pair k becomes p{k:03d} / i{k:03d} unchanged. sljax: 
 own names, patterns coarsest first.
 
 Pipeline (shared with import-scared and decode): the calibration's rectification
-(sljax.data.rig: cv2.stereoRectify, alpha 0, zero disparity), every frame resampled into it,
+(sljax.capture.rig: cv2.stereoRectify, alpha 0, zero disparity), every frame resampled into it,
 both views decoded and matched by sljax.sl.stereo (the row bits only check matches), the scene
 written by sljax.data.scene.write_scene. With a scale, the views and raw frames are resized
 (area averaging) after rectification, sl0/sl1 are decoded from the resized raw frames (so that
@@ -39,7 +39,7 @@ import numpy as np
 from tqdm import tqdm
 
 from sljax import files
-from sljax.data import rig as rigs
+from sljax.capture import rig as rigs
 from sljax.data.scene import Scene, write_scene
 from sljax.images import holds_12_bit, image_to_float
 from sljax.errors import SljaxError, require

@@ -1,6 +1,6 @@
 """What a first hit looks like, for the synthetic renderer (inside jit): the camera pose, the
 surface normal of each facet, whether a segment is blocked (shadows, occlusion), and the
-textures and albedo of the objects and tissue domains. `sljax.data.synthetic` calls these from
+textures and albedo of the objects and tissue domains. `sljax.render.synthetic` calls these from
 its rendering stages.
 """
 
@@ -8,10 +8,10 @@ import math
 
 import jax.numpy as jnp
 
-from sljax.data import synth_geometry as geo
-from sljax.data import synth_scenes as scenes
+from sljax.render import synth_geometry as geo
+from sljax.render import synth_scenes as scenes
 
-from sljax.data.synth_config import SynthConfig
+from sljax.render.synth_config import SynthConfig
 
 def camera(desc, cfg: SynthConfig):
   """Left camera centre and rotation (columns: x right, y down, z forward in world axes)."""

@@ -2,7 +2,7 @@
 textures of the objects and tissue domains, as small arrays drawn from PRNG keys.
 
 `sample_objects` and `sample_tissue` take the shape key (shared by a group's views), the view
-key and the renderer's `SynthConfig`, and return the description `sljax.data.synthetic` renders.
+key and the renderer's `SynthConfig`, and return the description `sljax.render.synthetic` renders.
 """
 
 import math
@@ -11,7 +11,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from sljax.data.synth_config import SynthConfig
+from sljax.render.synth_config import SynthConfig
 
 
 def _unit_rows(v: jax.Array) -> jax.Array:

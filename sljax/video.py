@@ -215,16 +215,38 @@ def check_outputs(out: str | os.PathLike, frames: bool, overwrite: bool) -> Path
   return out
 
 
-def view_calibration(calib: Calib | predict.StereoRig | None, source: VideoSource
+def view_calibration(calib: Calib | predict.StereoRig | None, source: VideoSource,
+                     where: str = "calibration"
                      ) -> tuple[predict.Rectifier | None, Calib | None]:
   """(rectifier or None, the calibration of the views the network sees) for a source;
-  SljaxError when the calibration is for another image size."""
+  SljaxError when the calibration (`where`: its file, for the message) is for another size."""
   if isinstance(calib, predict.StereoRig):
     rect = predict.rectifier(calib, source.view_size, f"{source.name} (per view)")
     return rect, rect.calib
   if calib is not None:
-    geometry.check_calib_size(calib, source.view_size[::-1], "calibration")
+    geometry.check_calib_size(calib, source.view_size[::-1], where)
   return None, calib
+
+
+def find_calibration(source: VideoSource, paths: Sequence[str | os.PathLike] | None,
+                     unit_mm: float = 1.0) -> Calib | predict.StereoRig | None:
+  """The calibration files given (sljax.predict.read_calibration), else calib.txt beside the
+  (left) video when present, else None; SljaxError when it is for another view size."""
+  if paths is None and (source.paths[0].parent / "calib.txt").is_file():
+    paths = [source.paths[0].parent / "calib.txt"]
+  calib = predict.read_calibration(paths, unit_mm)
+  view_calibration(calib, source, " + ".join(map(str, paths)) if paths else "calibration")
+  return calib
+
+
+def check_options(every: Any, batch: Any, disp_range: Any = None) -> None:
+  """SljaxError unless every and batch are positive integers and disp_range None or LO < HI."""
+  for value, what in ((every, "every"), (batch, "batch")):
+    if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < 1:
+      raise SljaxError(f"--{what} must be a positive integer, got {value!r}")
+  if disp_range is not None and not (len(disp_range) == 2 and np.all(np.isfinite(disp_range))
+                                     and disp_range[0] < disp_range[1]):
+    raise SljaxError(f"--disp-range must be two numbers LO < HI, got {disp_range}")
 
 
 def _padded(batch: list[np.ndarray], size: int, pad: bool) -> np.ndarray:
@@ -234,6 +256,29 @@ def _padded(batch: list[np.ndarray], size: int, pad: bool) -> np.ndarray:
   return np.stack(batch)
 
 
+def _batches(items: Iterator, size: int) -> Iterator[list]:
+  """Lists of up to `size` consecutive items."""
+  chunk = []
+  for item in items:
+    chunk.append(item)
+    if len(chunk) == size:
+      yield chunk
+      chunk = []
+  if chunk:
+    yield chunk
+
+
+def _video_writer(tmp: Path, final: Path, hw: tuple[int, int], fps: float) -> cv2.VideoWriter:
+  """An open mp4v writer of frames hw (rounded up to even sizes) at tmp; SljaxError naming
+  the final file when OpenCV cannot open one."""
+  h, w = hw
+  writer = cv2.VideoWriter(os.fspath(tmp), cv2.VideoWriter_fourcc(*FOURCC), fps,
+                           (w + w % 2, h + h % 2))
+  if not writer.isOpened():
+    raise SljaxError(f"{final}: OpenCV cannot write an {FOURCC!r} mp4 here")
+  return writer
+
+
 def predict_video(predictor, source: VideoSource, out: str | os.PathLike,
                   calib: Calib | predict.StereoRig | None = None, every: int = 1,
                   batch: int = 4, frames: bool = False, max_depth: float | None = None,
@@ -241,17 +286,12 @@ def predict_video(predictor, source: VideoSource, out: str | os.PathLike,
                   progress: bool = True) -> dict[str, Any]:
   """Predicts every `every`-th frame pair of source in batches and writes the outputs (module
   docstring); returns a summary (frames, known share, colour range, seconds per stage)."""
-  for value, what in ((every, "every"), (batch, "batch")):
-    if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < 1:
-      raise SljaxError(f"--{what} must be a positive integer, got {value!r}")
+  check_options(every, batch, disp_range)
   if not callable(predictor):
     raise SljaxError("predictor must be callable as predictor(left, right) (load_predictor or "
                      f"sljax.inference.load), got {type(predictor).__name__} "
                      f"{inference.short_repr(predictor)}")
   geometry.check_max_depth(max_depth)
-  if disp_range is not None and not (np.all(np.isfinite(disp_range))
-                                     and disp_range[0] < disp_range[1]):
-    raise SljaxError(f"--disp-range must be two numbers LO < HI, got {disp_range}")
   out = check_outputs(out, frames, overwrite)
   rect, view_calib = view_calibration(calib, source)
   created = [d for d in (out, *out.parents) if not d.exists()]
@@ -264,53 +304,43 @@ def predict_video(predictor, source: VideoSource, out: str | os.PathLike,
   pair = predict.Pair("", source.paths[0], source.paths[-1], view_calib)
   writer, done, known = None, 0, []
   try:
-    bar = tqdm(total=total, desc="predict video", unit="frame", disable=None if progress
-               else True)
-    pending: list[tuple[int, np.ndarray, np.ndarray]] = []
-    frame_iter = read_frames(source, every)
-    while True:
-      start = time.perf_counter()
-      pending = []
-      for item in frame_iter:
-        pending.append(item)
-        if len(pending) == batch:
+    with tqdm(total=total, desc="predict video", unit="frame",
+              disable=None if progress else True) as bar:
+      chunks = _batches(read_frames(source, every), batch)
+      while True:
+        start = time.perf_counter()
+        pending = next(chunks, None)
+        seconds["read"] += time.perf_counter() - start
+        if pending is None:
           break
-      seconds["read"] += time.perf_counter() - start
-      if not pending:
-        break
-      start = time.perf_counter()
-      views = [rect(l, r) if rect else (l, r) for _, l, r in pending]
-      seconds["rectify"] += time.perf_counter() - start
-      start = time.perf_counter()
-      try:
-        res = predictor(_padded([v[0] for v in views], batch, pad),
-                        _padded([v[1] for v in views], batch, pad), calib=view_calib)
-      except SljaxError as e:
-        raise SljaxError(f"{source.name}: {e}") from None
-      seconds["network"] += time.perf_counter() - start
-      start = time.perf_counter()
-      disps = res["disparity"][:len(pending)]
-      if disp_range is None:
-        disp_range = disparity_range(disps)
-      if writer is None:
-        h, w = disps.shape[1:]
-        fps = (source.fps or DEFAULT_FPS) / every
-        writer = cv2.VideoWriter(os.fspath(tmp_video), cv2.VideoWriter_fourcc(*FOURCC), fps,
-                                 (w + w % 2, h + h % 2))
-        if not writer.isOpened():
-          raise SljaxError(f"{out / VIDEO_FILE}: OpenCV cannot write an {FOURCC!r} mp4 here")
-      for i, (index, _, _) in enumerate(pending):
-        writer.write(_even(colour_map(disps[i], *disp_range)))
-        known.append(float(np.isfinite(disps[i]).mean()))
-        if frames:
-          one = {k: v[i] for k, v in res.items()}
-          predict.write_outputs(tmp_frames / f"{index:06d}", dataclasses.replace(
-              pair, name=f"{FRAMES_DIR}/{index:06d}"), views[i][0], one, max_depth,
-              figures=False)
-      seconds["write"] += time.perf_counter() - start
-      done += len(pending)
-      bar.update(len(pending))
-    bar.close()
+        start = time.perf_counter()
+        views = [rect(l, r) if rect else (l, r) for _, l, r in pending]
+        seconds["rectify"] += time.perf_counter() - start
+        start = time.perf_counter()
+        try:
+          res = predictor(_padded([v[0] for v in views], batch, pad),
+                          _padded([v[1] for v in views], batch, pad), calib=view_calib)
+        except SljaxError as e:
+          raise SljaxError(f"{source.name}: {e}") from None
+        seconds["network"] += time.perf_counter() - start
+        start = time.perf_counter()
+        disps = res["disparity"][:len(pending)]
+        if disp_range is None:
+          disp_range = disparity_range(disps)
+        if writer is None:
+          writer = _video_writer(tmp_video, out / VIDEO_FILE, disps.shape[1:],
+                                 (source.fps or DEFAULT_FPS) / every)
+        for i, (index, _, _) in enumerate(pending):
+          writer.write(_even(colour_map(disps[i], *disp_range)))
+          known.append(float(np.isfinite(disps[i]).mean()))
+          if frames:
+            predict.write_outputs(
+                tmp_frames / f"{index:06d}",
+                dataclasses.replace(pair, name=f"{FRAMES_DIR}/{index:06d}"), views[i][0],
+                {k: v[i] for k, v in res.items()}, max_depth, figures=False)
+        seconds["write"] += time.perf_counter() - start
+        done += len(pending)
+        bar.update(len(pending))
     if writer is None:
       raise SljaxError(f"{source.name}: no frame to predict")
     writer.release()

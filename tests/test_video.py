@@ -11,13 +11,13 @@ import numpy as np
 import pytest
 
 from sljax import cli, predict, video
-from sljax.data.calib import read_calib
+from sljax.data.calib import read_calib, write_calib
 from sljax.data.pfm import read_pfm
 from sljax.data.synthetic import SynthConfig, render_scene  # the renderer: one import line
 from sljax.errors import SljaxError
 from sljax.images import image_to_float, write_image
 
-from test_predict import _converted_model, read_ply
+from test_predict import _calib, _converted_model, read_ply
 
 H, W, N = 64, 96, 10  # per view; frames
 UNET = {"depth": 2, "base_width": 4, "in_channels": 3}
@@ -135,6 +135,31 @@ def test_every_n_takes_frames_0_n_2n(clip, tmp_path):
   assert cap.get(cv2.CAP_PROP_FPS) == pytest.approx(10 / 3, rel=1e-3)
 
 
+def test_calib_txt_beside_the_video_is_used_as_rectified(clip, tmp_path, capsys):
+  folder = tmp_path / "rec"
+  folder.mkdir()
+  (folder / "v.mp4").write_bytes(clip["files"]["stacked"][0].read_bytes())
+  write_calib(folder / "calib.txt", _calib(W, H))  # f 80, baseline 120 mm, doffs 2.5
+  out = tmp_path / "out"
+  assert cli.main(["predict", str(clip["model"]), "--video", str(folder / "v.mp4"), "--layout",
+                   "stacked", "--every", "5", "--frames", "--out", str(out)]) == 0
+  assert "rectified" not in capsys.readouterr().out
+  pairs = _split_back(clip, "stacked")
+  for i in (0, 5):
+    got = read_pfm(out / "frames" / f"{i:06d}" / "disparity.pfm")
+    np.testing.assert_allclose(got, clip["predictor"](*pairs[i])["disparity"], atol=1e-4,
+                               rtol=1e-5)  # not rectified
+    d = got.astype(np.float64) + 2.5
+    depth = read_pfm(out / "frames" / f"{i:06d}" / "depth_mm.pfm")
+    np.testing.assert_allclose(depth[d > 0], 80.0 * 120.0 / d[d > 0], rtol=1e-5)
+  assert not (out / "frames" / "calib.txt").exists()
+  write_calib(folder / "calib.txt", _calib(2 * W, H))
+  assert "calib.txt: calibration is for 192x64 images, the pair is 96x64" in _one_error(
+      capsys, ["predict", str(clip["model"]), "--video", str(folder / "v.mp4"), "--layout",
+               "stacked", "--out", str(tmp_path / "o2")])
+  assert not (tmp_path / "o2").exists()
+
+
 def _write_opencv_calibration(path, size=None):
   fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
   for k, v in (("M1", M1), ("D1", D1), ("M2", M2), ("D2", D2), ("R", R), ("T", T)):
@@ -249,6 +274,12 @@ def test_bad_input_is_one_line_and_leaves_nothing(clip, tmp_path, capsys):
   assert "calibrated for 192x64 images" in _one_error(
       capsys, ["predict", model, "--video", stacked, "--layout", "stacked", "--calib", str(cal),
                "--out", str(out)])
+  assert "--every must be a positive integer, got 0" in _one_error(
+      capsys, ["predict", model, "--video", stacked, "--layout", "stacked", "--every", "0",
+               "--out", str(out)])
+  assert "--disp-range must be two numbers LO < HI" in _one_error(
+      capsys, ["predict", model, "--video", stacked, "--layout", "stacked", "--disp-range", "5",
+               "1", "--out", str(out)])
   assert "--every is for --video" in _one_error(
       capsys, ["predict", model, left, right, "--every", "2", "--out", str(out)])
   assert not out.exists()

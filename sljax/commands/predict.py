@@ -111,19 +111,16 @@ def run_video(args) -> int:
   """Checks the video and outputs, loads the model, predicts the frames, prints one line."""
   if args.inputs:
     raise SljaxError(f"--video takes the video file(s); got INPUT {' '.join(args.inputs)} too")
+  video.check_options(args.every, args.batch or 4, args.disp_range)
   source = video.open_video(args.video, args.layout)
-  calib = args.calib
-  if calib is None and (source.paths[0].parent / "calib.txt").is_file():
-    calib = [source.paths[0].parent / "calib.txt"]
-  calib = predict.read_calibration(calib, UNITS_MM[args.unit])
-  video.view_calibration(calib, source)  # every check before the (slow) model loading
-  video.check_outputs(args.out, args.frames, args.overwrite)
+  calib = video.find_calibration(source, args.calib, UNITS_MM[args.unit])
+  video.check_outputs(args.out, args.frames, args.overwrite)  # all before the (slow) loading
   predictor = predict.load_predictor(args.model, args.mode, args.maxdisp, args.search_range,
                                      args.num_disparities)
   s = video.predict_video(predictor, source, args.out, calib, args.every, args.batch or 4,
                           args.frames, args.max_depth,
                           tuple(args.disp_range) if args.disp_range else None, args.overwrite)
-  line = (f"{s['video']}: {s['frames']} frames" + (f" (every {args.every}th)" if args.every > 1
+  line = (f"{s['video']}: {s['frames']} frames" + (f" (one in {args.every})" if args.every > 1
                                                     else "")
           + f", disparity known on {s['known_disparity']:.1%}, colours over "
           f"{s['disp_range'][0]:.3g}..{s['disp_range'][1]:.3g} px"

@@ -95,9 +95,15 @@ def read_calibration(paths: str | os.PathLike | list | None, unit_mm: float = 1.
     raise SljaxError(f"--calib: one calibration file or two (intrinsics.yml extrinsics.yml), "
                      f"got {len(paths)}")
   for p in paths:
+    if Path(p).is_dir():  # `--calib FILE INPUT...` takes the inputs as calibration files
+      raise SljaxError(f"--calib {p}: is a folder (--calib takes one or two files; give the "
+                       "inputs before it)")
     if not Path(p).is_file():
       raise SljaxError(f"--calib {p}: no such file")
   if len(paths) == 1 and Path(paths[0]).suffix.lower() == ".txt":
+    if unit_mm != 1.0:
+      raise SljaxError(f"--calib {paths[0]}: a Middlebury calib.txt gives its baseline in mm; "
+                       "--unit is for an OpenCV calibration's T")
     return read_calib(paths[0])
   cal = rig.read_calibration(paths)
   rig.check_rig(cal, "are the cameras of the calibration, or the left and right views, swapped?")

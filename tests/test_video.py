@@ -280,6 +280,13 @@ def test_bad_input_is_one_line_and_leaves_nothing(clip, tmp_path, capsys):
   assert "--disp-range must be two numbers LO < HI" in _one_error(
       capsys, ["predict", model, "--video", stacked, "--layout", "stacked", "--disp-range", "5",
                "1", "--out", str(out)])
+  assert "--calib " + str(tmp_path) + ": is a folder" in _one_error(
+      capsys, ["predict", model, "--calib", str(cal), str(tmp_path), "--out", str(out)])
+  txt = tmp_path / "calib.txt"
+  txt.write_text("not read")
+  assert "--unit is for an OpenCV calibration's T" in _one_error(
+      capsys, ["predict", model, left, right, "--calib", str(txt), "--unit", "cm", "--out",
+               str(out)])
   assert "--every is for --video" in _one_error(
       capsys, ["predict", model, left, right, "--every", "2", "--out", str(out)])
   assert not out.exists()

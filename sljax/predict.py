@@ -150,7 +150,8 @@ def find_pairs(inputs: list[str], calib: str | os.PathLike | list | None = None,
                          (" (a folder: give one PAIRS_DIR instead)" if p.is_dir() else ""))
     return [_pair("", left, right, explicit, given, left.parent / "calib.txt")]
   if len(inputs) != 1:
-    raise SljaxError(f"expected LEFT RIGHT image files or one PAIRS_DIR, got {len(inputs)} paths")
+    raise SljaxError(f"expected LEFT RIGHT image files or one PAIRS_DIR (or --video FILE), got "
+                     f"{len(inputs)} paths")
   root = Path(inputs[0])
   if not root.is_dir():
     raise SljaxError(f"PAIRS_DIR {root}: " + ("is a file; give LEFT and RIGHT image files"

@@ -41,6 +41,7 @@ from sljax.images import read_image
 from sljax.errors import SljaxError, require
 from sljax.viz import Panel, save_panels
 
+UNITS_MM = rig.UNITS_MM  # an OpenCV calibration's T unit (--unit), as import-captures takes it
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".ppm", ".pgm")
 OUTPUT_FILES = ("disparity.pfm", "disparity.png", "depth_mm.pfm", "depth_mm.png", "cloud.ply",
                 "confidence.pfm", "confidence.png", "calib.txt")

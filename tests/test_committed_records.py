@@ -14,7 +14,7 @@ from sljax.experiment import report
 from sljax.experiment.plans import build_plan
 
 ROOT = Path(__file__).resolve().parents[1]
-GRIDS = sorted((ROOT / "docs" / "results").glob("v[23]-*"))
+GRIDS = sorted((ROOT / "docs" / "results").glob("v[234]-*"))
 
 
 @pytest.mark.parametrize("grid", GRIDS, ids=lambda p: p.name)

@@ -21,7 +21,7 @@ from pathlib import Path
 from sljax.experiment import runner
 from sljax.machine import cpu_description
 
-KEPT = ("config.json", "epochs.jsonl", "train.log", "notes.txt")
+KEPT = ("config.json", "epochs.jsonl", "validation.jsonl", "train.log", "notes.txt")
 
 
 def copy_finished(src: Path, dst: Path) -> list[str]:

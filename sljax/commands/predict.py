@@ -1,9 +1,10 @@
-"""`sljax predict MODEL LEFT RIGHT --out DIR` (or MODEL PAIRS_DIR): disparity, depth, points."""
+"""`sljax predict MODEL LEFT RIGHT --out DIR` (or MODEL PAIRS_DIR, or MODEL --video FILE
+--layout L, or MODEL --video LEFT RIGHT): disparity, depth, points."""
 
-import argparse
 from pathlib import Path
 
-from sljax import geometry, predict
+from sljax import geometry, predict, video
+from sljax.errors import SljaxError
 
 
 def register(subparsers) -> None:
@@ -22,16 +23,43 @@ def register(subparsers) -> None:
                   "left view; Z = f*B/(d + doffs), X = (x - cx) Z/f, Y = (y - cy) Z/fy; unknown "
                   "and out-of-range pixels dropped); for structured-light models "
                   "confidence.pfm and confidence.png. One pair writes into --out, several into "
-                  "--out/<pair name>/.")
+                  "--out/<pair name>/. A rectified pair (an OpenCV --calib) also gets calib.txt, "
+                  "its rectified geometry. With --video: disparity.mp4 (colour-mapped) and, "
+                  "with --frames, frames/NNNNNN/ per predicted frame with the files above less "
+                  "the colour PNGs.")
   p.add_argument("model", metavar="MODEL",
                  help="a training workdir, its checkpoints folder, a converted PSMNet folder, "
                       "or 'sgbm'")
-  p.add_argument("inputs", metavar="INPUT", nargs="+",
-                 help="LEFT RIGHT (two image files) or PAIRS_DIR (one folder of pairs)")
+  p.add_argument("inputs", metavar="INPUT", nargs="*",
+                 help="LEFT RIGHT (two image files) or PAIRS_DIR (one folder of pairs); none "
+                      "with --video")
   p.add_argument("--out", required=True, help="output folder")
-  p.add_argument("--calib", default=None,
-                 help="Middlebury calib.txt for every pair (default: calib.txt beside LEFT, in "
-                      "each scene folder, or in PAIRS_DIR)")
+  p.add_argument("--calib", default=None, nargs="+", metavar="FILE",
+                 help="a Middlebury calib.txt (any .txt: the views are rectified already), or "
+                      "an OpenCV stereo calibration to rectify every pair and frame with "
+                      "before inference (M1 D1 M2 D2 R T as cv2.stereoCalibrate returns them: "
+                      "a FileStorage .yml/.yaml/.xml/.json or an .npz, or OpenCV's "
+                      "intrinsics.yml extrinsics.yml together; as import-captures reads "
+                      "them). Default: calib.txt beside LEFT or the video, in each scene "
+                      "folder, or in PAIRS_DIR")
+  p.add_argument("--unit", choices=tuple(predict.UNITS_MM), default="mm",
+                 help="length unit of an OpenCV calibration's T (default mm; depth is in mm)")
+  v = p.add_argument_group("video")
+  v.add_argument("--video", nargs="+", metavar="FILE", default=None,
+                 help="a stereo video: one file holding both views (with --layout) or two "
+                      "files, LEFT RIGHT (any format OpenCV reads)")
+  v.add_argument("--layout", choices=video.LAYOUTS, default=None,
+                 help="one video file: stacked (left view on top, as SCARED's) or "
+                      "side-by-side (left view on the left)")
+  v.add_argument("--every", type=int, default=1, metavar="N",
+                 help="predict frames 0, N, 2N, ... (default 1: every frame)")
+  v.add_argument("--batch", type=int, default=None, metavar="B",
+                 help="frame pairs per network call (default 4)")
+  v.add_argument("--frames", action="store_true",
+                 help="also write each predicted frame's files into --out/frames/NNNNNN/")
+  v.add_argument("--disp-range", type=float, nargs=2, default=None, metavar=("LO", "HI"),
+                 help="the colour map's disparity range in px (default: the 1st to 99th "
+                      "percentile of the first batch's disparities)")
   p.add_argument("--mode", choices=("pad", "resize"), default="pad",
                  help="pad (default): full resolution, padded as the PSMNet reference pads; "
                       "resize: at the training size and back, disparity scaled by the width "
@@ -50,9 +78,16 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-  """Finds the pairs, loads the model, predicts and prints one line per pair."""
+  """Finds the pairs (or the video), loads the model, predicts and prints one line per pair."""
   geometry.check_max_depth(args.max_depth, "--max-depth")
-  pairs = predict.find_pairs(args.inputs, args.calib)
+  if args.video is not None:
+    return run_video(args)
+  for flag, value in (("--layout", args.layout), ("--every", args.every != 1),
+                      ("--frames", args.frames), ("--disp-range", args.disp_range),
+                      ("--batch", args.batch)):
+    if value:
+      raise SljaxError(f"{flag} is for --video")
+  pairs = predict.find_pairs(args.inputs, args.calib, predict.UNITS_MM[args.unit])
   out = Path(args.out)
   predict.check_outputs(out, pairs, args.overwrite)  # before the (slow) model loading
   predictor = predict.load_predictor(args.model, args.mode, args.maxdisp, args.search_range,
@@ -68,4 +103,29 @@ def run(args) -> int:
     else:
       line += ", no calibration: no depth or point cloud"
     print(line)
+  return 0
+
+
+def run_video(args) -> int:
+  """Checks the video and outputs, loads the model, predicts the frames, prints one line."""
+  if args.inputs:
+    raise SljaxError(f"--video takes the video file(s); got INPUT {' '.join(args.inputs)} too")
+  video.check_options(args.every, args.batch or 4, args.disp_range)
+  source = video.open_video(args.video, args.layout)
+  calib = video.find_calibration(source, args.calib, predict.UNITS_MM[args.unit])
+  video.check_outputs(args.out, args.frames, args.overwrite)  # all before the (slow) loading
+  predictor = predict.load_predictor(args.model, args.mode, args.maxdisp, args.search_range,
+                                     args.num_disparities)
+  s = video.predict_video(predictor, source, args.out, calib, args.every, args.batch or 4,
+                          args.frames, args.max_depth,
+                          tuple(args.disp_range) if args.disp_range else None, args.overwrite)
+  line = (f"{s['video']}: {s['frames']} frames" + (f" (one in {args.every})" if args.every > 1
+                                                    else "")
+          + f", disparity known on {s['known_disparity']:.1%}, colours over "
+          f"{s['disp_range'][0]:.3g}..{s['disp_range'][1]:.3g} px"
+          + (", rectified" if s["rectified"] else ""))
+  if s["frames_dir"] is not None:
+    line += f"; per frame files in {s['frames_dir']}" + (
+        "" if calib is not None else " (no calibration: no depth or point cloud)")
+  print(line)
   return 0

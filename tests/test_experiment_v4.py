@@ -89,3 +89,40 @@ def test_v3_rule_on_steps_by_hand():
   assert r["memorisation"]["s200"]["ratio"] == pytest.approx(1 / 3)  # min at 300 (0.5)
   none = regime.v4_setting({"1/32": {"s200": flat}}, ("1/32", "1/64"), 100)
   assert none["regime"]["fraction"] is None
+
+
+def _fake(out, name, points):
+  import json  # pylint: disable=import-outside-toplevel
+  from sljax.experiment import runner  # pylint: disable=import-outside-toplevel
+  wd = runner.cell_dir(out, name)
+  wd.mkdir(parents=True)
+  (wd / "validation.jsonl").write_text("".join(json.dumps(r) + "\n" for r in _rows(points)))
+  (wd / runner.DONE_FILE).write_text(json.dumps({"step": points[-1][0]}))
+
+
+RISING = [(2, 1.0, 5), (4, 0.6, 3), (6, 0.6, 2), (8, 0.9, 1), (10, 1.0, 0.5), (12, 1.1, 0.2)]
+FLAT = [(2, 1.0, 5), (4, 0.9, 3), (6, 0.9, 2), (8, 0.9, 2)]
+
+
+@pytest.mark.parametrize("scratch, finetune, grid", [
+    (RISING, RISING, "finetune"), (RISING, FLAT, "scratch"), (FLAT, RISING, "finetune"),
+    (FLAT, FLAT, None)])
+def test_the_grid_setting_by_the_rule(tmp_path, scratch, finetune, grid):
+  """Both settings overfit: fine-tuning; one: that one; none: no grid. Waits for every cell."""
+  from sljax.experiment import runner  # pylint: disable=import-outside-toplevel
+  plan = plans.build_plan("v4-pilot", "smoke", 1)
+  runner.register(tmp_path, plan)
+  for cell in plan.cells:
+    setting = dict(cell.factors)["setting"]
+    _fake(tmp_path, cell.name, {"scratch": scratch, "finetune": finetune}.get(setting, FLAT))
+  result = regime.write(tmp_path, "smoke", 1)
+  assert result["grid_setting"] == grid and not result["missing"]
+  if grid is not None:  # smoothed 1.0, 0.8, 0.733, 0.7, 0.833, 1.0: minimum at step 8 (+43%)
+    fractions = getattr(plans.SCALES["smoke"].v4, f"{grid}_fractions")
+    assert result["settings"][grid]["regime"] == {"fraction": fractions[0], "budget_steps": 16,
+                                                  "min_step": 8}
+  assert (tmp_path / "regime.md").exists() and (tmp_path / "figures" / "v4-pilot_curves.png")
+  # One cell missing: no decision yet.
+  (runner.cell_dir(tmp_path, plan.cells[0].name) / runner.DONE_FILE).unlink()
+  assert regime.v4(tmp_path, "smoke", 1)["grid_setting"] is None
+  assert regime.v4(tmp_path, "smoke", 1)["missing"] == [plan.cells[0].name]

@@ -70,11 +70,13 @@ def register(subparsers) -> None:
   c.add_argument("--no-progress", action="store_true", help="no progress bar")
   c.set_defaults(func=calibrate)
   g = sub.add_parser(
-      "regime", help="v3: where stl overfits, from the pilot's curves (docs/plan-v3.md)",
+      "regime", help="v3, v4: where stl overfits, from the pilot's curves (docs/plan-v3.md, "
+      "docs/plan-v4.md)",
       description="Applies the pre-registered regime rule (sljax.experiment.regime) to the "
                   "v3-pilot cells under OUT: the largest training fraction whose smoothed mean "
                   "validation curve ends at least 10% above its minimum, and the budget (twice "
-                  "the minimum's epoch). Writes OUT/regime.json, regime.md and a figure.",
+                  "the minimum's epoch); for a v4-pilot folder the same rule on steps, per "
+                  "setting (docs/plan-v4.md). Writes OUT/regime.json, regime.md and a figure.",
       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
   g.add_argument("out", metavar="OUT", help="the pilot's experiment folder")
   g.add_argument("--scale", default="cpu", help="the pilot's scale (cpu; smoke for tests)")
@@ -116,7 +118,7 @@ def report(args: argparse.Namespace) -> int:
 def regime(args: argparse.Namespace) -> int:
   """Applies the regime rule to the pilot and prints the outcome."""
   result = reg.write(args.out, args.scale, args.seeds)
-  print("\n".join(reg.markdown(result)).rstrip())
+  print("\n".join((reg.markdown_v4 if "settings" in result else reg.markdown)(result)).rstrip())
   print(f"wrote {args.out}/regime.json, regime.md")
   return 0
 

@@ -27,7 +27,7 @@ from matplotlib.figure import Figure
 
 from sljax import files
 from sljax.experiment import plans, runner
-from sljax.experiment.calibrate import SMOOTH, smooth
+from sljax.experiment.calibrate import SMOOTH, plateau, smooth
 
 OVERFIT_RISE = 0.10
 
@@ -130,6 +130,108 @@ def v4_setting(curves: Mapping[str, Mapping[str, Sequence[dict[str, Any]]]],
                                         "min_step": chosen["min_epoch"]}}
 
 
+V4_SETTINGS = ("scratch", "finetune")  # where the rule looks; "pretrain" starts "finetune"
+
+
+def v4(out: str | Path, scale: str = "cpu", seeds: int = 2) -> dict[str, Any]:
+  """docs/plan-v4.md's rule applied to the v4 pilot under OUT (finished cells only; the regime
+  waits for every cell): per setting the fractions' rises, memorisation and the regime; the
+  pretraining's curve with v2's plateau rule (reported, changes nothing)."""
+  out = Path(out)
+  plan = plans.build_plan(plans.V4_PILOT, scale, seeds)
+  design = plan.scale.v4
+  done = {c.name for c in plan.cells if (runner.cell_dir(out, c.name) / runner.DONE_FILE).exists()}
+  missing = [c.name for c in plan.cells if c.name not in done]
+  settings = {}
+  for setting, fractions in zip(V4_SETTINGS, (design.scratch_fractions,
+                                              design.finetune_fractions)):
+    curves = {}
+    for fraction in fractions:
+      cells = plan.cells_of(setting=setting, data=fraction)
+      if all(c.name in done for c in cells):
+        curves[fraction] = {c.name: runner.step_curve(out, c.name) for c in cells}
+    settings[setting] = v4_setting(curves, fractions, design.val_every)
+    settings[setting]["curves"] = curves
+  pretrain = {}
+  for c in plan.cells_of(setting="pretrain"):
+    if c.name in done:
+      pts = [(r["step"], r["val_mae"]) for r in runner.step_curve(out, c.name)]
+      pretrain[c.name] = dict(plateau(pts, design.pretrain_steps, drop=False), curve=pts)
+  both = all(settings[s]["regime"]["fraction"] is not None for s in V4_SETTINGS)
+  grid = None
+  if not missing:  # rule: fine-tuning when both overfit, else the one that does, else none
+    grid = next((s for s in ("finetune", "scratch")
+                 if settings[s]["regime"]["fraction"] is not None), None)
+  return {"plan": plan.name, "scale": scale, "seeds": list(plan.seeds),
+          "val_every": design.val_every, "smooth": SMOOTH, "overfit_rise": OVERFIT_RISE,
+          "settings": settings, "pretrain": pretrain, "missing": missing,
+          "grid_setting": grid, "both_overfit": both}
+
+
+def markdown_v4(result: dict[str, Any]) -> list[str]:
+  """The v4 outcome: a table per setting (rise, regime, memorisation) and the decision."""
+  lines = [f"# v4 pilot: where stl overfits, in steps (scale {result['scale']}, seeds "
+           f"{', '.join(map(str, result['seeds']))}, validated every {result['val_every']} "
+           "steps)", ""]
+  for setting in V4_SETTINGS:
+    r = result["settings"][setting]
+    lines += [f"## {setting}", "", "| fraction | minimum (smoothed mean) | its step | final "
+              "(smoothed mean) | rise | overfits (rise >= 10%) | training loss at the end / at "
+              "the minimum, per seed |", "| --- | ---: | ---: | ---: | ---: | --- | --- |"]
+    for fraction, f in r["fractions"].items():
+      ratios = ", ".join("-" if m["ratio"] is None else f"{m['ratio']:.2f}"
+                         for m in f["memorisation"].values())
+      lines.append(f"| {fraction} | {f['min_smoothed']:.3f} px | {f['min_step']} | "
+                   f"{f['final_smoothed']:.3f} px | {100 * f['rise']:+.1f}% | "
+                   f"{'yes' if f['overfits'] else 'no'} | {ratios} |")
+    chosen = r["regime"]
+    lines += ["", (f"Regime: fraction {chosen['fraction']}, budget {chosen['budget_steps']} steps "
+                   f"(twice the minimum's step {chosen['min_step']})." if chosen["fraction"]
+                   else "No fraction overfits here."), ""]
+  for name, p in result["pretrain"].items():
+    lines.append(f"Pretraining {name}: v2's plateau rule " + (
+        f"reached at step {p['plateau_epoch']}." if p["reached"] else
+        "found no plateau in the last quarter (reported; the plan changes nothing for it)."))
+  lines.append("")
+  if result["missing"]:
+    lines.append(f"Not finished: {', '.join(result['missing'])}.")
+  elif result["grid_setting"] is None:
+    lines.append("**No setting overfits**: by the pre-registered rule v4 reports the curves and "
+                 "the memorisation evidence and stops (no test cell runs).")
+  else:
+    lines.append(f"**The test grid runs in the {result['grid_setting']} setting** (rule: "
+                 "fine-tuning when both overfit).")
+  return lines + [""]
+
+
+def figure_v4(result: dict[str, Any], path: Path) -> None:
+  """Per setting and fraction: each seed's validation MAE (solid) and its training disparity
+  loss over each interval (dotted, right axis); the mean's smoothed minimum marked."""
+  panels = [(s, f, r) for s in V4_SETTINGS
+            for f, r in result["settings"][s]["fractions"].items()]
+  if not panels:
+    return
+  fig = Figure(figsize=(4.2 * len(panels), 3.4))
+  axes = fig.subplots(1, len(panels), squeeze=False)[0]
+  for ax, (setting, fraction, r) in zip(axes, panels):
+    twin = ax.twinx()
+    for k, rows in enumerate(result["settings"][setting]["curves"][fraction].values()):
+      steps = [row["step"] for row in rows]
+      ax.plot(steps, [row["val_mae"] for row in rows], color=f"C{k}", lw=1.0)
+      twin.plot(steps, [row["train_loss_disp"] for row in rows], ":", color=f"C{k}", lw=1.0)
+    ax.axvline(r["min_step"], color="0.5", lw=0.8)
+    ax.set_title(f"{setting} {fraction}: rise {100 * r['rise']:+.1f}%", fontsize=9)
+    ax.set_xlabel("step")
+    ax.set_ylabel("validation Full MAE (px), solid")
+    twin.set_ylabel("training L_disp, dotted")
+    twin.set_yscale("log")
+  fig.suptitle("v4 pilot: stl's validation error and training loss (seeds in colour)",
+               fontsize=10)
+  fig.tight_layout()
+  path.parent.mkdir(parents=True, exist_ok=True)
+  files.save_figure(fig, path, dpi=110)
+
+
 def markdown(result: dict[str, Any]) -> list[str]:
   """The rule's outcome as a table and a sentence."""
   lines = [f"# v3 pilot: where stl overfits (scale {result['scale']}, seeds "
@@ -180,8 +282,16 @@ def figure(result: dict[str, Any], path: Path) -> None:
 
 
 def write(out: str | Path, scale: str = "cpu", seeds: int = 2) -> dict[str, Any]:
-  """Writes OUT/regime.json, OUT/regime.md and the figure; returns the result."""
+  """Writes OUT/regime.json, OUT/regime.md and the figure (v3's pilot, or v4's when OUT holds
+  the v4 pilot); returns the result."""
   out = Path(out)
+  record = runner.read_record(out) or {"plans": {}}
+  if plans.V4_PILOT in record["plans"]:
+    result = v4(out, scale, seeds)
+    runner.write_json(out / "regime.json", result)
+    files.write_text(out / "regime.md", "\n".join(markdown_v4(result)))
+    figure_v4(result, out / "figures" / "v4-pilot_curves.png")
+    return result
   result = regime(out, scale, seeds)
   runner.write_json(out / "regime.json", result)
   files.write_text(out / "regime.md", "\n".join(markdown(result)))

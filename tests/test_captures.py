@@ -15,6 +15,7 @@ import pytest
 from sljax import cli
 from sljax.capture import captures, charuco
 from sljax.capture import rig as rigs
+from sljax.capture.frames import bit_counts, frame_number, opencv_roles, projector_frames
 from sljax.data import preflight
 from sljax.data.calib import read_calib
 from sljax.data.dataset import FolderSource, load_batch
@@ -122,8 +123,8 @@ def test_opencv_layout_is_sljax_gray_code(projector):
   the same code down the rows; 2n + 2m frames before white and black (46 for 1920x1080)."""
   w, h = projector
   frames = _opencv_generate(w, h)
-  roles = captures.opencv_roles(projector)
-  n, m = captures.bit_counts(projector)
+  roles = opencv_roles(projector)
+  n, m = bit_counts(projector)
   assert len(frames) + 2 == len(roles) == 2 * n + 2 * m + 2
   assert roles[-2:] == ["white", "black"]
   cols, rows = codes.patterns("gray", w), codes.patterns("gray", h)
@@ -133,12 +134,12 @@ def test_opencv_layout_is_sljax_gray_code(projector):
     if role[-4] == "i":
       want = 1 - want
     np.testing.assert_array_equal(frame, np.broadcast_to(want * 255, (h, w)), err_msg=role)
-  projected = list(captures.projector_frames(projector))
+  projected = list(projector_frames(projector))
   assert [r for r, _ in projected] == roles
   for (role, image), frame in zip(projected, frames + [np.full((h, w), 255), np.zeros((h, w))]):
     np.testing.assert_array_equal(image, frame, err_msg=role)
-  assert len(captures.opencv_roles((1920, 1080))) == 46
-  assert captures.opencv_roles((1920, 1080))[44:] == ["white", "black"]
+  assert len(opencv_roles((1920, 1080))) == 46
+  assert opencv_roles((1920, 1080))[44:] == ["white", "black"]
 
 
 def test_decoding_opencv_frames_gives_every_projector_column_and_row():
@@ -146,7 +147,7 @@ def test_decoding_opencv_frames_gives_every_projector_column_and_row():
   (W, H not powers of two; codes beyond them are impossible)."""
   w, h = 150, 40
   frames = _opencv_generate(w, h) + [np.full((h, w), 255, np.uint8), np.zeros((h, w), np.uint8)]
-  named = dict(zip(captures.opencv_roles((w, h)), frames))
+  named = dict(zip(opencv_roles((w, h)), frames))
   cols = {k: v for k, v in named.items() if not k.startswith("r")}
   rows = {"white": named["white"], "black": named["black"],
           **{k[1:]: v for k, v in named.items() if k.startswith("r")}}
@@ -254,7 +255,7 @@ def test_scene_holds_what_the_format_requires(rendered, capture, tmp_path):
   d = [read_pfm(out / f"disp{v}.pfm") for v in (0, 1)]
   top = max(np.max(x[np.isfinite(x)]) for x in d)
   assert c.ndisp % 16 == 0 and c.ndisp - 16 <= top < c.ndisp
-  n = captures.bit_counts(RIG.projector)[0]
+  n = bit_counts(RIG.projector)[0]
   assert sorted(p.name for p in (out / "raw0").iterdir()) == sorted(
       ["white.png", "black.png"] + [f"{k}{b:03d}.png" for k in "pi" for b in range(n)])
   meta = json.loads((out / "meta.json").read_text())
@@ -363,7 +364,7 @@ def test_bit_depths_colour_and_jpeg(rendered, capture, tmp_path, kind, capsys):
 def test_sljax_layout_and_ambient_pair(rendered, capture, tmp_path, capsys):
   """The sljax layout (white, black, pNNN, iNNN; any other order of files) and an ambient pair
   for im0/im1, recorded in meta.json."""
-  roles = captures.opencv_roles(RIG.projector)
+  roles = opencv_roles(RIG.projector)
   for cam, frames in zip(("l", "r"), rendered.clean):
     (tmp_path / cam).mkdir()
     for role, f in zip(roles, frames):
@@ -551,10 +552,10 @@ def test_nothing_is_replaced_without_overwrite(capture, tmp_path, capsys):
 
 
 def test_sljax_layout_errors(capture, tmp_path, capsys):
-  roles = captures.opencv_roles(RIG.projector)
+  roles = opencv_roles(RIG.projector)
   left = tmp_path / "l"
   left.mkdir()
-  for role, p in zip(roles, sorted(capture.glob("cam1/*.png"), key=captures.frame_number)):
+  for role, p in zip(roles, sorted(capture.glob("cam1/*.png"), key=frame_number)):
     if not role.startswith("r") and role != "p007":
       shutil.copy(p, left / f"{role}.png")
   base = [left, left, tmp_path / "s", "--calib", capture / "calib.yml", "--layout", "sljax"]

@@ -23,7 +23,7 @@ import numpy as np
 from tqdm import tqdm
 
 from sljax import files
-from sljax.capture import frames
+from sljax.capture import frames, refusals
 from sljax.capture import rig as rigs
 from sljax.data.scene import Scene, write_scene
 from sljax.images import holds_12_bit, image_to_float
@@ -56,6 +56,7 @@ class ImportReport:
   ranges: tuple[tuple[float, float] | None, ...]  # disparity range per view
   decoded: tuple[float, float]               # share of pixels with a decoded column, per view
   row_rejected: int                          # left matches refused by the row check
+  implausible: tuple[int, int]               # matches below 0 or above the width, per view
   match_bits: int                            # column bits the matching used
   bit_depth: int                             # 8, 12 or 16 bits of the frames
   views: str                                 # "ambient" or "white": what im0/im1 show
@@ -223,7 +224,13 @@ def import_captures(left: str | os.PathLike, right: str | os.PathLike, out: str 
   result = _timed(seconds, "decode", decode_views, raws[0], raws[1], code, config.decode,
                   projector=projector, rows=row_raws,
                   where=("LEFT (rectified)", "RIGHT (rectified)"))
+  named = (f"LEFT {os.fspath(left)}", f"RIGHT {os.fspath(right)}")
+  refusals.check_lit(result, named)
   _timed(seconds, "match", match_views, result, config.match)
+  refusals.check_rows(result, named, calibration.where)
+  refusals.check_signs(result, named)
+  result.disp0, result.disp1, implausible = refusals.plausible(
+      result.disp0, result.disp1, rect.size[0], config.match.lr_tolerance)
 
   size = (rigs.scaled_length(rect.size[0], config.scale),
           rigs.scaled_length(rect.size[1], config.scale))
@@ -244,7 +251,7 @@ def import_captures(left: str | os.PathLike, right: str | os.PathLike, out: str 
                 sl0=patterns[0], sl1=patterns[1], raw0=raws[0], raw1=raws[1],
                 calib=rect.calib(rigs.UNITS_MM[config.unit], disp, config.scale),
                 meta=_meta(out, roles, ambient_paths, config, calibration, rect, bits, shares,
-                           result))
+                           result, implausible, save_calibration))
   _timed(seconds, "write", write_scene, out, scene, overwrite=overwrite,
          bit_depth=8 if bits == 8 else 16)
   if save_calibration:
@@ -252,32 +259,49 @@ def import_captures(left: str | os.PathLike, right: str | os.PathLike, out: str 
   decoded = tuple(float(np.isfinite(v.column).mean()) for v in (result.left, result.right))
   return ImportReport(out=out, size=size, valid=(shares[0][0], shares[1][0]),
                       ranges=(shares[0][1], shares[1][1]), decoded=decoded,
-                      row_rejected=result.row_rejected, match_bits=result.bits, bit_depth=bits,
+                      row_rejected=result.row_rejected, implausible=implausible,
+                      match_bits=result.bits, bit_depth=bits,
                       views="white" if ambient_paths is None else "ambient", seconds=seconds)
 
 
+def _relative(path: Path, out: Path) -> str:
+  """path as seen from the scene folder out (meta.json travels with the scene)."""
+  return os.path.relpath(path.resolve(), out.resolve())
+
+
+def _calibration_source(calibration: rigs.StereoCalibration, out: Path, saved: bool) -> str:
+  """meta.json's "calibration": the file(s) read, relative to the scene, or the one saved in it."""
+  if saved:
+    return CALIBRATION_FILE
+  if calibration.files:
+    return " + ".join(_relative(Path(p), out) for p in calibration.files)
+  return calibration.where
+
+
 def _meta(out: Path, roles, ambient, config: ImportConfig, calibration, rect, bits: int,
-          shares, result: StereoDecoded) -> dict:
-  """meta.json of an imported capture."""
+          shares, result: StereoDecoded, implausible: tuple[int, int], saved: bool) -> dict:
+  """meta.json of an imported capture (file paths relative to the scene folder)."""
   n = count_patterns({k: None for k in roles[0] if k[0] in "pi"}, "frames")
   meta = {
       "group": config.group or out.resolve().name, "code": "gray" if config.layout == "opencv"
       else config.code, "source": "import-captures", "layout": config.layout,
       "patterns": n, "views": "white" if ambient is None else "ambient",
-      "frames": {view: {role: str(p.resolve()) for role, p in r.items()}
+      "frames": {view: {role: _relative(p, out) for role, p in r.items()}
                  for view, r in zip(("left", "right"), roles)},
-      "bit_depth": bits, "calibration": calibration.where, "unit": config.unit,
+      "bit_depth": bits, "calibration": _calibration_source(calibration, out, saved),
+      "unit": config.unit,
       "rectification": {**rect.meta(), "alpha": rigs.RECTIFY_ALPHA, "width": rect.size[0],
                         "height": rect.size[1]},
       "scale": config.scale,
       "decode": dataclasses.asdict(config.decode), "match": dataclasses.asdict(config.match),
       "valid": {"left": shares[0][0], "right": shares[1][0]}, "match_bits": result.bits,
+      "implausible": {"left": implausible[0], "right": implausible[1]},
   }
   if config.projector is not None:
     meta["projector"] = list(config.projector)
   if ambient is not None:
-    meta["frames"]["ambient"] = [str(p.resolve()) for p in ambient]
+    meta["frames"]["ambient"] = [_relative(p, out) for p in ambient]
   if result.rows is not None:
     meta["row_check"] = {"row_tolerance": config.match.row_tolerance,
-                         "rejected_left": result.row_rejected}
+                         "rejected_left": result.row_rejected, "checked_left": result.row_checked}
   return meta

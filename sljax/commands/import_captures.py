@@ -125,6 +125,9 @@ def run(args: argparse.Namespace) -> int:
     span = f"{rng[0]:.2f}..{rng[1]:.2f} px" if rng else "none"
     print(f"  {view}: disparity on {share:.1%} of pixels ({span}); code decoded on "
           f"{decoded:.1%}")
+  if any(report.implausible):
+    print(f"  {report.implausible[0]} left and {report.implausible[1]} right matches below 0 or "
+          "above the width left unknown")
   if args.charuco:
     print(f"  calibration written to {out / captures.CALIBRATION_FILE}")
   return 0

@@ -382,7 +382,7 @@ def test_sljax_layout_and_ambient_pair(rendered, capture, tmp_path, capsys):
   assert "from the ambient frames" in got.out and "row check" not in got.out
   meta = json.loads((out / "meta.json").read_text())
   assert meta["views"] == "ambient" and meta["layout"] == "sljax"
-  assert meta["frames"]["ambient"][0].endswith("amb_l.png")
+  assert meta["frames"]["ambient"] == ["../amb_l.png", "../amb_r.png"]  # from the scene folder
   im0 = load_scene(out).im0
   centre = im0[40:56, 50:78]  # inside the rectified view: the ambient colour, RGB order
   np.testing.assert_allclose(centre.mean(axis=(0, 1)), np.array([200, 90, 40]) / 255, atol=0.01)
@@ -844,6 +844,16 @@ def test_a_calibration_of_another_rig_is_refused_by_the_row_check(rendered, capt
   assert f"is the calibration ({tmp_path / 'other.yml'}) of another rig" in err
   share = int(err.split("refused ")[1].split("%")[0])
   assert 25 < share <= 100
+
+
+def test_the_unit_of_t_gives_the_baseline_in_mm(rendered, capture, tmp_path):
+  """--unit mm, cm, m: calib.txt's baseline is |T| times 1, 10, 1000 (the disparities alike)."""
+  for unit, mm in (("mm", 1.0), ("cm", 10.0), ("m", 1000.0)):
+    assert _import([capture / "cam1", capture / "cam2", tmp_path / unit, "--calib",
+                    capture / "calib.yml", "--projector", PROJ, "--unit", unit])[0] == 0
+    np.testing.assert_allclose(read_calib(tmp_path / unit / "calib.txt").baseline,
+                               mm * np.linalg.norm(rendered.cal.t), rtol=1e-6)
+    assert json.loads((tmp_path / unit / "meta.json").read_text())["unit"] == unit
 
 
 def test_a_wrong_baseline_length_is_not_seen_and_only_scales_depth(rendered, capture, tmp_path):

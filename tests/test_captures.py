@@ -3,10 +3,12 @@ rectified scene, warped into two real cameras (known rotations and lens distorti
 OpenCV calibration, captured in OpenCV's GrayCodePattern layout; the ground truth mapped into
 the importer's own rectified frame in float64."""
 
+import dataclasses
 import json
 import math
 import shutil
 import types
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -15,6 +17,7 @@ import pytest
 from sljax import cli
 from sljax.capture import captures, charuco
 from sljax.capture import rig as rigs
+from sljax.capture.frames import bit_counts, frame_number, opencv_roles, projector_frames
 from sljax.data import preflight
 from sljax.data.calib import read_calib
 from sljax.data.dataset import FolderSource, load_batch
@@ -122,8 +125,8 @@ def test_opencv_layout_is_sljax_gray_code(projector):
   the same code down the rows; 2n + 2m frames before white and black (46 for 1920x1080)."""
   w, h = projector
   frames = _opencv_generate(w, h)
-  roles = captures.opencv_roles(projector)
-  n, m = captures.bit_counts(projector)
+  roles = opencv_roles(projector)
+  n, m = bit_counts(projector)
   assert len(frames) + 2 == len(roles) == 2 * n + 2 * m + 2
   assert roles[-2:] == ["white", "black"]
   cols, rows = codes.patterns("gray", w), codes.patterns("gray", h)
@@ -133,12 +136,12 @@ def test_opencv_layout_is_sljax_gray_code(projector):
     if role[-4] == "i":
       want = 1 - want
     np.testing.assert_array_equal(frame, np.broadcast_to(want * 255, (h, w)), err_msg=role)
-  projected = list(captures.projector_frames(projector))
+  projected = list(projector_frames(projector))
   assert [r for r, _ in projected] == roles
   for (role, image), frame in zip(projected, frames + [np.full((h, w), 255), np.zeros((h, w))]):
     np.testing.assert_array_equal(image, frame, err_msg=role)
-  assert len(captures.opencv_roles((1920, 1080))) == 46
-  assert captures.opencv_roles((1920, 1080))[44:] == ["white", "black"]
+  assert len(opencv_roles((1920, 1080))) == 46
+  assert opencv_roles((1920, 1080))[44:] == ["white", "black"]
 
 
 def test_decoding_opencv_frames_gives_every_projector_column_and_row():
@@ -146,7 +149,7 @@ def test_decoding_opencv_frames_gives_every_projector_column_and_row():
   (W, H not powers of two; codes beyond them are impossible)."""
   w, h = 150, 40
   frames = _opencv_generate(w, h) + [np.full((h, w), 255, np.uint8), np.zeros((h, w), np.uint8)]
-  named = dict(zip(captures.opencv_roles((w, h)), frames))
+  named = dict(zip(opencv_roles((w, h)), frames))
   cols = {k: v for k, v in named.items() if not k.startswith("r")}
   rows = {"white": named["white"], "black": named["black"],
           **{k[1:]: v for k, v in named.items() if k.startswith("r")}}
@@ -254,7 +257,7 @@ def test_scene_holds_what_the_format_requires(rendered, capture, tmp_path):
   d = [read_pfm(out / f"disp{v}.pfm") for v in (0, 1)]
   top = max(np.max(x[np.isfinite(x)]) for x in d)
   assert c.ndisp % 16 == 0 and c.ndisp - 16 <= top < c.ndisp
-  n = captures.bit_counts(RIG.projector)[0]
+  n = bit_counts(RIG.projector)[0]
   assert sorted(p.name for p in (out / "raw0").iterdir()) == sorted(
       ["white.png", "black.png"] + [f"{k}{b:03d}.png" for k in "pi" for b in range(n)])
   meta = json.loads((out / "meta.json").read_text())
@@ -363,7 +366,7 @@ def test_bit_depths_colour_and_jpeg(rendered, capture, tmp_path, kind, capsys):
 def test_sljax_layout_and_ambient_pair(rendered, capture, tmp_path, capsys):
   """The sljax layout (white, black, pNNN, iNNN; any other order of files) and an ambient pair
   for im0/im1, recorded in meta.json."""
-  roles = captures.opencv_roles(RIG.projector)
+  roles = opencv_roles(RIG.projector)
   for cam, frames in zip(("l", "r"), rendered.clean):
     (tmp_path / cam).mkdir()
     for role, f in zip(roles, frames):
@@ -379,7 +382,7 @@ def test_sljax_layout_and_ambient_pair(rendered, capture, tmp_path, capsys):
   assert "from the ambient frames" in got.out and "row check" not in got.out
   meta = json.loads((out / "meta.json").read_text())
   assert meta["views"] == "ambient" and meta["layout"] == "sljax"
-  assert meta["frames"]["ambient"][0].endswith("amb_l.png")
+  assert meta["frames"]["ambient"] == ["../amb_l.png", "../amb_r.png"]  # from the scene folder
   im0 = load_scene(out).im0
   centre = im0[40:56, 50:78]  # inside the rectified view: the ambient colour, RGB order
   np.testing.assert_allclose(centre.mean(axis=(0, 1)), np.array([200, 90, 40]) / 255, atol=0.01)
@@ -551,10 +554,10 @@ def test_nothing_is_replaced_without_overwrite(capture, tmp_path, capsys):
 
 
 def test_sljax_layout_errors(capture, tmp_path, capsys):
-  roles = captures.opencv_roles(RIG.projector)
+  roles = opencv_roles(RIG.projector)
   left = tmp_path / "l"
   left.mkdir()
-  for role, p in zip(roles, sorted(capture.glob("cam1/*.png"), key=captures.frame_number)):
+  for role, p in zip(roles, sorted(capture.glob("cam1/*.png"), key=frame_number)):
     if not role.startswith("r") and role != "p007":
       shutil.copy(p, left / f"{role}.png")
   base = [left, left, tmp_path / "s", "--calib", capture / "calib.yml", "--layout", "sljax"]
@@ -671,7 +674,8 @@ def test_charuco_command_calibrates_imports_and_writes_the_yaml(rendered, tmp_pa
   # A 12 mm baseline seen from 450 mm: T's x well, its z (a few views) within 2 mm.
   err = np.abs(written.t.ravel() - cal.t.ravel())
   assert err[0] < 0.3 and err[1] < 0.3 and err[2] < 2.0, (written.t.ravel(), cal.t.ravel())
-  assert json.loads((out / "meta.json").read_text())["calibration"].startswith("ChArUco")
+  # the calibration used is the one saved in the scene, named relative to it
+  assert json.loads((out / "meta.json").read_text())["calibration"] == captures.CALIBRATION_FILE
   assert min(np.isfinite(read_pfm(out / f"disp{v}.pfm")).mean() for v in (0, 1)) > 0.55
   rc, got = _import([tmp_path / "cam1", tmp_path / "cam2", out, "--charuco", tmp_path / "L",
                      tmp_path / "R", "--board", "7x5", "--square", "30", "--projector", PROJ],
@@ -711,3 +715,214 @@ def test_imported_scene_works_with_info_evaluate_predict_and_training_data(captu
                                                                                 nan=9))
   preflight.check(src, [([0, 1], {"im", "sl"})], progress=False, use_cache=False)
   assert cli.main(["info", str(data)]) == 0
+
+
+# --- refusals: what the import will not write ------------------------------------------------
+
+# Cameras alike (small rotations, one lens): swapped views still rectify onto common rows, so
+# the swap shows as negative disparities rather than as rows that do not match.
+TWIN = sr.RigConfig(size=(128, 96), projector=(160, 120),
+                    rotation_deg=((0.3, -0.4, 0.2), (-0.2, 0.3, -0.1)), focal_scale=(1.12, 1.13),
+                    centre_offset_px=((1.0, -0.5), (-0.5, 1.0)),
+                    distortion=((-0.1, 0.02, 0.0, 0.0, 0.0), (-0.1, 0.02, 0.0, 0.0, 0.0)))
+
+
+@pytest.fixture(scope="module")
+def twin(rendered, tmp_path_factory):
+  """The rendered scene captured by the twin rig, in both layouts, with its calibration."""
+  root = tmp_path_factory.mktemp("twin")
+  frames = sr.real_captures(rendered.scene, rendered.cfg, TWIN, OVERSAMPLE)
+  roles = opencv_roles(TWIN.projector)
+  for cam, view in zip(("cam1", "cam2"), frames):
+    _write(root / "opencv" / cam, view)
+    (root / "sljax" / cam).mkdir(parents=True)
+    for role, f in zip(roles, view):
+      if not role.startswith("r"):
+        assert cv2.imwrite(str(root / "sljax" / cam / f"{role}.png"), f)
+  rigs.write_calibration(root / "calib.yml",
+                         sr.calibration(TWIN, rendered.k_rect, rendered.cfg.baseline_m * 1000))
+  return root
+
+
+def _layout_args(layout):
+  return ["--projector", PROJ] if layout == "opencv" else ["--layout", "sljax"]
+
+
+def _refused(args, capsys, out, why):
+  """The import exits 2 with one line holding why, and out is as it was (absent, or the same
+  files byte for byte)."""
+  before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} if out.exists() else None
+  rc, got = _import(args, capsys)
+  err = got.err.strip().splitlines()
+  assert rc == 2 and len(err) == 1 and why in err[0], err
+  assert err[0].startswith("sljax import-captures: error: ") and "Nothing written" in err[0]
+  print(err[0])
+  if before is None:
+    assert not out.exists()
+  else:
+    assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+  return err[0]
+
+
+@pytest.mark.parametrize("layout", ["opencv", "sljax"])
+def test_swapped_views_are_refused_by_their_negative_disparities(twin, tmp_path, capsys, layout):
+  """The same capture imports with LEFT and RIGHT in order (no disparity negative) and is
+  refused swapped, by the rule a scene's loader applies (more than half negative)."""
+  cams, calib = twin / layout, twin / "calib.yml"
+  ok = tmp_path / "ok"
+  rc, got = _import([cams / "cam1", cams / "cam2", ok, "--calib", calib,
+                     *_layout_args(layout)], capsys)
+  assert rc == 0, got.err
+  d = [read_pfm(ok / f"disp{v}.pfm") for v in (0, 1)]
+  assert min(np.isfinite(x).mean() for x in d) > 0.5
+  assert all((x[np.isfinite(x)] >= 0).all() for x in d)
+  # With row frames the row check sees the swap too: the message leads with the swap.
+  err = _refused([cams / "cam2", cams / "cam1", tmp_path / "s", "--calib", calib,
+                  *_layout_args(layout)], capsys, tmp_path / "s",
+                 f"LEFT {cams / 'cam2'} and RIGHT {cams / 'cam1'} look swapped: ")
+  assert "% of the left view's matched disparities are negative" in err
+  assert ("the row check refused" in err) == (layout == "opencv")
+  # --overwrite over the correct scene: refused before a file is touched.
+  _refused([cams / "cam2", cams / "cam1", ok, "--calib", calib, "--overwrite",
+            *_layout_args(layout)], capsys, ok, "look swapped: ")
+
+
+def test_the_swap_rule_is_the_loaders(twin, tmp_path, capsys, monkeypatch):
+  """Import and load agree: with the swap refusal and the sign filter planted away, the import
+  writes the swapped scene and load_scene refuses it as negative."""
+  cams = twin / "sljax"
+  monkeypatch.setattr(captures.refusals, "check_signs", lambda *a: None)
+  monkeypatch.setattr(captures.refusals, "plausible", lambda d0, d1, *a: (d0, d1, (0, 0)))
+  rc, got = _import([cams / "cam2", cams / "cam1", tmp_path / "s", "--calib",
+                     twin / "calib.yml", "--layout", "sljax"], capsys)
+  assert rc == 0, got.err
+  with pytest.raises(SljaxError, match=r"disp0.pfm: (9\d|100)% of its known disparities are negative"):
+    load_scene(tmp_path / "s")
+
+
+def test_the_sign_filter_alone_writes_no_negative_disparity(twin, tmp_path, capsys, monkeypatch):
+  """With the swap refusal planted away, what is written of the swapped capture holds no
+  negative disparity, and calib.txt's vmin/vmax are the written range."""
+  cams = twin / "sljax"
+  monkeypatch.setattr(captures.refusals, "check_signs", lambda *a: None)
+  rc, got = _import([cams / "cam2", cams / "cam1", tmp_path / "s", "--calib",
+                     twin / "calib.yml", "--layout", "sljax"], capsys)
+  assert rc == 0, got.err
+  meta = json.loads((tmp_path / "s" / "meta.json").read_text())
+  assert meta["implausible"]["left"] > 1000 and "below 0 or above the width" in got.out
+  d = [read_pfm(tmp_path / "s" / f"disp{v}.pfm") for v in (0, 1)]
+  known = np.concatenate([x[np.isfinite(x)] for x in d])
+  assert known.size and (known >= 0).all() and (known <= 128).all()
+  c = read_calib(tmp_path / "s" / "calib.txt")
+  assert (c.vmin, c.vmax) == (np.floor(known.min()), np.ceil(known.max()))
+
+
+def test_swapped_views_of_unlike_cameras_are_refused_by_the_row_check(capture, tmp_path,
+                                                                        capsys):
+  """The test rig's cameras differ (rotations of a degree, other lenses): swapped, their rows do
+  not match, and the row check refuses most matches."""
+  err = _refused([capture / "cam2", capture / "cam1", tmp_path / "s", "--calib",
+                  capture / "calib.yml", "--projector", PROJ], capsys, tmp_path / "s",
+                 " swapped")
+  assert "the row check refused" in err
+
+
+@pytest.mark.parametrize("other", ["rotation", "focal"])
+def test_a_calibration_of_another_rig_is_refused_by_the_row_check(rendered, capture, tmp_path,
+                                                                  capsys, other):
+  """R tilted 2 degrees about the baseline, or the left focal length 20% longer: the rectified
+  rows do not match and the row check refuses most matches."""
+  cal = rendered.cal
+  if other == "rotation":
+    cal = dataclasses.replace(cal, r=sr.rotation((2.0, 0.0, 0.0)) @ cal.r)
+  else:
+    cal = dataclasses.replace(cal, m1=cal.m1 * np.array([[1.2, 1, 1], [1, 1.2, 1], [1, 1, 1]]))
+  rigs.write_calibration(tmp_path / "other.yml", cal)
+  err = _refused([capture / "cam1", capture / "cam2", tmp_path / "s", "--calib",
+                  tmp_path / "other.yml", "--projector", PROJ], capsys, tmp_path / "s",
+                 "the rectified rows of the two views do not match: the row check refused ")
+  assert f"is the calibration ({tmp_path / 'other.yml'}) of another rig" in err
+  share = int(err.split("refused ")[1].split("%")[0])
+  assert 25 < share <= 100
+
+
+def test_the_unit_of_t_gives_the_baseline_in_mm(rendered, capture, tmp_path):
+  """--unit mm, cm, m: calib.txt's baseline is |T| times 1, 10, 1000 (the disparities alike)."""
+  for unit, mm in (("mm", 1.0), ("cm", 10.0), ("m", 1000.0)):
+    assert _import([capture / "cam1", capture / "cam2", tmp_path / unit, "--calib",
+                    capture / "calib.yml", "--projector", PROJ, "--unit", unit])[0] == 0
+    np.testing.assert_allclose(read_calib(tmp_path / unit / "calib.txt").baseline,
+                               mm * np.linalg.norm(rendered.cal.t), rtol=1e-6)
+    assert json.loads((tmp_path / unit / "meta.json").read_text())["unit"] == unit
+
+
+def test_a_wrong_baseline_length_is_not_seen_and_only_scales_depth(rendered, capture, tmp_path):
+  """T twice as long: the same disparities (rectification does not depend on |T|), calib.txt's
+  baseline doubled, so depth = f B / d doubles: nothing in the images can tell."""
+  rigs.write_calibration(tmp_path / "long.yml", dataclasses.replace(rendered.cal,
+                                                                    t=rendered.cal.t * 2))
+  for name, calib in (("a", capture / "calib.yml"), ("b", tmp_path / "long.yml")):
+    assert _import([capture / "cam1", capture / "cam2", tmp_path / name, "--calib", calib,
+                    "--projector", PROJ])[0] == 0
+  for v in (0, 1):
+    np.testing.assert_array_equal(read_pfm(tmp_path / "a" / f"disp{v}.pfm"),
+                                  read_pfm(tmp_path / "b" / f"disp{v}.pfm"))
+  ca, cb = read_calib(tmp_path / "a" / "calib.txt"), read_calib(tmp_path / "b" / "calib.txt")
+  np.testing.assert_allclose(cb.baseline, 2 * ca.baseline)
+
+
+@pytest.mark.parametrize("light", ["projector off", "saturated"])
+@pytest.mark.parametrize("layout", ["opencv", "sljax"])
+def test_a_capture_where_almost_nothing_decodes_is_refused(capture, twin, tmp_path, capsys,
+                                                           light, layout):
+  """Every frame the ambient (black) frame, or every frame saturated: the coarsest stripe
+  decodes nowhere."""
+  src = capture if layout == "opencv" else twin / "sljax"
+  for cam in ("cam1", "cam2"):
+    shutil.copytree(src / cam, tmp_path / cam)
+    paths = sorted((tmp_path / cam).glob("*.png"))
+    black = cv2.imread(str(next(p for p in paths if p.stem == "black") if layout == "sljax"
+                           else max(paths, key=frame_number)), cv2.IMREAD_UNCHANGED)
+    for p in paths:
+      cv2.imwrite(str(p), black if light == "projector off" else np.full_like(black, 255))
+  err = _refused([tmp_path / "cam1", tmp_path / "cam2", tmp_path / "s", "--calib",
+                  capture / "calib.yml", *_layout_args(layout)], capsys, tmp_path / "s",
+                 "the projector's coarsest stripe decodes on 0.0% of the pixels (under 5%): was "
+                 "the projector off, or the exposure wrong")
+  assert err.startswith(f"sljax import-captures: error: LEFT {tmp_path / 'cam1'}: ")
+
+
+def test_meta_paths_are_relative_to_the_scene(capture, tmp_path):
+  """meta.json names every frame and the calibration relative to the scene folder: they resolve
+  from there, and the scene still points at them after the whole tree moves."""
+  shutil.copytree(capture, tmp_path / "a" / "caps")
+  caps, out = tmp_path / "a" / "caps", tmp_path / "a" / "data" / "s"
+  assert _import([caps / "cam1", caps / "cam2", out, "--calib", caps / "calib.yml",
+                  "--projector", PROJ])[0] == 0
+  meta = json.loads((out / "meta.json").read_text())
+  assert meta["calibration"] == "../../caps/calib.yml"
+  paths = [*meta["frames"]["left"].values(), *meta["frames"]["right"].values()]
+  assert len(paths) == 2 * len(opencv_roles(RIG.projector))
+  assert not any(Path(p).is_absolute() for p in paths)
+  assert meta["frames"]["left"]["p000"] == "../../caps/cam1/pattern_cam1_im1.png"
+  shutil.move(tmp_path / "a", tmp_path / "b")
+  moved = tmp_path / "b" / "data" / "s"
+  assert all((moved / p).is_file() for p in paths + [meta["calibration"]])
+
+
+def test_plausible_drops_what_no_rig_can_see_by_hand():
+  """A 1x8 pair by hand: left disparities -2 and 9 (width 8) are unknown, their partners in
+  the right view too; nothing else changes; nothing dropped returns the arrays as they are."""
+  inf = np.inf
+  d0 = np.array([[inf, inf, 1.0, 1.0, -2.0, inf, inf, inf]], np.float32)
+  d1 = np.array([[inf, 1.0, 1.0, inf, inf, inf, -2.0, inf]], np.float32)
+  # x = 2, 3 in the left see x = 1, 2 in the right; x = 4 (d -2) sees x = 6 (d -2).
+  got0, got1, dropped = captures.refusals.plausible(d0, d1, 8, 1.0)
+  np.testing.assert_array_equal(got0, [[inf, inf, 1.0, 1.0, inf, inf, inf, inf]])
+  np.testing.assert_array_equal(got1, [[inf, 1.0, 1.0, inf, inf, inf, inf, inf]])
+  assert dropped == (1, 1)
+  far = np.full((1, 8), inf, np.float32)
+  far[0, 0] = 9.0
+  assert captures.refusals.plausible(far, np.full((1, 8), inf, np.float32), 8, 1.0)[2] == (1, 0)
+  same = captures.refusals.plausible(got0, got1, 8, 1.0)
+  assert same[0] is got0 and same[1] is got1 and same[2] == (0, 0)

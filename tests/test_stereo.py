@@ -167,9 +167,10 @@ def test_row_check_refuses_matches_that_see_another_projector_row():
   match_views(dec, MatchConfig(row_tolerance=1.0))
   assert np.isfinite(dec.disp0[:, :32]).all() and np.isinf(dec.disp0[:, 32:]).all()
   assert np.isinf(dec.disp1[:, 32:]).all() and dec.row_rejected == h * 32
+  assert dec.row_checked == h * w  # every left match, both rows known
   np.testing.assert_array_equal(dec.disp0[:, :32], 0)
   match_views(dec, MatchConfig(row_tolerance=8.0))
-  assert np.isfinite(dec.disp0).all() and dec.row_rejected == 0
+  assert np.isfinite(dec.disp0).all() and dec.row_rejected == 0 and dec.row_checked == h * w
 
 
 def test_codes_beyond_the_projector_are_unknown():

@@ -1,20 +1,6 @@
 """A real rig's structured-light capture -> one scene folder: `sljax import-captures`.
 
-Frames. Each camera's frames are a folder or a glob of one image per projected frame (.png,
-.bmp, .jpg, .tif; 8 or 16 bits; grey or colour, decoded on grey: BT.601 luma as OpenCV's
-cvtColor). The opencv layout orders them by the last integer in the file name, the smallest
-being frame 0 (so 0- and 1-based numbering both work); the sljax layout names them (white,
-black, pNNN, iNNN). 16-bit files whose values all fit 12 bits are 12-bit data and are scaled to
-the 16-bit range (the rule `sljax info` warns about).
-
-Layouts. opencv: what OpenCV's structured_light.GrayCodePattern generates for a W x H projector,
-in the order capture scripts save it: n = ceil(log2 W) column bits and m = ceil(log2 H) row bits;
-frames 2k and 2k + 1 are column bit k and its inverse (k = 0..n-1, most significant first; lit
-where the reflected Gray code g = c ^ (c >> 1) of the projector column c has that bit set),
-frames 2n + 2j and 2n + 2j + 1 row bit j and its inverse, then the all-white and the all-black
-frame. That is sljax's own Gray code (sljax.sl.codes: pattern k is bit n-1-k of the Gray code,
-coarsest first), so column pair k becomes p{k:03d} / i{k:03d} unchanged. sljax: the project's
-own names, patterns coarsest first.
+Which file is which frame: sljax.capture.frames. What the import refuses: sljax.capture.refusals.
 
 Pipeline (shared with import-scared and decode): the calibration's rectification
 (sljax.capture.rig: cv2.stereoRectify, alpha 0, zero disparity), every frame resampled into it,
@@ -26,12 +12,10 @@ resolution and resized: a block's mean where all its pixels are known, times the
 """
 
 import dataclasses
-import glob
 import os
-import re
 import sys
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 
 import cv2
@@ -39,20 +23,15 @@ import numpy as np
 from tqdm import tqdm
 
 from sljax import files
+from sljax.capture import frames, refusals
 from sljax.capture import rig as rigs
 from sljax.data.scene import Scene, write_scene
 from sljax.images import holds_12_bit, image_to_float
 from sljax.errors import SljaxError, require
-from sljax.sl import codes
 from sljax.sl.decode import DecodeConfig, count_patterns
 from sljax.sl.stereo import MatchConfig, StereoDecoded, decode_views, match_views
 
-FRAME_EXTENSIONS = (".png", ".bmp", ".jpg", ".jpeg", ".tif", ".tiff")
-LAYOUTS = ("opencv", "sljax")
 CALIBRATION_FILE = "calibration.yml"  # written into the scene when the command calibrated
-_SLJAX_NAME = re.compile(r"^(white|black|[pi]\d{3})$")
-_NUMBER = re.compile(r"\d+")
-_GLOB = re.compile(r"[*?\[]")
 
 @dataclasses.dataclass(frozen=True)
 class ImportConfig:
@@ -77,154 +56,11 @@ class ImportReport:
   ranges: tuple[tuple[float, float] | None, ...]  # disparity range per view
   decoded: tuple[float, float]               # share of pixels with a decoded column, per view
   row_rejected: int                          # left matches refused by the row check
+  implausible: tuple[int, int]               # matches below 0 or above the width, per view
   match_bits: int                            # column bits the matching used
   bit_depth: int                             # 8, 12 or 16 bits of the frames
   views: str                                 # "ambient" or "white": what im0/im1 show
   seconds: dict[str, float]                  # time per stage
-
-
-def bit_counts(projector: tuple[int, int]) -> tuple[int, int]:
-  """(n, m) = (ceil(log2 W), ceil(log2 H)): the column and row bits of a W x H projector."""
-  w, h = projector
-  require(w >= 2 and h >= 2, f"--projector {w}x{h}: width and height must be at least 2")
-  return codes.num_bits(w), codes.num_bits(h)
-
-
-def opencv_roles(projector: tuple[int, int]) -> list[str]:
-  """The role of each frame of OpenCV's GrayCodePattern capture, in order: p000, i000, ...
-  (column bits and inverses), rp000, ri000, ... (row bits), white, black."""
-  n, m = bit_counts(projector)
-  cols = [f"{kind}{k:03d}" for k in range(n) for kind in ("p", "i")]
-  rows = [f"r{kind}{j:03d}" for j in range(m) for kind in ("p", "i")]
-  return cols + rows + ["white", "black"]
-
-
-def projector_frames(projector: tuple[int, int]) -> Iterator[tuple[str, np.ndarray]]:
-  """(role, HxW uint8 image, 255 lit) of every frame to project for the opencv layout, in
-  order: what OpenCV's GrayCodePattern.generate gives, then white and black."""
-  w, h = projector
-  n, m = bit_counts(projector)
-  cols, rows = codes.patterns("gray", w), codes.patterns("gray", h)
-  for k in range(n):
-    lit = np.broadcast_to(cols[k][None, :] * np.uint8(255), (h, w))
-    yield f"p{k:03d}", lit.copy()
-    yield f"i{k:03d}", 255 - lit
-  for j in range(m):
-    lit = np.broadcast_to(rows[j][:, None] * np.uint8(255), (h, w))
-    yield f"rp{j:03d}", lit.copy()
-    yield f"ri{j:03d}", 255 - lit
-  yield "white", np.full((h, w), 255, np.uint8)
-  yield "black", np.zeros((h, w), np.uint8)
-
-
-def parse_projector(text: str) -> tuple[int, int]:
-  """'1920x1080' -> (1920, 1080); SljaxError otherwise."""
-  m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", str(text))
-  require(m is not None, f"--projector {text!r}: expected WIDTHxHEIGHT, e.g. 1920x1080")
-  return int(m.group(1)), int(m.group(2))
-
-
-def frame_number(path: Path) -> int | None:
-  """The last integer in a file name's stem (pattern_cam1_im12.png -> 12), None without one."""
-  found = _NUMBER.findall(path.stem)
-  return int(found[-1]) if found else None
-
-
-def list_frames(spec: str | os.PathLike, what: str) -> list[Path]:
-  """The image files of a folder or a glob (unsorted); SljaxError when there are none."""
-  text = os.fspath(spec)
-  path = Path(text)
-  if path.is_dir():
-    found = [p for p in path.iterdir() if p.is_file() and not files.is_temporary(p)
-             and p.suffix.lower() in FRAME_EXTENSIONS]
-    require(found, f"{what} {text}: no frames ({', '.join(FRAME_EXTENSIONS)}) in the folder")
-    return found
-  if path.is_file():
-    raise SljaxError(f"{what} {text}: a single file; give the folder of the frames or a glob "
-                     "such as 'caps/pattern_cam1_im*.png'")
-  if not _GLOB.search(text):
-    raise SljaxError(f"{what} {text}: no such folder (give a folder or a glob of the frames)")
-  found = [Path(p) for p in glob.glob(text) if Path(p).is_file()]
-  require(found, f"{what} {text}: the glob matches no file")
-  for p in found:
-    require(p.suffix.lower() in FRAME_EXTENSIONS,
-            f"{p}: not a frame format sljax reads ({', '.join(FRAME_EXTENSIONS)})")
-  return found
-
-
-def numbered_frames(paths: Sequence[Path], what: str) -> list[Path]:
-  """Frames ordered by the integer in their names; SljaxError for a name without one, two
-  frames of one number or a gap in the numbering."""
-  numbered = {}
-  for p in paths:
-    k = frame_number(p)
-    require(k is not None, f"{p}: no frame number in the file name ({what} frames are ordered by "
-            "the integer in their names)")
-    require(k not in numbered, f"{what}: {numbered.get(k)} and {p} have the same frame number {k}")
-    numbered[k] = p
-  order = sorted(numbered)
-  for a, b in zip(order, order[1:]):
-    require(b == a + 1, f"{what}: frame numbers jump from {a} ({numbered[a].name}) to {b} "
-            f"({numbered[b].name}); frame {a + 1} is missing")
-  return [numbered[k] for k in order]
-
-
-def assign_roles(paths: Sequence[Path], config: ImportConfig, what: str) -> dict[str, Path]:
-  """{role: file} of one camera's frames in the config's layout; SljaxError when the frames do
-  not fit the layout and projector."""
-  if config.layout == "opencv":
-    require(config.projector is not None, "--projector WxH is needed by the opencv layout")
-    roles = opencv_roles(config.projector)
-    n, m = bit_counts(config.projector)
-    w, h = config.projector
-    require(len(paths) == len(roles),
-            f"{what}: {len(paths)} frames, but the opencv layout of a {w}x{h} projector has "
-            f"{len(roles)} ({2 * n} column frames for {n} bits, {2 * m} row frames for {m} bits, "
-            "white, black)")
-    return dict(zip(roles, numbered_frames(paths, what)))
-  require(config.layout == "sljax", f"unknown layout {config.layout!r}; expected one of {LAYOUTS}")
-  named: dict[str, Path] = {}
-  for p in paths:
-    require(_SLJAX_NAME.match(p.stem) is not None,
-            f"{p}: not a frame name of the sljax layout (white, black, p000, p001, ..., i000, ...)")
-    require(p.stem not in named, f"{what}: {named.get(p.stem)} and {p} are both frame {p.stem}")
-    named[p.stem] = p
-  for key in ("white", "black"):
-    require(key in named, f"{what}: no {key} frame (the sljax layout names it {key}.png)")
-  t = count_patterns(named, what)
-  inverses = {int(k[1:]) for k in named if k[0] == "i"}
-  if inverses:  # all or none: decoding compares every pattern with its inverse
-    odd = sorted(inverses ^ set(range(t)))
-    if odd:
-      k = odd[0]
-      raise SljaxError(f"{what}: " + (f"inverse i{k:03d} has no pattern p{k:03d}" if k in inverses
-                                      else f"pattern p{k:03d} has no inverse i{k:03d}"))
-  if config.projector is not None:
-    n = bit_counts(config.projector)[0]
-    require(t == n, f"{what}: {t} column patterns, but a {config.projector[0]}-column projector "
-            f"has {n} (sljax layout)")
-  return named
-
-
-def read_frame(path: Path) -> np.ndarray:
-  """A frame as OpenCV decodes it: uint8 or uint16, HxW or HxWx3 BGR (alpha dropped)."""
-  img = cv2.imread(os.fspath(path), cv2.IMREAD_UNCHANGED)
-  if img is None:
-    raise SljaxError(f"{path}: {'missing' if not path.exists() else 'not a readable image'}")
-  if img.dtype not in (np.uint8, np.uint16):
-    raise SljaxError(f"{path}: {img.dtype} samples; frames must be 8- or 16-bit images")
-  if img.ndim == 3 and img.shape[2] == 4:
-    img = img[..., :3]
-  if img.ndim == 3 and img.shape[2] == 1:
-    img = img[..., 0]
-  if img.ndim == 3 and img.shape[2] != 3:
-    raise SljaxError(f"{path}: {img.shape[2]} channels; frames must be grey or colour")
-  return img
-
-
-def grey(frame: np.ndarray) -> np.ndarray:
-  """Luma of a BGR frame (as cv2.cvtColor, BT.601), or the grey frame itself; dtype kept."""
-  return cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY) if frame.ndim == 3 else frame
 
 
 @dataclasses.dataclass
@@ -240,13 +76,13 @@ def _rectify_view(roles: dict[str, Path], keep: Sequence[str], colour_role: str 
                   maps, size: tuple[int, int], what: str, bar, seconds: dict[str, float]
                   ) -> _View:
   """Reads and rectifies one camera's frames (those in keep) and its colour view."""
-  frames, peak, dtype, colour = {}, 0, None, None
+  rectified, peak, dtype, colour = {}, 0, None, None
   todo = [(role, roles[role]) for role in keep]
   if isinstance(colour_role, Path):
     todo.append(("", colour_role))
   for role, path in todo:
     start = time.perf_counter()
-    img = read_frame(path)
+    img = frames.read_frame(path)
     h, w = img.shape[:2]
     require((w, h) == tuple(size), f"{path}: size {w}x{h} differs from the first {what} frame's "
             f"{size[0]}x{size[1]}")
@@ -254,16 +90,16 @@ def _rectify_view(roles: dict[str, Path], keep: Sequence[str], colour_role: str 
     require(img.dtype == dtype, f"{path}: {img.dtype.itemsize * 8}-bit, the other {what} frames "
             f"are {dtype.itemsize * 8}-bit")
     peak = max(peak, int(img.max()))
-    g = grey(img)
+    g = frames.grey(img)
     seconds["read"] += time.perf_counter() - start
     start = time.perf_counter()
     if role:
-      frames[role] = rigs.remap(g, maps)
+      rectified[role] = rigs.remap(g, maps)
     if role == colour_role or not role:
       colour = rigs.remap(img, maps)
     seconds["rectify"] += time.perf_counter() - start
     bar.update(1)
-  return _View(frames, colour, peak, np.dtype(dtype))
+  return _View(rectified, colour, peak, np.dtype(dtype))
 
 
 def _to_16_bit(image: np.ndarray) -> np.ndarray:
@@ -321,7 +157,7 @@ def _read_views(roles: list[dict[str, Path]], keep: list[str], ambient: list[Pat
                 ) -> tuple[list[_View], rigs.Rectification, int]:
   """Both cameras' frames (the roles in keep) and colour views, rectified; 12-bit data scaled
   to the 16-bit range. Returns (views, rectification, bits of the frames: 8, 12 or 16)."""
-  first = read_frame(roles[0]["white"])
+  first = frames.read_frame(roles[0]["white"])
   size = (first.shape[1], first.shape[0])
   rigs.check_size(calibration, size, f"the frame {roles[0]['white']}")
   rect = rigs.rectify(calibration, size)
@@ -364,7 +200,8 @@ def import_captures(left: str | os.PathLike, right: str | os.PathLike, out: str 
           f"--scale {config.scale:g}: must be in (0, 1] (it downsizes)")
   refuse_existing(out, save_calibration, overwrite)
   rigs.check_rig(calibration, "are LEFT and RIGHT, or the cameras of the calibration, swapped?")
-  roles = [assign_roles(list_frames(spec, what), config, what)
+  roles = [frames.assign_roles(frames.list_frames(spec, what), config.layout, config.projector,
+                              what)
            for spec, what in ((left, "LEFT"), (right, "RIGHT"))]
   differ = sorted(set(roles[0]) ^ set(roles[1]))
   require(not differ, f"RIGHT: its frames differ from LEFT's ({', '.join(differ[:4])} in one "
@@ -387,7 +224,13 @@ def import_captures(left: str | os.PathLike, right: str | os.PathLike, out: str 
   result = _timed(seconds, "decode", decode_views, raws[0], raws[1], code, config.decode,
                   projector=projector, rows=row_raws,
                   where=("LEFT (rectified)", "RIGHT (rectified)"))
+  named = (f"LEFT {os.fspath(left)}", f"RIGHT {os.fspath(right)}")
+  refusals.check_lit(result, named)
   _timed(seconds, "match", match_views, result, config.match)
+  refusals.check_rows(result, named, calibration.where)
+  refusals.check_signs(result, named)
+  result.disp0, result.disp1, implausible = refusals.plausible(
+      result.disp0, result.disp1, rect.size[0], config.match.lr_tolerance)
 
   size = (rigs.scaled_length(rect.size[0], config.scale),
           rigs.scaled_length(rect.size[1], config.scale))
@@ -408,7 +251,7 @@ def import_captures(left: str | os.PathLike, right: str | os.PathLike, out: str 
                 sl0=patterns[0], sl1=patterns[1], raw0=raws[0], raw1=raws[1],
                 calib=rect.calib(rigs.UNITS_MM[config.unit], disp, config.scale),
                 meta=_meta(out, roles, ambient_paths, config, calibration, rect, bits, shares,
-                           result))
+                           result, implausible, save_calibration))
   _timed(seconds, "write", write_scene, out, scene, overwrite=overwrite,
          bit_depth=8 if bits == 8 else 16)
   if save_calibration:
@@ -416,32 +259,49 @@ def import_captures(left: str | os.PathLike, right: str | os.PathLike, out: str 
   decoded = tuple(float(np.isfinite(v.column).mean()) for v in (result.left, result.right))
   return ImportReport(out=out, size=size, valid=(shares[0][0], shares[1][0]),
                       ranges=(shares[0][1], shares[1][1]), decoded=decoded,
-                      row_rejected=result.row_rejected, match_bits=result.bits, bit_depth=bits,
+                      row_rejected=result.row_rejected, implausible=implausible,
+                      match_bits=result.bits, bit_depth=bits,
                       views="white" if ambient_paths is None else "ambient", seconds=seconds)
 
 
+def _relative(path: Path, out: Path) -> str:
+  """path as seen from the scene folder out (meta.json travels with the scene)."""
+  return os.path.relpath(path.resolve(), out.resolve())
+
+
+def _calibration_source(calibration: rigs.StereoCalibration, out: Path, saved: bool) -> str:
+  """meta.json's "calibration": the file(s) read, relative to the scene, or the one saved in it."""
+  if saved:
+    return CALIBRATION_FILE
+  if calibration.files:
+    return " + ".join(_relative(Path(p), out) for p in calibration.files)
+  return calibration.where
+
+
 def _meta(out: Path, roles, ambient, config: ImportConfig, calibration, rect, bits: int,
-          shares, result: StereoDecoded) -> dict:
-  """meta.json of an imported capture."""
+          shares, result: StereoDecoded, implausible: tuple[int, int], saved: bool) -> dict:
+  """meta.json of an imported capture (file paths relative to the scene folder)."""
   n = count_patterns({k: None for k in roles[0] if k[0] in "pi"}, "frames")
   meta = {
       "group": config.group or out.resolve().name, "code": "gray" if config.layout == "opencv"
       else config.code, "source": "import-captures", "layout": config.layout,
       "patterns": n, "views": "white" if ambient is None else "ambient",
-      "frames": {view: {role: str(p.resolve()) for role, p in r.items()}
+      "frames": {view: {role: _relative(p, out) for role, p in r.items()}
                  for view, r in zip(("left", "right"), roles)},
-      "bit_depth": bits, "calibration": calibration.where, "unit": config.unit,
+      "bit_depth": bits, "calibration": _calibration_source(calibration, out, saved),
+      "unit": config.unit,
       "rectification": {**rect.meta(), "alpha": rigs.RECTIFY_ALPHA, "width": rect.size[0],
                         "height": rect.size[1]},
       "scale": config.scale,
       "decode": dataclasses.asdict(config.decode), "match": dataclasses.asdict(config.match),
       "valid": {"left": shares[0][0], "right": shares[1][0]}, "match_bits": result.bits,
+      "implausible": {"left": implausible[0], "right": implausible[1]},
   }
   if config.projector is not None:
     meta["projector"] = list(config.projector)
   if ambient is not None:
-    meta["frames"]["ambient"] = [str(p.resolve()) for p in ambient]
+    meta["frames"]["ambient"] = [_relative(p, out) for p in ambient]
   if result.rows is not None:
     meta["row_check"] = {"row_tolerance": config.match.row_tolerance,
-                         "rejected_left": result.row_rejected}
+                         "rejected_left": result.row_rejected, "checked_left": result.row_checked}
   return meta

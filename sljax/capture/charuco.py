@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from sljax.capture import captures
+from sljax.capture import frames
 from sljax.capture.rig import StereoCalibration, check_calibration
 from sljax.errors import SljaxError, require
 
@@ -61,7 +61,7 @@ def opencv_board(board: Board) -> "cv2.aruco.CharucoBoard":
 
 def detect(image: np.ndarray, detector) -> tuple[np.ndarray, np.ndarray]:
   """(corners Nx2 float32, ids N) of the ChArUco corners an image shows (N may be 0)."""
-  g = captures.grey(image)
+  g = frames.grey(image)
   if g.dtype != np.uint8:  # the detector wants 8 bits
     g = cv2.convertScaleAbs(g, alpha=255.0 / max(int(g.max()), 1))
   corners, ids, _, _ = detector.detectBoard(g)
@@ -71,7 +71,7 @@ def detect(image: np.ndarray, detector) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _images(spec: str, what: str) -> list[Path]:
-  return captures.numbered_frames(captures.list_frames(spec, what), what)
+  return frames.numbered_frames(frames.list_frames(spec, what), what)
 
 
 def calibrate_stereo(left: str, right: str, board: Board, progress: bool = True
@@ -92,7 +92,7 @@ def calibrate_stereo(left: str, right: str, board: Board, progress: bool = True
                     disable=not progress or None, leave=False):
     found = []
     for cam, path in enumerate(paths):
-      img = captures.read_frame(path)
+      img = frames.read_frame(path)
       shape = (img.shape[1], img.shape[0])
       size = size or shape
       require(shape == size, f"{path}: size {shape[0]}x{shape[1]} differs from the first board "

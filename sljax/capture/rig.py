@@ -49,6 +49,7 @@ class StereoCalibration:
   t: np.ndarray   # 3x1
   size: tuple[int, int] | None = None  # (width, height) the file states, if any
   where: str = "calibration"           # the file(s) it came from, for error messages
+  files: tuple[str, ...] = ()          # the files read (none when made in memory)
 
   def as_dict(self) -> dict[str, np.ndarray]:
     """{M1, D1, M2, D2, R, T} as OpenCV names them."""
@@ -189,7 +190,7 @@ def read_calibration(paths: str | os.PathLike | Sequence[str | os.PathLike]) -> 
   out = StereoCalibration(
       m1=cal["M1"].reshape(3, 3), d1=cal["D1"].reshape(1, -1), m2=cal["M2"].reshape(3, 3),
       d2=cal["D2"].reshape(1, -1), r=cal["R"].reshape(3, 3), t=cal["T"].reshape(3, 1),
-      size=_stated_size(entries, where), where=where)
+      size=_stated_size(entries, where), where=where, files=tuple(map(str, paths)))
   check_calibration(out)
   return out
 

@@ -3,7 +3,7 @@
 import argparse
 from pathlib import Path
 
-from sljax.capture import captures, charuco
+from sljax.capture import captures, charuco, frames
 from sljax.capture.rig import UNITS_MM, read_calibration
 from sljax.errors import require
 from sljax.sl.decode import DecodeConfig
@@ -41,7 +41,7 @@ def register(subparsers) -> None:
                  help="ChArUco marker side, in --unit")
   p.add_argument("--dictionary", default="DICT_5X5_100",
                  help="ChArUco ArUco dictionary (default DICT_5X5_100)")
-  p.add_argument("--layout", choices=captures.LAYOUTS, default="opencv",
+  p.add_argument("--layout", choices=frames.LAYOUTS, default="opencv",
                  help="frame order: opencv (structured_light.GrayCodePattern: column bits and "
                  "inverses, row bits and inverses, white, black; by file number) or sljax "
                  "(white, black, p000..., i000...); default opencv")
@@ -85,7 +85,7 @@ def _board(args: argparse.Namespace) -> charuco.Board:
   """The --board/--square/--marker/--dictionary options as a Board."""
   require(args.board and args.square and args.marker,
           "--charuco needs --board XxY, --square LENGTH and --marker LENGTH")
-  sx, sy = captures.parse_projector(args.board)
+  sx, sy = frames.parse_projector(args.board)
   return charuco.Board((sx, sy), args.square, args.marker, args.dictionary).check()
 
 
@@ -97,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
           "--calib takes one file, or intrinsics.yml and extrinsics.yml")
   config = captures.ImportConfig(
       layout=args.layout, code=args.code, unit=args.unit, scale=args.scale, group=args.group,
-      projector=None if args.projector is None else captures.parse_projector(args.projector),
+      projector=None if args.projector is None else frames.parse_projector(args.projector),
       decode=DecodeConfig(args.shadow_threshold / 255.0, args.bit_threshold / 255.0),
       match=MatchConfig(bits=args.match_bits, min_stripe_px=args.min_stripe,
                         lr_tolerance=args.lr_tolerance, row_tolerance=args.row_tolerance),
@@ -125,6 +125,9 @@ def run(args: argparse.Namespace) -> int:
     span = f"{rng[0]:.2f}..{rng[1]:.2f} px" if rng else "none"
     print(f"  {view}: disparity on {share:.1%} of pixels ({span}); code decoded on "
           f"{decoded:.1%}")
+  if any(report.implausible):
+    print(f"  {report.implausible[0]} left and {report.implausible[1]} right matches below 0 or "
+          "above the width left unknown")
   if args.charuco:
     print(f"  calibration written to {out / captures.CALIBRATION_FILE}")
   return 0

@@ -9,7 +9,7 @@ Then X_right = Q_2 (Q_1^T X_left - (B, 0, 0)), so the OpenCV calibration is R = 
 T = -Q_2 (B, 0, 0). A real camera's pixel sees the rectified pixel K_r Q_i^T undistort(M_i^-1
 pixel); the captures are the rendered frames resampled there (cv2.remap).
 
-Frames follow OpenCV's GrayCodePattern for a W x H projector (sljax.capture.captures): the
+Frames follow OpenCV's GrayCodePattern for a W x H projector (sljax.capture.frames): the
 renderer's projector (2^t columns over a square field of view) lights the pixel's point at the
 continuous projector coordinate (col, row), computed here in closed form from the depth and
 checked against the renderer's own column; a W x H projector over the same field of view shows
@@ -32,7 +32,7 @@ from collections.abc import Iterator
 import cv2
 import numpy as np
 
-from sljax.capture import captures
+from sljax.capture import frames
 from sljax.capture.rig import StereoCalibration
 from sljax.render.synthetic import SynthConfig, SyntheticScene
 
@@ -180,7 +180,7 @@ def rectified_frames(scene: SyntheticScene, cfg: SynthConfig, projector: tuple[i
   cfg = cfg.resolved()
   width_p = 2 ** cfg.t
   w_proj, h_proj = projector
-  n, m = captures.bit_counts(projector)
+  n, m = frames.bit_counts(projector)
   col, row = projector_coordinates(scene, cfg)[view]
   raw = (scene.raw0, scene.raw1)[view]
   black = raw["black"].astype(np.float32)

@@ -70,6 +70,7 @@ class StereoDecoded:
   disp1: np.ndarray | None = None
   bits: int | None = None  # column bits the matching used
   row_rejected: int = 0    # left pixels whose match saw another projector row
+  row_checked: int = 0     # left matches the row check could judge (both rows known)
 
 
 def _limit(column: np.ndarray, count: int | None) -> np.ndarray:
@@ -224,16 +225,17 @@ def code_bounds(raw: Mapping[str, np.ndarray], column: np.ndarray, boundary: np.
 
 
 def _row_mismatch(d: np.ndarray, rows_a: np.ndarray, rows_b: np.ndarray, sign: float,
-                  tolerance: float) -> np.ndarray:
-  """Pixels of view a whose matched pixel in view b (nearest) sees another projector row; a
-  row unknown in either view does not count against the match."""
+                  tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+  """(mismatched, checked): pixels of view a whose matched pixel in view b (nearest) sees
+  another projector row, and those where both rows are known (a row unknown in either view
+  does not count against the match)."""
   h, w = d.shape
   finite = np.isfinite(d)
   xb = np.rint(np.arange(w)[None, :] - sign * np.where(finite, d, 0.0)).astype(np.int64)
   inside = finite & (xb >= 0) & (xb < w)
   other = rows_b[np.arange(h)[:, None], np.clip(xb, 0, w - 1)]
   both = inside & np.isfinite(rows_a) & np.isfinite(other)
-  return both & (np.abs(np.where(both, rows_a - other, 0.0)) > tolerance)
+  return both & (np.abs(np.where(both, rows_a - other, 0.0)) > tolerance), both
 
 
 def match_views(decoded: StereoDecoded, match: MatchConfig = MatchConfig()) -> StereoDecoded:
@@ -251,9 +253,10 @@ def match_views(decoded: StereoDecoded, match: MatchConfig = MatchConfig()) -> S
                                 edges=(maps[0][1], maps[1][1]) if match.edges else None,
                                 edge_tolerance=match.edge_tolerance, bounds=bounds)
   if decoded.rows is not None:
-    bad0 = _row_mismatch(d0, decoded.rows[0], decoded.rows[1], 1.0, match.row_tolerance)
-    bad1 = _row_mismatch(d1, decoded.rows[1], decoded.rows[0], -1.0, match.row_tolerance)
-    decoded.row_rejected = int(bad0.sum())
+    bad0, checked0 = _row_mismatch(d0, decoded.rows[0], decoded.rows[1], 1.0,
+                                   match.row_tolerance)
+    bad1, _ = _row_mismatch(d1, decoded.rows[1], decoded.rows[0], -1.0, match.row_tolerance)
+    decoded.row_rejected, decoded.row_checked = int(bad0.sum()), int(checked0.sum())
     d0 = np.where(bad0, np.float32(np.inf), d0)
     d1 = np.where(bad1, np.float32(np.inf), d1)
     # A pixel whose partner was refused is no longer confirmed by the other view.

@@ -18,7 +18,8 @@ FLOORS = (
     ("networks, losses, correlation", {"nets", "losses", "corr", "metrics", "geometry", "viz"}),
     ("trained models and compiler settings", {"models", "tune"}),
     ("training", {"train"}),
-    ("using a trained model", {"inference", "baselines", "evaluate", "predict", "export"}),
+    ("using a trained model", {"inference", "baselines", "evaluate", "predict", "export",
+                                  "deploy"}),
     ("experiments", {"experiment"}),
     ("commands", {"commands", "cli"}),
 )

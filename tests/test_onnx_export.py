@@ -111,10 +111,11 @@ def test_conv_plugin_matches_lax(case):
 
 
 def test_cli_writes_onnx_and_its_own_sidecar(tmp_path, capsys):
-  """A converted PSMNet folder (what convert-psmnet writes) to ONNX: the check's line, the
-  sidecar beside it (not the .jax artifact's model.json), and the model runs from the file."""
+  """A converted PSMNet folder (what convert-psmnet writes; align_corners=True as for the
+  PyTorch 0.3 checkpoints, the other upsampling path) to ONNX: the check's line, the sidecar
+  beside it (not the .jax artifact's model.json), and the model runs from the file."""
   from test_predict import _converted_model
-  model = _converted_model(tmp_path / "m", "psmnet", KW["psmnet"])
+  model = _converted_model(tmp_path / "m", "psmnet", dict(KW["psmnet"], align_corners=True))
   out = tmp_path / "art" / "model.onnx"
   assert cli.main(["export", str(model), str(out), "--size", "24x40"]) == 0
   printed = capsys.readouterr().out
@@ -122,8 +123,10 @@ def test_cli_writes_onnx_and_its_own_sidecar(tmp_path, capsys):
   assert sorted(p.name for p in out.parent.iterdir()) == ["model.onnx", "model.onnx.json"]
   info = json.loads((out.parent / "model.onnx.json").read_text())
   assert info["format"] == "sljax-onnx" and info["opset"] >= 17
+  assert info["converter"]["jax2onnx"] == "0.12.5" and info["input"]["batch"] == "any (dynamic)"
   assert info["input"]["names"] == ["left", "right"] and info["input"]["channels"] == 3
-  assert info["input"]["channel_order"] == "RGB" and info["outputs"] == {"disparity": [None, 24, 40]}
+  assert info["input"]["channel_order"] == "RGB"
+  assert info["outputs"] == {"disparity": [None, 24, 40]}
   assert info["check"]["max_abs_disparity"] <= dx.TOLERANCE_PX
   left, right = _random_pair(1, 3, 1)
   left, right = left[:, :24, :40], right[:, :24, :40]

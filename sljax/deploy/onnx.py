@@ -24,6 +24,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import io
+from importlib import metadata
 import json
 import logging
 import os
@@ -225,7 +226,6 @@ def check(traced: Traced, predictor, size: tuple[int, int]) -> dict[str, Any]:
 def sidecar(predictor, traced: Traced, size: tuple[int, int], source: str,
             report: dict[str, Any]) -> dict[str, Any]:
   """What an ONNX Runtime user needs, as a JSON-able dict."""
-  import jax2onnx
   import onnxruntime
   h, w = size
   info: dict[str, Any] = {"format": FORMAT, **describe(predictor, size, source)}
@@ -240,8 +240,8 @@ def sidecar(predictor, traced: Traced, size: tuple[int, int], source: str,
       "outputs": traced.shapes,
       "output_layouts": {k: "BxHxW" if len(v) == 3 else "BxHxWxP"
                          for k, v in traced.shapes.items()},
-      "converter": {"jax2onnx": jax2onnx.__version__ if hasattr(jax2onnx, "__version__")
-                    else "?", "jax": jax.__version__, "conv_impl": "lax"},
+      "converter": {"jax2onnx": metadata.version("jax2onnx"), "jax": jax.__version__,
+                    "conv_impl": "lax"},
       "check": dict(report, onnxruntime=onnxruntime.__version__,
                     pair=f"sljax.data.synthetic scene 0 of seed {CHECK_SEED}, top-left "
                          f"{h}x{w}", jax="CPU, matmul precision highest"),

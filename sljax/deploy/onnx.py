@@ -266,6 +266,8 @@ def write_onnx(predictor, size: tuple[int, int], out: str | os.PathLike, source:
   files.refuse_existing([out, side], overwrite)
   log(f"tracing {predictor.describe()} at {size[0]}x{size[1]} and converting to ONNX ...")
   traced = trace(predictor, size)
+  if not traced.dynamic_batch:
+    log("the batch is fixed at 1 (an operator of this model needs a constant batch)")
   log(f"converted in {traced.seconds:.1f} s; checking with ONNX Runtime against JAX on a "
       "rendered pair ...")
   report = check(traced, predictor, size)

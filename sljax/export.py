@@ -159,8 +159,11 @@ def inference_function(predictor, size: tuple[int, int]) -> Callable:
       return _resize_to(x, in_h, in_w)
     if not (ph or pw):
       return x
-    canvas = jnp.broadcast_to(fill, (x.shape[0], h + ph, w + pw, c))
-    return canvas.at[:, ph:, :w].set(x)
+    # A pad and a select (not a scatter into a filled canvas): the same values, and operators
+    # that ONNX takes with a dynamic batch (sljax.deploy).
+    inside = np.zeros((1, h + ph, w + pw, 1), bool)
+    inside[:, ph:, :w] = True
+    return jnp.where(inside, jnp.pad(x, ((0, 0), (ph, 0), (0, pw), (0, 0))), fill)
 
   sl_u = predictor.options.search_range
   sl_window = predictor.options.window or correlation.PAPER_WINDOW
@@ -206,13 +209,10 @@ def export_model(predictor, size: tuple[int, int]):
                      f"({type(e).__name__}: {str(e).splitlines()[0][:300]})") from None
 
 
-def sidecar(predictor, exported, size: tuple[int, int], source: str) -> dict[str, Any]:
-  """What a user needs to call the artifact, as a JSON-able dict."""
+def describe(predictor, size: tuple[int, int], source: str) -> dict[str, Any]:
+  """The sidecar fields that any exported form shares: model, mode, input, scaling."""
   h, w = size
-  outputs = {k: [None if not isinstance(d, int) else d for d in v.shape]
-             for k, v in exported.out_tree.unflatten(exported.out_avals).items()}
   info: dict[str, Any] = {
-      "format": FORMAT,
       "model": predictor.model_name,
       "model_kwargs": predictor.model_kwargs,
       "source": source,
@@ -221,9 +221,6 @@ def sidecar(predictor, exported, size: tuple[int, int], source: str) -> dict[str
       "input": {"names": ["left", "right"], "height": h, "width": w,
                 "channels": predictor.channels, "dtype": "float32", "layout": "BxHxWxC",
                 "batch": "any (symbolic)", "range": [0.0, 1.0]},
-      "outputs": outputs,
-      "platforms": list(exported.platforms),
-      "jax_version": jax.__version__,
       "how_to_scale": {
           "inputs": "uint8 / 255, uint16 / 65535, float already in [0, 1]; RGB -> gray by "
                     "ITU-R BT.601 luma (0.299 R + 0.587 G + 0.114 B), gray -> RGB by "
@@ -235,14 +232,27 @@ def sidecar(predictor, exported, size: tuple[int, int], source: str) -> dict[str
           "patterns": "probability that the pattern is lit, per pattern (coarsest first)",
           "confidence": "in [0, 1], higher is surer",
       },
-      "load": ["import jax", "exp = jax.export.deserialize(open(PATH, 'rb').read())",
-               "out = exp.call(left, right)"],
   }
   if predictor.mode == "pad":
     info["pad"] = {"multiple": predictor.pad.multiple, "fill": list(predictor.pad.fill),
                    "where": "top and right"}
   else:
     info["train_size"] = list(predictor.train_size)
+  return info
+
+
+def sidecar(predictor, exported, size: tuple[int, int], source: str) -> dict[str, Any]:
+  """What a user needs to call the artifact, as a JSON-able dict."""
+  outputs = {k: [None if not isinstance(d, int) else d for d in v.shape]
+             for k, v in exported.out_tree.unflatten(exported.out_avals).items()}
+  info: dict[str, Any] = {"format": FORMAT, **describe(predictor, size, source)}
+  info.update({
+      "outputs": outputs,
+      "platforms": list(exported.platforms),
+      "jax_version": jax.__version__,
+      "load": ["import jax", "exp = jax.export.deserialize(open(PATH, 'rb').read())",
+               "out = exp.call(left, right)"],
+  })
   return info
 
 

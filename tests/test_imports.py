@@ -21,7 +21,7 @@ FLOORS = (
     ("trained models and compiler settings", {"models", "tune"}),
     ("training", {"train"}),
     ("using a trained model", {"inference", "baselines", "evaluate", "predict", "video",
-                               "export"}),
+                               "export", "deploy"}),
     ("experiments", {"experiment"}),
     ("commands", {"commands", "cli"}),
 )

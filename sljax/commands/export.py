@@ -1,9 +1,11 @@
-"""`sljax export MODEL OUT --size HxW`: the inference function as a jax.export artifact."""
+"""`sljax export MODEL OUT --size HxW`: the inference function as a jax.export artifact, or as
+an ONNX model checked by ONNX Runtime when OUT ends in .onnx (sljax.deploy.onnx)."""
 
 import argparse
 from pathlib import Path
 
 from sljax import export, inference
+from sljax.deploy import onnx as onnx_export
 from sljax.errors import SljaxError
 
 
@@ -19,10 +21,15 @@ def register(subparsers) -> None:
                   "Load and run it with jax alone: exp = jax.export.deserialize(open(OUT, "
                   "'rb').read()); out = exp.call(left, right), left and right float32 "
                   "BxHxWxC in [0, 1]. The artifact is lowered for CPU and CUDA GPU (and the platform it "
-                  "is made on).")
+                  "is made on). An OUT ending in .onnx writes ONNX instead (opset 18, dynamic "
+                  "batch; needs pip install -e \".[onnx]\") and OUT.json beside it; the export "
+                  "is checked by ONNX Runtime against JAX on a rendered pair, and nothing is "
+                  "written if they differ by more than 0.01 px.")
   p.add_argument("model", metavar="MODEL",
                  help="a training workdir, its checkpoints folder or a converted PSMNet folder")
-  p.add_argument("out", metavar="OUT", help="the file to write, e.g. psmnet_1024x1280.jax")
+  p.add_argument("out", metavar="OUT",
+                 help="the file to write, e.g. psmnet_1024x1280.jax, or psmnet_1024x1280.onnx "
+                      "for ONNX")
   p.add_argument("--size", required=True, metavar="HxW",
                  help="input height x width in pixels, e.g. 1024x1280")
   p.add_argument("--mode", choices=("pad", "resize"), default="pad",
@@ -45,12 +52,20 @@ def run(args) -> int:
   if not Path(args.model).exists():
     raise SljaxError(f"MODEL {args.model}: unknown model: no such checkpoint, training workdir "
                      "or converted PSMNet folder")
-  out, side = Path(args.out), export.sidecar_path(args.out)
+  onnx = Path(args.out).suffix.lower() == ".onnx"
+  if onnx:
+    onnx_export.require()  # before the (slow) loading
+  out = Path(args.out)
+  side = onnx_export.sidecar_path(out) if onnx else export.sidecar_path(out)
   for p in (out, side):  # before the (slow) loading and tracing
     if p.exists() and not args.overwrite:
       raise SljaxError(f"{p}: exists (pass --overwrite to replace it)")
   predictor = inference.load(args.model, mode=args.mode, maxdisp=args.maxdisp,
                              search_range=args.search_range)
-  out, side = export.write_export(predictor, size, out, args.model, overwrite=args.overwrite)
+  if onnx:
+    out, side, _ = onnx_export.write_onnx(predictor, size, out, args.model,
+                                          overwrite=args.overwrite, log=print)
+  else:
+    out, side = export.write_export(predictor, size, out, args.model, overwrite=args.overwrite)
   print(f"wrote {out} ({out.stat().st_size / 2**20:.2f} MiB, {predictor.describe()}) and {side}")
   return 0

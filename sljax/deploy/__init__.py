@@ -1,0 +1,1 @@
+"""Running a trained model outside JAX: ONNX export (jax2onnx, checked by ONNX Runtime)."""

@@ -93,6 +93,7 @@ def child_run(train_args: list[str]) -> None:
   from benchmarks.common import device_of_process
   print(json.dumps({"code": code, "records": records, **marks, "where": device_of_process(),
                     "total": time.perf_counter() - t_start}), flush=True)
+  raise SystemExit(code)
 
 
 def run_once(train_args: list[str], cache_dir: Path, workdir: Path, env_extra: dict) -> dict:

@@ -332,32 +332,10 @@ def extract_cost_volume(left: jax.Array, right: jax.Array, maxdisp: int,
                         train: bool, align_corners: bool, conv_impl: str) -> jax.Array:
   """Normalises, runs the shared `feature_extraction` on each view and builds the volume."""
   features = FeatureExtraction(align_corners, conv_impl, name="feature_extraction")
-  fl, fr = both_views(features, normalize_images(left), normalize_images(right), train)
+  # Two calls (not one batched call) so BatchNorm statistics match the reference in training.
+  fl = features(normalize_images(left), train)
+  fr = features(normalize_images(right), train)
   return cost_volume(fl, fr, maxdisp // 4)
-
-
-def both_views(features: nn.Module, left: jax.Array, right: jax.Array,
-               train: bool) -> tuple[jax.Array, jax.Array]:
-  """(features(left, train), features(right, train)) as a loop of two iterations.
-
-  Two calls (not one batched call) so BatchNorm statistics match the reference in training:
-  the loop carries them from the left view's call to the right's, as two calls in a row would.
-  As a loop the feature extractor is in the program once, not twice: it was a third of the
-  training step's operations, traced, lowered and compiled before the first step (issue 42).
-  Initialisation (which creates the variables the loop carries) makes the two calls.
-  """
-  if features.is_initializing():
-    return features(left, train), features(right, train)
-
-  def body(module, carry, x):
-    return carry, module(x, train)
-
-  # Evaluation reads the statistics (broadcast); training updates them (carried).
-  scan = nn.scan(body, variable_broadcast="params" if train else ("params", "batch_stats"),
-                 variable_carry="batch_stats" if train else (), split_rngs={"params": False},
-                 length=2)
-  _, out = scan(features, None, jnp.stack([left, right]))
-  return out[0], out[1]
 
 
 class PSMNet(ResolvesConvImpl, nn.Module):

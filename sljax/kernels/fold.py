@@ -41,7 +41,7 @@ def pad_depth(x: jax.Array, padding) -> tuple[jax.Array, tuple[tuple[int, int], 
 
   With the padding in the input every output plane is interior (`depth_plan` finds no edges),
   so one loop body of kd convolutions covers the whole layer. The edge planes, unrolled, were
-  more than half of the 2D convolutions of PSMNet's training step (issue 42: the program
+  about a third of the convolutions of PSMNet-MTL's training step (issue 42: the program
   traced, lowered and compiled before the first step, and the size of the compile cache's
   entry, whose loading grows faster than linearly with it); the price is a padded copy of
   the input and the products with its zero planes (exact zeros, so the sums are unchanged).

@@ -37,7 +37,7 @@ def flat_update(tx: optax.GradientTransformation) -> optax.GradientTransformatio
   """tx with its update computed on one flat vector of all parameters; same state tree.
 
   An elementwise optimiser (Adam) applied leaf by leaf puts a dozen operations per parameter
-  leaf into the training step: with PSMNet-MTL's ~550 leaves a quarter of the program that is
+  leaf into the training step: with PSMNet-MTL's hundreds of leaves 15% of the program that is
   traced, lowered and compiled before the first step, and as many small kernels at run time
   (issue 42). On the concatenated leaves it is a few operations, element for element the same
   arithmetic, so the values are equal. The state keeps tx's own tree (checkpoints unchanged):

@@ -9,6 +9,13 @@ XLA handing a convolution (with what it fused to it) to its library kernels (YNN
 
   python benchmarks/profile_step.py                         # PSMNet, 256x256, batch 2, training
   python benchmarks/profile_step.py --model psmnet-mtl --forward
+  python benchmarks/profile_step.py --batch 12 --kernels indexed,nchwToNhwc   # on a GPU
+
+--kernels PATTERNS (a GPU): the device kernels whose names hold any of the comma-separated
+patterns, each with its XLA operation and that operation's layer (its `op_name`: the flax
+module path, and jvp/transpose for the gradients), dimension labels and shapes from the
+compiled program: which convolution runs in cuDNN's sm80 `indexed` kernels and which brings
+its `nchwToNhwc` layout conversions (issue 42).
 """
 
 from __future__ import annotations
@@ -88,9 +95,11 @@ DERIVED_LINES = ("XLA Modules", "XLA Ops", "Async XLA Ops", "Steps", "TensorFlow
                  "Source", "Launch Stats")
 
 
-def device_kernel_times(events: list[dict]) -> tuple[collections.Counter, dict[str, str]]:
+def device_kernel_times(events: list[dict], by_op: bool = False
+                        ) -> tuple[collections.Counter, dict[str, str]]:
   """Microseconds per kernel name on the accelerators' stream lines of a trace (an empty
-  Counter on a CPU-only trace), and the XLA operation of each kernel where the trace names it."""
+  Counter on a CPU-only trace), and the XLA operation of each kernel where the trace names it;
+  by_op: per (kernel name, XLA operation) instead (one kernel can serve several operations)."""
   procs, threads = {}, {}
   for e in events:
     if e.get("ph") == "M" and e.get("name") in ("process_name", "thread_name"):
@@ -104,8 +113,8 @@ def device_kernel_times(events: list[dict]) -> tuple[collections.Counter, dict[s
     line = threads.get((e.get("pid"), e.get("tid")), "")
     if (e.get("ph") == "X" and "dur" in e and e.get("pid") in devices
         and not line.startswith(DERIVED_LINES)):
-      kernels[e["name"]] += e["dur"]
       op = (e.get("args") or {}).get("hlo_op")
+      kernels[(e["name"], str(op or "")) if by_op else e["name"]] += e["dur"]
       if op:
         ops.setdefault(e["name"], str(op))
   return kernels, ops
@@ -132,6 +141,8 @@ def main() -> None:
   ap.add_argument("--batch", type=int, default=2)
   ap.add_argument("--forward", action="store_true", help="profile the forward (eval) program")
   ap.add_argument("--top", type=int, default=12)
+  ap.add_argument("--kernels", default=None, metavar="PATTERNS",
+                  help="device kernels naming any of these (comma-separated), with their layers")
   args = ap.parse_args()
   print(machine())
   kind = "forward" if args.forward else "train"
@@ -151,6 +162,9 @@ def main() -> None:
     fn = jax.jit(jax.grad(loss), compiler_options=options)
     call = (variables["params"], left, right, gt)
   jax.block_until_ready(fn(*call))  # compile and warm up
+  if args.kernels:
+    kernel_layers(fn, call, args)
+    return
   kinds = by_kind(exclusive_times(traced_call(fn, call)))
   total = sum(kinds.values())
   print(f"\n{args.model} {kind}, {args.size}x{args.size}, maxdisp {args.maxdisp}, batch "
@@ -163,6 +177,52 @@ def main() -> None:
     rows.append({"kind": name, "ms": us / 1e3, "share": us / total})
   record("profile_step", rows, model=args.model, program=kind, size=args.size,
          maxdisp=args.maxdisp, batch=args.batch, ynn=choice.name)
+
+
+def hlo_ops(hlo_text: str) -> dict[str, dict[str, str]]:
+  """Per instruction name of a compiled HLO module: its op_name metadata, dim_labels, the
+  custom call's target and the instruction's text up to its operands (shapes)."""
+  out = {}
+  for line in hlo_text.splitlines():
+    m = re.match(r"\s*(?:ROOT )?%?([\w.\-]+) = (.*)", line)
+    if not m:
+      continue
+    meta = re.search(r'op_name="([^"]*)"', line)
+    labels = re.search(r"dim_labels=([\w>\-]+)", line)
+    target = re.search(r'custom_call_target="([^"]*)"', line)
+    out[m.group(1)] = {"layer": meta.group(1) if meta else "",
+                       "dim_labels": labels.group(1) if labels else "",
+                       "target": target.group(1) if target else "",
+                       "shape": m.group(2).split("(")[0][:120]}
+  return out
+
+
+def kernel_layers(fn, call, args, calls: int = 3) -> None:
+  """Prints (and records) the device kernels matching args.kernels with their layers."""
+  patterns = [p for p in args.kernels.split(",") if p]
+  ops = hlo_ops(fn.lower(*call).compile().as_text())
+  kernels, _ = device_kernel_times(traced_call(fn, call, calls), by_op=True)
+  total = sum(kernels.values()) or 1.0
+  print(f"\n{args.model} {'forward' if args.forward else 'train'}, {args.size}x{args.size}, "
+        f"maxdisp {args.maxdisp}, batch {args.batch}: device kernels naming "
+        f"{', '.join(patterns)} ({total / 1e3 / calls:.1f} ms of kernels a call)")
+  print("| kernel | ms a call | share | XLA op | layer (op_name) | dim_labels | shape |\n"
+        "| --- | ---: | ---: | --- | --- | --- | --- |")
+  rows = []
+  for (name, op), us in kernels.most_common():
+    if not any(p in name for p in patterns):
+      continue
+    op = op.lstrip("%")
+    info = ops.get(op, {})
+    row = {"kernel": name, "ms_per_call": us / 1e3 / calls, "share": us / total, "hlo_op": op,
+           **info}
+    rows.append(row)
+    print(f"| {name[:90]} | {row['ms_per_call']:.2f} | {100 * row['share']:.1f}% | {op} | "
+          f"{info.get('layer', '?')} | {info.get('dim_labels', '')} | {info.get('shape', '')} |")
+  if not kernels:
+    print("(no device kernels in the trace: not on a GPU)")
+  record("profile_step", rows, model=args.model, program="kernels", size=args.size,
+         maxdisp=args.maxdisp, batch=args.batch, patterns=args.kernels)
 
 
 if __name__ == "__main__":

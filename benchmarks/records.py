@@ -40,12 +40,18 @@ def headlines(entry: dict) -> list[tuple[str, str]]:
       out.append((f"correlation {r['width']}x{r['height']} t={r['t']} u={r['u']}",
                   f"{r['rows_s']:.3f} s ({r['shifts_s'] / r['rows_s']:.1f}x faster than shifts)"))
     elif b == "bench_fullres":
+      what = f"pad mode {r['model']} {r['width']}x{r['height']} maxdisp {r['maxdisp']}"
+      if r.get("failed"):
+        out.append((what, "failed (out of memory?)"))
+        continue
+      mem = "peak_device_gib" if r.get("peak_device_gib") is not None else "peak_rss_gib"
       ref = ""
       if r.get("reference_s"):
-        ref = (f"; reference {r['reference_s']:.1f} s, {r['reference_peak_rss_gib']:.1f} GiB: "
+        ref_mem = r.get(f"reference_{mem}") or r.get("reference_peak_rss_gib")
+        ref = (f"; reference {r['reference_s']:.2f} s, {ref_mem:.1f} GiB: "
                f"{r['later_call_s'] / r['reference_s']:.2f}x")
-      out.append((f"pad mode {r['model']} {r['width']}x{r['height']} maxdisp {r['maxdisp']}",
-                  f"{r['later_call_s']:.1f} s, {r['peak_rss_gib']:.1f} GiB{ref}"))
+      out.append((what, f"{r['later_call_s']:.2f} s, {r[mem]:.1f} GiB"
+                  f"{' (device)' if mem == 'peak_device_gib' else ''}{ref}"))
     elif b == "bench_synthetic":
       out.append((f"renderer {entry.get('size')}px {r['path']}", f"{r['cpu_ms_per_scene']:.0f} ms CPU"))
     elif b == "bench_gpu" and r.get("table") == "agreement":

@@ -35,6 +35,25 @@ def depth_plan(depth: int, kd: int, sd: int, padding: tuple[int, int]):
   return do, first, count, edges
 
 
+def pad_depth(x: jax.Array, padding) -> tuple[jax.Array, tuple[tuple[int, int], ...]]:
+  """x with its depth padding applied (zero planes; a negative side crops) and the padding
+  that is left (none in depth).
+
+  With the padding in the input every output plane is interior (`depth_plan` finds no edges),
+  so one loop body of kd convolutions covers the whole layer. The edge planes, unrolled, were
+  about a third of the convolutions of PSMNet-MTL's training step (issue 42: the program
+  traced, lowered and compiled before the first step, and the size of the compile cache's
+  entry, whose loading grows faster than linearly with it); the price is a padded copy of
+  the input and the products with its zero planes (exact zeros, so the sums are unchanged).
+  """
+  lo, hi = padding[0]
+  if lo == 0 and hi == 0:
+    return x, tuple(padding)
+  zero = jnp.zeros((), x.dtype)
+  x = lax.pad(x, zero, ((0, 0, 0), (lo, hi, 0), (0, 0, 0), (0, 0, 0), (0, 0, 0)))
+  return x, ((0, 0),) + tuple(padding[1:])
+
+
 def tap_planes(x: jax.Array, n0, z0, nb: int, tz: int, kd: int, sd: int,
                lo: int) -> list[jax.Array]:
   """Input planes sd*z + a - lo of the interior block z0 .. z0 + tz - 1, [nb * tz, H, W, C]."""
@@ -50,6 +69,7 @@ def tap_planes(x: jax.Array, n0, z0, nb: int, tz: int, kd: int, sd: int,
 def fold_forward(x: jax.Array, kernel: jax.Array, strides: tuple[int, int, int],
                  padding: tuple[tuple[int, int], ...], block_values: int) -> jax.Array:
   """The folded 3D convolution of NDHWC x with a DHWIO kernel (explicit padding pairs)."""
+  x, padding = pad_depth(x, padding)
   n, depth = x.shape[:2]
   kd, sd, lo = kernel.shape[0], strides[0], padding[0][0]
   do, first, count, edges = depth_plan(depth, kd, sd, padding[0])
@@ -78,6 +98,7 @@ def fold_forward(x: jax.Array, kernel: jax.Array, strides: tuple[int, int, int],
 def fold_kernel_grad(x: jax.Array, dy: jax.Array, kernel_shape: Sequence[int],
                      strides: tuple[int, int, int], padding, block_values: int) -> jax.Array:
   """dL/dkernel of the folded conv: per depth tap, blocked 2D kernel gradients, summed."""
+  x, padding = pad_depth(x, padding)
   n, depth = x.shape[:2]
   kd, sd, lo = kernel_shape[0], strides[0], padding[0][0]
   _, first, count, edges = depth_plan(depth, kd, sd, padding[0])

@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+from jax.flatten_util import ravel_pytree
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
 from sljax.losses.disparity import disparity_loss, masked_mae
@@ -104,14 +105,32 @@ def make_train_step(model: nn.Module, config: ModelConfig, *, disp_loss: str,
     grad_fn = jax.value_and_grad(loss_fn, has_aux=True)
     (total, (aux, new_stats)), grads = grad_fn(state.params, state.batch_stats, batch, weights)
     updates, opt_state = tx.update(grads, state.opt_state, state.params)
-    params = optax.apply_updates(state.params, updates)
-    metrics = dict(aux, loss=total, grad_norm=optax.tree.norm(grads))
+    params = apply_updates(state.params, updates)
+    metrics = dict(aux, loss=total, grad_norm=flat_norm(grads))
     return TrainState(step=state.step + 1, params=params, batch_stats=new_stats,
                       opt_state=opt_state), metrics
 
   repl, data = shardings(mesh)
   return jax.jit(step, in_shardings=(repl, data, repl), out_shardings=(repl, repl),
                  donate_argnums=(0,), compiler_options=compiler_options)
+
+
+def apply_updates(params: Any, updates: Any) -> Any:
+  """optax.apply_updates on the raveled trees: one addition, not one per leaf (issue 42: the
+  program's size before the first step); leaves of mixed dtypes take optax's own."""
+  if len({x.dtype for x in jax.tree.leaves(params) + jax.tree.leaves(updates)}) != 1:
+    return optax.apply_updates(params, updates)
+  flat, unravel = ravel_pytree(params)
+  return unravel(flat + ravel_pytree(updates)[0])
+
+
+def flat_norm(tree: Any) -> jax.Array:
+  """The global L2 norm of a pytree's leaves (optax.tree.norm up to the order of summation)."""
+  leaves = jax.tree.leaves(tree)
+  if len({x.dtype for x in leaves}) != 1:
+    return optax.tree.norm(tree)
+  flat = ravel_pytree(tree)[0]
+  return jnp.sqrt(jnp.sum(jnp.square(flat)))
 
 
 def make_eval_step(model: nn.Module, config: ModelConfig, *, mesh: Mesh,

@@ -128,3 +128,13 @@ def test_the_grid_setting_by_the_rule(tmp_path, scratch, finetune, grid):
   (runner.cell_dir(tmp_path, plan.cells[0].name) / runner.DONE_FILE).unlink()
   assert regime.v4(tmp_path, "smoke", 1)["grid_setting"] is None
   assert regime.v4(tmp_path, "smoke", 1)["missing"] == [plan.cells[0].name]
+
+
+def test_status_reads_a_step_budget_by_steps():
+  from sljax.experiment.status import TRAINING, CellState  # pylint: disable=import-outside-toplevel
+  cell = plans.build_plan("v4-pilot", "cpu", 1).cells[0]
+  s = CellState(cell, TRAINING, epoch=300, step=675)
+  assert s.share == pytest.approx(675 / 2700) and s.where == "step 675 of 2700"
+  v3 = plans.build_plan("v3-pilot", "cpu", 1).cells[0]
+  e = CellState(v3, TRAINING, epoch=60, step=60)
+  assert e.share == pytest.approx(60 / 240) and e.where == "epoch 60 of 240"

@@ -307,3 +307,34 @@ def test_a_cell_scored_on_its_best_checkpoint_keeps_it(tmp_path):
   with pytest.raises(SljaxError, match="kept no best checkpoint"):
     (wd / runner.DONE_FILE).write_text(json.dumps(dict(done, best_step=None)))
     runner.final_checkpoint(tmp_path, cell.name, "best")
+
+
+def test_a_cell_validated_by_steps_fine_tunes_and_keeps_its_best(tmp_path):
+  """v4's cells: a pretraining by steps, then a fine-tuning by steps from its final checkpoint,
+  scored on its final and its best checkpoint (the lowest MAE of validation.jsonl)."""
+  import dataclasses
+  sc = plans.SCALES["smoke"]
+  base = plans.build_plan("table1", "smoke", 1).cells[0]  # unet-sl on objects: compiled above
+  pre_config = dataclasses.replace(base.config, model="unet-disp", steps=6, val_every_steps=2)
+  pre = dataclasses.replace(base, name="unet-disp-pre-s0", arm="unet-disp", config=pre_config,
+                            evals=(), windows=())
+  ft_config = dataclasses.replace(pre_config, domain="tissue", synth_n=sc.tissue_n, lr=1e-4,
+                                  steps=4)
+  evals = (plans.test_set("tissue", sc), plans.test_set("tissue", sc, "best"))
+  ft = dataclasses.replace(pre, name="unet-disp-ft-s0", config=ft_config, init_cell=pre.name,
+                           evals=evals)
+  plan = plans.Plan("v4", sc, (0,), (pre, ft), "unet-disp")
+  runner.run(plan, tmp_path, progress=False, log=lambda line: None)
+  wd = runner.cell_dir(tmp_path, ft.name)
+  done = json.loads((wd / runner.DONE_FILE).read_text())
+  assert json.loads((wd / "config.json").read_text())["init_from"] == str(
+      runner.final_checkpoint(tmp_path, pre.name))
+  rows = [json.loads(l) for l in (wd / "validation.jsonl").read_text().splitlines()]
+  assert [r["step"] for r in rows] == [2, 4] and done["step"] == 4
+  assert runner.curve(tmp_path, ft.name) == [(r["step"], r["val_mae"]) for r in rows]
+  best = min(rows, key=lambda r: (r["val_mae"], r["step"]))
+  assert done["best_step"] == best["step"]
+  kept = {int(p.name) for p in (wd / "checkpoints").iterdir() if p.name.isdigit()}
+  assert kept == {done["step"], done["best_step"]}
+  assert {p.name for p in (wd / "eval").iterdir()} >= {"test-tissue.json",
+                                                       "test-tissue-best.json"}

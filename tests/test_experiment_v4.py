@@ -138,3 +138,166 @@ def test_status_reads_a_step_budget_by_steps():
   v3 = plans.build_plan("v3-pilot", "cpu", 1).cells[0]
   e = CellState(v3, TRAINING, epoch=60, step=60)
   assert e.share == pytest.approx(60 / 240) and e.where == "epoch 60 of 240"
+
+
+# ---- the test grid ---------------------------------------------------------------------------
+
+
+def _by(plan):
+  return {(c.arm, dict(c.factors)["setting"], c.seed): c for c in plan.cells}
+
+
+def test_grid_cells_in_the_finetune_regime():
+  """Each arm fine-tunes its own objects model (the twin for unc and epr) trained as the
+  pilot's pretraining; the regime's fraction and steps; final and best on the tissue test set."""
+  plan = plans.build_plan("v4", "smoke", 3)
+  plans.check_unique(plan)
+  design = plans.SCALES["smoke"].v4
+  setting, fraction, steps = design.regime
+  assert setting == "finetune" and plan.seeds == (300, 301, 302) and plan.baseline == "stl"
+  by = _by(plan)
+  assert len(by) == len(plan.cells) == 3 * 3 * 2
+  pilot_pre = plans.build_plan("v4-pilot", "smoke", 1).cells_of(setting="pretrain")[0]
+  for (arm, where, seed), cell in by.items():
+    c = cell.config
+    assert (c.model, c.strategy, c.seed, c.lr_drop_epoch, c.max_val) == (
+        "psmnet", arm, seed, None, None)
+    if where == "pretrain":
+      assert cell.evals == () and cell.init_cell is None
+      # The pilot's pretraining with the arm's strategy and the grid's seed, nothing else.
+      mine = cell.spec()["config"]
+      pilot = dataclasses.replace(pilot_pre.config, strategy=arm, seed=seed)
+      assert mine == plans.Cell("x", arm, (), seed, pilot).spec()["config"]
+      continue
+    assert cell.init_cell == by[(arm, "pretrain", seed)].name
+    assert (c.domain, c.fraction, c.lr, c.steps, c.val_every_steps) == (
+        "tissue", fraction, design.finetune_lr, steps, design.val_every)
+    assert [(e.name, e.kind, e.domain, e.checkpoint) for e in cell.evals] == [
+        ("test-tissue", "fixed", "tissue", "final"),
+        ("test-tissue-best", "fixed", "tissue", "best")]
+    assert dict(cell.factors) == {"setting": "finetune", "data": fraction}
+  # Seeds pair the arms: the same seed's cells differ only in the strategy.
+  stl, unc = by[("stl", "finetune", 300)].config, by[("unc", "finetune", 300)].config
+  assert dataclasses.replace(stl, strategy="unc") == unc
+
+
+def test_grid_cells_from_scratch(monkeypatch):
+  smoke = plans.SCALES["smoke"]
+  monkeypatch.setitem(plans.SCALES, "smoke", dataclasses.replace(
+      smoke, v4=dataclasses.replace(smoke.v4, regime=("scratch", "1/8", 6))))
+  plan = plans.build_plan("v4", "smoke", 3)
+  assert len(plan.cells) == 9 and [c.arm for c in plan.cells[:3]] == ["stl", "unc", "epr"]
+  for cell in plan.cells:
+    c = cell.config
+    assert cell.init_cell is None and dict(cell.factors) == {"setting": "scratch", "data": "1/8"}
+    assert (c.domain, c.fraction, c.lr, c.steps, c.val_every_steps) == (
+        "objects", "1/8", smoke.lr, 6, smoke.v4.val_every)
+    assert [e.name for e in cell.evals] == ["test-objects", "test-objects-best"]
+
+
+@pytest.mark.parametrize("change, seeds, message", [
+    ({"regime": None}, 3, "no regime yet"),
+    ({"regime": plans.NO_REGIME}, 3, "found no setting where stl overfits"),
+    ({"grid_seeds": None}, 3, "number of seeds at scale smoke is not committed"),
+    ({}, 4, "--seeds 4: plan v4 runs the 3 seeds committed")])
+def test_grid_is_refused_until_the_pilot_and_the_seed_rule_are_committed(monkeypatch, change,
+                                                                         seeds, message):
+  smoke = plans.SCALES["smoke"]
+  monkeypatch.setitem(plans.SCALES, "smoke", dataclasses.replace(
+      smoke, v4=dataclasses.replace(smoke.v4, **change)))
+  with pytest.raises(SljaxError, match=message):
+    plans.build_plan("v4", "smoke", seeds)
+
+
+def _measured(monkeypatch, step_seconds):
+  smoke = plans.SCALES["smoke"]
+  design = dataclasses.replace(smoke.v4, step_seconds=step_seconds, val_seconds=8.0,
+                               val_scenes=80, arm_ratios=(("stl", 1.0, 1.0),
+                                                          ("unc", 1.5, 2.0), ("epr", 1.5, 2.0)))
+  monkeypatch.setitem(plans.SCALES, "smoke", dataclasses.replace(smoke, v4=design))
+  return design
+
+
+def test_the_seed_rule_by_hand(monkeypatch):
+  """One seed's hours: per arm the pretraining's and fine-tuning's steps at the arm's step
+  ratio, and each validation's and test scoring's scenes at its validation ratio."""
+  design = _measured(monkeypatch, 100.0)
+  smoke = plans.SCALES["smoke"]
+  pilot = plans.build_plan("v4-pilot", "smoke", 1)
+  pre = dataclasses.replace(pilot.cells_of(setting="pretrain")[0].config, seed=300)
+  ft = dataclasses.replace(pilot.cells_of(setting="finetune")[0].config, seed=300)
+
+  def n_val(config):
+    return len(split_indices(open_source(config), config.test_fraction, seed=config.seed)[1])
+
+  per_scene = 8.0 / 80
+  seconds = 0.0
+  for step_ratio, val_ratio in ((1.0, 1.0), (1.5, 2.0), (1.5, 2.0)):
+    seconds += step_ratio * 100.0 * (4 + 4)  # pretraining 4 steps, the regime's 4
+    seconds += val_ratio * per_scene * (2 * n_val(pre) + 2 * n_val(ft) + 2 * smoke.v2.test_n)
+  rule = regime.grid_seeds("smoke", design.regime)
+  assert rule["hours_per_seed"] == pytest.approx(seconds / 3600)
+  assert rule["seeds"] == min(10, max(3, int(24 // (seconds / 3600))))
+  assert [c["steps"] for c in rule["cells"]] == [4, 4] * 3
+  # The clip: cheap seeds stop at 10, dear ones still run 3.
+  _measured(monkeypatch, 1.0)
+  assert regime.grid_seeds("smoke", design.regime)["seeds"] == 10
+  _measured(monkeypatch, 10_000.0)
+  assert regime.grid_seeds("smoke", design.regime)["seeds"] == 3
+
+
+def test_the_seed_rule_in_between(monkeypatch):
+  """A seed of about 5 hours gives n = 4 (24 // 5)."""
+  _measured(monkeypatch, 1.0)
+  base = regime.grid_seeds("smoke", ("finetune", "1/2", 4))["hours_per_seed"]
+  steps_hours = 1.0 * 8 * (1 + 1.5 + 1.5) / 3600
+  # Scale the step cost so that a seed takes 5 h: the validations' share stays.
+  s = (5.0 - (base - steps_hours)) / (8 * 4.0 / 3600)
+  _measured(monkeypatch, s)
+  rule = regime.grid_seeds("smoke", ("finetune", "1/2", 4))
+  assert rule["hours_per_seed"] == pytest.approx(5.0) and rule["seeds"] == 4
+
+
+def test_the_pilot_outcome_names_n_when_measured(tmp_path, monkeypatch):
+  from sljax.experiment import runner  # pylint: disable=import-outside-toplevel
+  _measured(monkeypatch, 1.0)
+  plan = plans.build_plan("v4-pilot", "smoke", 1)
+  runner.register(tmp_path, plan)
+  for cell in plan.cells:
+    _fake(tmp_path, cell.name, RISING if dict(cell.factors)["setting"] == "finetune" else FLAT)
+  result = regime.write(tmp_path, "smoke", 1)
+  assert result["grid_setting"] == "finetune"
+  assert result["grid_seeds"] == regime.grid_seeds("smoke", ("finetune", "1/2", 16))
+  assert "**n = 10**" in (tmp_path / "regime.md").read_text()
+
+
+def test_grid_claims_on_fake_records(tmp_path):
+  """v3's family of two on the fine-tuning setting: (a) the tissue test set's final Full MAE,
+  (b) the rise of each fine-tuning cell's own curve by steps; hand-computed differences."""
+  import json  # pylint: disable=import-outside-toplevel
+  import numpy as np  # pylint: disable=import-outside-toplevel
+  from sljax.experiment import claims, report, runner, stats  # pylint: disable=import-outside-toplevel
+  plan = plans.build_plan("v4", "smoke", 3)
+  runner.register(tmp_path, plan)
+  mae = {"stl": [1.0, 1.2, 1.1], "unc": [0.9, 1.0, 1.05], "epr": [1.0, 1.1, 1.2]}
+  rise = {"stl": [0.3, 0.2, 0.4], "unc": [0.1, 0.1, 0.2], "epr": [0.3, 0.3, 0.3]}
+  for cell in plan.cells:
+    k = cell.seed - 300
+    _fake(tmp_path, cell.name, [(2, 1.0, 3), (4, 0.5, 2), (6, 0.5 + rise[cell.arm][k], 1)])
+    for e in cell.evals:
+      path = runner.cell_dir(tmp_path, cell.name) / "eval" / f"{e.name}.json"
+      path.parent.mkdir(exist_ok=True)
+      path.write_text(json.dumps({"pooled": {"full": {"mae": mae[cell.arm][k]}}}))
+  agg = report.aggregate(tmp_path, plan)
+  cl = claims.claims(plan, agg)
+  assert [c["set"] for c in cl] == ["test-tissue", "validation-curve"]
+  assert cl[0]["difference"]["mean"] == pytest.approx(np.mean(np.subtract(mae["unc"], mae["stl"])))
+  assert cl[1]["difference"]["mean"] == pytest.approx(np.mean(np.subtract(rise["unc"],
+                                                                          rise["stl"])))
+  assert [c["p_holm"] for c in cl] == pytest.approx(stats.holm([c["difference"]["p"]
+                                                                for c in cl]))
+  # The pretraining cells score nothing: their group has no set, the curves are by step.
+  pre = next(g for g in agg["groups"] if g["factors"]["setting"] == "pretrain")
+  assert pre["sets"] == {} and [p["step"] for p in pre["curves"]["stl"]] == [2, 4, 6]
+  md = report.write_report(tmp_path).read_text()
+  assert "v4: stl, unc and epr" in md and "overfitting rise" in md

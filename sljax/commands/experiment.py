@@ -76,7 +76,8 @@ def register(subparsers) -> None:
                   "v3-pilot cells under OUT: the largest training fraction whose smoothed mean "
                   "validation curve ends at least 10% above its minimum, and the budget (twice "
                   "the minimum's epoch); for a v4-pilot folder the same rule on steps, per "
-                  "setting (docs/plan-v4.md). Writes OUT/regime.json, regime.md and a figure.",
+                  "setting, and the v4 grid's seed count by the plan's 24-hour rule "
+                  "(docs/plan-v4.md). Writes OUT/regime.json, regime.md and a figure.",
       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
   g.add_argument("out", metavar="OUT", help="the pilot's experiment folder")
   g.add_argument("--scale", default="cpu", help="the pilot's scale (cpu; smoke for tests)")

@@ -130,6 +130,15 @@ def claims(plan: Plan, agg: dict[str, Any]) -> list[dict[str, Any]]:
         "test-objects", "unc", "mae")
     add("validation: unc's overfitting rise (final minus lowest validation Full MAE) is "
         "smaller than stl's", g, CURVE_SET, "unc", "rise")
+  elif plan.name == "v4":
+    # docs/plan-v4.md: v3's family of two, on the regime setting's own test set.
+    setting = plan.scale.v4.regime[0]
+    where = "tissue" if setting == "finetune" else "objects"
+    g = group(setting=setting)
+    add(f"{where} test set, final checkpoint: unc has a lower Full MAE than stl", g,
+        f"test-{where}", "unc", "mae")
+    add("validation: unc's overfitting rise (final minus lowest validation Full MAE) is "
+        "smaller than stl's", g, CURVE_SET, "unc", "rise")
   elif base_name == "fig7":
     for where in ("tissue", "data"):
       g = group(data=where)

@@ -42,6 +42,12 @@ Plans:
 - v4-pilot: stl with budgets in optimizer steps (docs/plan-v4.md), validated every few steps:
   from scratch on objects with a few training scenes, and the paper's setting (an objects model
   of all the data fine-tuned on a few tissue scenes); curves only. Seeds 200, 201, ...
+- v4: stl, unc and epr in the setting, fraction and step budget the v4 pilot's rule chose (the
+  scale's V4Design.regime), constant learning rates, validated as the pilot. Fine-tuning: each
+  arm fine-tunes its own objects model (the twin for unc and epr, pretrained with the same
+  strategy, as the pilot's pretraining). The final and the best checkpoint scored on the
+  setting's fixed test set (tissue when fine-tuning, objects from scratch). Seeds 300, 301, ...,
+  as many as the plan's 24-hour rule committed (V4Design.grid_seeds).
 """
 
 
@@ -64,7 +70,8 @@ V2_PLANS = ("table1-v2", "table2-v2", "table3-v2", "fig7-v2")
 V3_PILOT = "v3-pilot"
 V3_PLANS = (V3_PILOT, "v3")
 V4_PILOT = "v4-pilot"
-V4_PLANS = (V4_PILOT,)
+V4 = "v4"
+V4_PLANS = (V4_PILOT, V4)
 V3_ARMS = ("stl", "unc", "epr")
 PLANS = V1_PLANS + V2_PLANS + V3_PLANS + V4_PLANS
 HELDOUT = "heldout"
@@ -358,6 +365,47 @@ def _v4_pilot(a: Seeded) -> list[Cell]:
   return cells
 
 
+def _v4(a: Seeded) -> list[Cell]:
+  """stl, unc and epr in the pilot's regime (setting, fraction, steps), constant learning
+  rates, every validation scene every val_every steps; the final and the best checkpoint scored
+  on the setting's fixed test set. Fine-tuning starts each arm from its own objects model."""
+  design = a.scale.v4
+  require(design.regime is not None,
+          f"plan v4: scale {a.scale.name} has no regime yet: finish the pilot (`sljax experiment "
+          "run v4-pilot`), apply the rule (`sljax experiment regime`) and commit the regime "
+          "with the outcome in docs/plan-v4.md")
+  require(design.regime != NO_REGIME,
+          f"plan v4: at scale {a.scale.name} the pilot found no setting where stl overfits "
+          "(docs/plan-v4.md, the pilot's outcome), so by the pre-registered rule v4 ends there "
+          "and no test cell runs")
+  setting, fraction, steps = design.regime
+  domain = "tissue" if setting == "finetune" else "objects"
+  evals = (test_set(domain, a.scale), test_set(domain, a.scale, "best"))
+  base = dataclasses.replace(_base(a.scale, a.seed), model="psmnet", lr_drop_epoch=None,
+                             max_val=None)
+  factors = (("setting", setting), ("data", fraction))
+  cells = []
+  for strategy in V3_ARMS:
+    arm = dataclasses.replace(base, strategy=strategy)
+    if setting == "scratch":
+      config = dataclasses.replace(arm, fraction=fraction, steps=steps,
+                                   val_every_steps=design.val_every)
+      cells.append(Cell("v4-" + _psmnet_name(strategy, "objects", fraction, a.seed), strategy,
+                        factors, a.seed, config, evals=evals))
+      continue
+    pre = dataclasses.replace(arm, steps=design.pretrain_steps,
+                              val_every_steps=design.pretrain_val_every)
+    pre_name = "v4-" + _psmnet_name(strategy, "objects", "1", a.seed)
+    cells.append(Cell(pre_name, strategy, (("setting", "pretrain"), ("data", "all")), a.seed,
+                      pre))
+    config = dataclasses.replace(pre, domain="tissue", synth_n=a.scale.tissue_n,
+                                 fraction=fraction, lr=design.finetune_lr, steps=steps,
+                                 val_every_steps=design.val_every)
+    cells.append(Cell("v4-" + _psmnet_name(strategy, "tissue-ft", fraction, a.seed), strategy,
+                      factors, a.seed, config, init_cell=pre_name, evals=evals))
+  return cells
+
+
 # Each shipped plan: its cells for one seed, and the arm the others are compared with.
 BUILDERS: dict[str, tuple[Callable[[Seeded], list[Cell]], str]] = {
     "table1": (_table1, "unet-disp"), "table2": (_table2, SINGLE_TASK),
@@ -365,7 +413,7 @@ BUILDERS: dict[str, tuple[Callable[[Seeded], list[Cell]], str]] = {
     "table1-v2": (_table1_v2, "unet-disp"), "table2-v2": (_table2_v2, SINGLE_TASK),
     "table3-v2": (_table3_v2, SINGLE_TASK), "fig7-v2": (_fig7_v2, SINGLE_TASK),
     V3_PILOT: (_v3_pilot, SINGLE_TASK), "v3": (_v3, SINGLE_TASK),
-    V4_PILOT: (_v4_pilot, SINGLE_TASK),
+    V4_PILOT: (_v4_pilot, SINGLE_TASK), V4: (_v4, SINGLE_TASK),
 }
 
 
@@ -383,7 +431,8 @@ def _pattern_count(data: str | None, scale: Scale) -> int:
 def plan_seeds(name: str, scale: str, seeds: int) -> tuple[int, ...]:
   """The seeds of a plan run with --seeds N: 0..N-1, or from a pilot's first seed."""
   first = {V3_PILOT: lambda: SCALES[scale].v3.first_seed,
-           V4_PILOT: lambda: SCALES[scale].v4.first_seed}.get(name, lambda: 0)()
+           V4_PILOT: lambda: SCALES[scale].v4.first_seed,
+           V4: lambda: SCALES[scale].v4.grid_first_seed}.get(name, lambda: 0)()
   return tuple(range(first, first + seeds))
 
 
@@ -398,6 +447,15 @@ def _check_args(name: str, scale: str, seeds: int, data: str | None,
   require(name not in V4_PLANS or scale in v4_scales,
           f"--scale {scale}: plan {name} runs at {' or '.join(v4_scales)} (docs/plan-v4.md)")
   require(seeds >= 1, f"--seeds {seeds}: must be at least 1")
+  design = SCALES[scale].v4
+  if name == V4 and design.regime not in (None, NO_REGIME):
+    require(design.grid_seeds is not None,
+            f"plan v4: the number of seeds at scale {scale} is not committed yet: `sljax "
+            "experiment regime` prints n by the plan's 24-hour rule; commit it (V4Design."
+            "grid_seeds, docs/plan-v4.md) before the first grid cell runs")
+    require(seeds == design.grid_seeds,
+            f"--seeds {seeds}: plan v4 runs the {design.grid_seeds} seeds committed at scale "
+            f"{scale} by the plan's 24-hour rule (docs/plan-v4.md)")
   require(name in ("table3", "table3-v2") or not eval_data,
           "--eval-data applies to the table3 plans (scoring trained models on other data)")
   require(name in V1_PLANS or data is None,

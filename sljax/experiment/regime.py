@@ -17,6 +17,7 @@ OUT/regime.json keeps every curve, the smoothed values, the minima and rises and
 OUT/regime.md says it in a table and OUT/figures/v3-pilot_curves.png draws it.
 """
 
+import dataclasses
 import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -26,10 +27,13 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from sljax import files
+from sljax.errors import require
 from sljax.experiment import plans, runner
 from sljax.experiment.calibrate import SMOOTH, plateau, smooth
 
 OVERFIT_RISE = 0.10
+GRID_HOURS = 24.0       # docs/plan-v4.md: the grid's seeds fit about 24 hours of running,
+GRID_SEEDS = (3, 10)    # at least 3 and at most 10
 
 Curve = Sequence[tuple[int, float]]
 
@@ -162,10 +166,51 @@ def v4(out: str | Path, scale: str = "cpu", seeds: int = 2) -> dict[str, Any]:
   if not missing:  # rule: fine-tuning when both overfit, else the one that does, else none
     grid = next((s for s in ("finetune", "scratch")
                  if settings[s]["regime"]["fraction"] is not None), None)
+  seeds_rule = None
+  if grid is not None and design.step_seconds is not None:
+    chosen = settings[grid]["regime"]
+    seeds_rule = grid_seeds(scale, (grid, chosen["fraction"], chosen["budget_steps"]))
   return {"plan": plan.name, "scale": scale, "seeds": list(plan.seeds),
           "val_every": design.val_every, "smooth": SMOOTH, "overfit_rise": OVERFIT_RISE,
           "settings": settings, "pretrain": pretrain, "missing": missing,
-          "grid_setting": grid, "both_overfit": both}
+          "grid_setting": grid, "both_overfit": both, "grid_seeds": seeds_rule}
+
+
+def _grid_cells(scale: str, regime_: tuple[str, str, int]) -> list[plans.Cell]:
+  """One seed's cells of the v4 grid at a scale, were the rule to choose regime_."""
+  sc = plans.SCALES[scale]
+  sc = dataclasses.replace(sc, v4=dataclasses.replace(sc.v4, regime=regime_))
+  build = plans.BUILDERS[plans.V4][0]
+  return build(plans.Seeded(sc, sc.v4.grid_first_seed, None, (), sc.budget))
+
+
+def grid_seeds(scale: str, regime_: tuple[str, str, int]) -> dict[str, Any]:
+  """docs/plan-v4.md's seed rule: the hours of one seed of the grid (every cell's steps,
+  validations and test scoring at stl's measured seconds times each arm's measured ratio) and
+  n, the most seeds that fit GRID_HOURS, clipped to GRID_SEEDS."""
+  design = plans.SCALES[scale].v4
+  require(design.step_seconds is not None and design.val_seconds is not None
+          and design.arm_ratios,
+          f"scale {scale}: the grid's cost is not measured (V4Design.step_seconds, "
+          "val_seconds, arm_ratios; docs/plan-v4.md)")
+  ratios = {arm: (step, val) for arm, step, val in design.arm_ratios}
+  per_scene = design.val_seconds / design.val_scenes
+  cells = []
+  for cell in _grid_cells(scale, regime_):
+    step_ratio, val_ratio = ratios[cell.arm]
+    steps = runner.cell_steps(cell)
+    n_val = len(runner.validation_indices(cell)[1])
+    validations = math.ceil(steps / cell.config.val_every_steps)
+    scored = sum(len(runner.eval_scenes(cell, e)) for e in cell.evals)
+    seconds = (step_ratio * design.step_seconds * steps
+               + val_ratio * per_scene * (n_val * validations + scored))
+    cells.append({"cell": cell.name, "arm": cell.arm, "steps": steps, "validations":
+                  validations, "validation_scenes": n_val, "scored_scenes": scored,
+                  "hours": seconds / 3600})
+  hours = sum(c["hours"] for c in cells)
+  lo, hi = GRID_SEEDS
+  return {"cells": cells, "hours_per_seed": hours, "budget_hours": GRID_HOURS,
+          "seeds": min(hi, max(lo, int(GRID_HOURS // hours)))}
 
 
 def markdown_v4(result: dict[str, Any]) -> list[str]:
@@ -199,8 +244,16 @@ def markdown_v4(result: dict[str, Any]) -> list[str]:
     lines.append("**No setting overfits**: by the pre-registered rule v4 reports the curves and "
                  "the memorisation evidence and stops (no test cell runs).")
   else:
+    chosen = result["settings"][result["grid_setting"]]["regime"]
     lines.append(f"**The test grid runs in the {result['grid_setting']} setting** (rule: "
-                 "fine-tuning when both overfit).")
+                 f"fine-tuning when both overfit), fraction {chosen['fraction']}, "
+                 f"{chosen['budget_steps']} steps.")
+    rule = result.get("grid_seeds")
+    if rule is not None:
+      lines.append(f"Seeds by the 24-hour rule: one seed's cells take about "
+                   f"{rule['hours_per_seed']:.1f} h, so **n = {rule['seeds']}** (at least "
+                   f"{GRID_SEEDS[0]}, at most {GRID_SEEDS[1]}; {rule['seeds']} seeds about "
+                   f"{rule['seeds'] * rule['hours_per_seed']:.0f} h).")
   return lines + [""]
 
 

@@ -62,6 +62,9 @@ TITLES = {
 TITLES.update({f"{k}-v2": f"{v} (v2: fixed test sets)" for k, v in TITLES.items()})
 TITLES["v3"] = ("v3: stl, unc and epr where stl overfits (the pilot's regime; "
                 "docs/plan-v3.md)")
+TITLES["v4"] = ("v4: stl, unc and epr where stl overfits, budgets in steps (the pilot's "
+                "regime; docs/plan-v4.md)")
+CURVE_PLANS = ("v3", "v4")  # plans whose claims read each cell's own validation curve
 
 
 def curve_metrics(out: Path, name: str) -> dict[str, float] | None:
@@ -190,7 +193,8 @@ def aggregate(out: Path, plan: Plan) -> dict[str, Any]:
   arms = _arms(plan)
   for factors in _groups(plan):
     cells = [c for c in plan.cells if c.factors == factors]
-    sets = [e.name for e in cells[0].evals] + ([CURVE_SET] if plan.name == "v3" else [])
+    scored = [e.name for e in cells[0].evals]
+    sets = scored + ([CURVE_SET] if plan.name in CURVE_PLANS and scored else [])
     group = {"factors": dict(factors), "sets": {}}
     for set_name in sets:
       per_arm: dict[str, dict[int, dict[str, float]]] = {a: {} for a in arms}
@@ -221,12 +225,13 @@ def aggregate(out: Path, plan: Plan) -> dict[str, Any]:
         paired[a]["delta_m"] = stats.mean_ci([delta_m(seeds[s], base[s]) for s in common])
       group["sets"][set_name] = {"arms": summary, "paired": paired, "missing": missing}
     curves = {}
+    unit = "step" if any(c.config.val_every_steps for c in cells) else "epoch"
     for a in arms:
       per_seed = [curve(out, c.name) for c in cells if c.arm == a]
       per_seed = [cv for cv in per_seed if cv]
       if per_seed:
         epochs = sorted(set.intersection(*[{e for e, _ in cv} for cv in per_seed]))
-        curves[a] = [dict(stats.mean_ci([dict(cv)[e] for cv in per_seed]), epoch=e)
+        curves[a] = [dict(stats.mean_ci([dict(cv)[e] for cv in per_seed]), **{unit: e})
                      for e in epochs]
     group["curves"] = curves
     result["groups"].append(group)
@@ -271,7 +276,8 @@ def _figures(plan: Plan, agg: dict[str, Any], fig_dir: Path) -> list[str]:
     axes = fig.subplots(1, len(with_curves), squeeze=False)
     for ax, g in zip(axes[0], with_curves):
       for k, (a, pts) in enumerate(g["curves"].items()):
-        e = np.array([p["epoch"] for p in pts])
+        unit = "step" if "step" in pts[0] else "epoch"
+        e = np.array([p[unit] for p in pts])
         m = np.array([p["mean"] for p in pts])
         style = "--" if a == plan.baseline else "-"
         ax.plot(e, m, style, color=f"C{k}", label=a)
@@ -279,11 +285,11 @@ def _figures(plan: Plan, agg: dict[str, Any], fig_dir: Path) -> list[str]:
         hi = np.array([p["hi"] for p in pts], float)
         if np.isfinite(lo).all():
           ax.fill_between(e, lo, hi, color=f"C{k}", alpha=0.15)
-      ax.set_xlabel("epoch")
+      ax.set_xlabel(unit)
       ax.set_ylabel("validation MAE (px)")
       ax.set_title(", ".join(g["factors"].values()), fontsize=9)
       ax.legend(fontsize=7)
-    fig.suptitle(f"{plan.name}: validation MAE per epoch (mean, 95% band over seeds)",
+    fig.suptitle(f"{plan.name}: validation MAE per {unit} (mean, 95% band over seeds)",
                  fontsize=10)
     fig.tight_layout()
     name = f"{plan.name}_curves.png"

@@ -144,7 +144,11 @@ def _first_difference(old: Any, new: Any, path: str = "") -> str:
 
 
 def curve(out: Path, name: str) -> list[tuple[int, float]]:
-  """(epoch, validation MAE) of a cell's training log."""
+  """(epoch, validation MAE) of a cell's training log; (step, validation MAE) for a cell that
+  validated by steps (its validation.jsonl)."""
+  if (cell_dir(out, name) / VALIDATION_FILE).exists():
+    return [(r["step"], r["val_mae"]) for r in step_curve(out, name)
+            if r.get("val_mae") is not None]
   path = cell_dir(out, name) / "epochs.jsonl"
   if not path.exists():
     return []
@@ -234,6 +238,11 @@ def validation_indices(cell: Cell) -> tuple[Any, list[int]]:
   source (all of them, not the training curves' max_val)."""
   source = open_source(cell.config)
   return source, split_indices(source, cell.config.test_fraction, seed=cell.config.seed)[1]
+
+
+def eval_scenes(cell: Cell, evalset: EvalSet) -> list[int]:
+  """The scene indices a cell is scored on for a set."""
+  return list(_eval_source(cell, evalset)[1])
 
 
 def fixed_test_source(evalset: EvalSet, size: int, t: int | None) -> SyntheticSource:

@@ -61,6 +61,20 @@ class V4Design:
   val_every: int
   finetune_lr: float
   first_seed: int
+  # The test grid (docs/plan-v4.md). regime: (setting, fraction, steps) the rule chose on the
+  # pilot, committed with the pilot's outcome; NO_REGIME: no setting overfits (v4 stops there);
+  # None: the pilot has not finished. grid_seeds: n by the plan's 24-hour rule, committed
+  # before the first grid cell (None: not yet).
+  grid_first_seed: int = 300
+  regime: tuple[str, str, int] | str | None = None
+  grid_seeds: int | None = None
+  # What the 24-hour rule counts (docs/plan-v4.md): stl's seconds per step and per validation
+  # of val_scenes scenes (the pilot's timing run), and each arm's (step, validation) cost as a
+  # ratio to stl's (benchmarks/bench_arms.py); () where not measured.
+  step_seconds: float | None = None
+  val_seconds: float | None = None
+  val_scenes: int = 80
+  arm_ratios: tuple[tuple[str, float, float], ...] = ()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -116,7 +130,8 @@ SCALES = {s.name: s for s in (
                       regime=("1/4", 4)),
           v4=V4Design(("1/4", "1/8"), scratch_steps=6, pretrain_steps=4, pretrain_val_every=2,
                       finetune_fractions=("1/2",), finetune_steps=4, val_every=2,
-                      finetune_lr=1e-4, first_seed=200),
+                      finetune_lr=1e-4, first_seed=200, regime=("finetune", "1/2", 4),
+                      grid_seeds=3),
           ynn="on", conv_impl="lax"),
     Scale("cpu", size=64, t=6, maxdisp=16, objects_n=400, tissue_n=80, batch_size=4, lr=1e-3,
           lr_drop=True, corr_window=5, unet_width=16, unet_depth=4, max_val=40,
@@ -137,7 +152,12 @@ SCALES = {s.name: s for s in (
           # (docs/plan-v4.md, the timing run: r = 0.441, rounded up to the cadences).
           v4=V4Design(("1/32", "1/64"), scratch_steps=2700, pretrain_steps=1200,
                       pretrain_val_every=200, finetune_fractions=("1/6", "1/12"),
-                      finetune_steps=1800, val_every=100, finetune_lr=1e-4, first_seed=200)),
+                      finetune_steps=1800, val_every=100, finetune_lr=1e-4, first_seed=200,
+                      # The seed rule's inputs: the timing run's s and v (stl, frozen code);
+                      # the arms' ratios, the mean of two bench_arms runs in opposite orders.
+                      step_seconds=1.059, val_seconds=5.12, val_scenes=80,
+                      arm_ratios=(("stl", 1.0, 1.0), ("unc", 1.17, 1.20),
+                                  ("epr", 1.28, 1.43)))),
     Scale("cpu128", size=128, t=7, maxdisp=32, objects_n=400, tissue_n=80, batch_size=4,
           lr=1e-3, lr_drop=True, corr_window=9, unet_width=16, unet_depth=4, max_val=40,
           schedule=Schedule(12, 96, 40, val_every=1, small_val_every=8),

@@ -326,3 +326,42 @@ def test_column_from_bits_probabilities_and_nan(scene):
   probs[3, 4, 2] = np.nan
   col = column_from_bits(probs, "gray")
   assert np.isnan(col[3, 4]) and np.isfinite(np.delete(col.ravel(), 3 * W + 4)).all()
+
+
+def test_cli_decode_applies_the_importers_filters(tmp_path, scene, capsys, monkeypatch):
+  """As import-captures: a scene whose views look swapped gets pattern maps but no disparity,
+  named on stderr, exit code 1, the other scenes decoded; a disparity below 0 or beyond the
+  width is written unknown, and its partner in the other view too."""
+  root = tmp_path / "ds"
+  good = _write_scene_folder(root, "a", scene, meta={"code": "gray"})
+  swapped = _write_scene_folder(root, "b", scene[::-1], meta={"code": "gray"})
+  assert cli.main(["decode", str(root)]) == 1
+  out, err = capsys.readouterr()
+  assert err.count("\n") == 1 and f"scene {swapped}: raw0 and raw1 look swapped" in err
+  assert "no disparity written" in err and "Traceback" not in err
+  assert (swapped / "sl0").is_dir() and not (swapped / "disp0.pfm").exists()
+  assert not (swapped / "disp1.pfm").exists() and (good / "disp0.pfm").exists()
+  assert "disparity files written: 2" in out
+
+  # Impossible matches planted into the matcher's output: a negative disparity at (3, 40) with a
+  # consistent partner in the right view, and one beyond the width at (4, 50).
+  from sljax.commands import decode as decode_cmd  # pylint: disable=import-outside-toplevel
+  match = decode_cmd.match_views
+
+  def planted(dec, *a, **k):
+    match(dec, *a, **k)
+    d0, d1 = dec.disp0.copy(), dec.disp1.copy()
+    d0[3, 40], d1[3, 42] = -2.0, -2.0  # right pixel 42 = 40 - (-2)
+    d0[4, 50] = W + 5.0                # its partner would lie left of the image
+    dec.disp0, dec.disp1 = d0, d1
+    return dec
+
+  monkeypatch.setattr(decode_cmd, "match_views", planted)
+  for f in ("disp0.pfm", "disp1.pfm"):
+    (good / f).unlink()
+  assert cli.main(["decode", str(root), "--overwrite"]) == 1
+  capsys.readouterr()
+  d0, d1 = read_pfm(good / "disp0.pfm"), read_pfm(good / "disp1.pfm")
+  assert np.isinf(d0[3, 40]) and np.isinf(d1[3, 42]) and np.isinf(d0[4, 50])
+  assert (np.isfinite(d0) & ((d0 < 0) | (d0 > W))).sum() == 0
+  assert np.isfinite(d0).mean() > 0.5  # the rest kept

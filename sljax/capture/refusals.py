@@ -44,15 +44,24 @@ def check_lit(decoded: StereoDecoded, where: tuple[str, str]) -> None:
                        "Nothing written")
 
 
-def check_signs(decoded: StereoDecoded, where: tuple[str, str]) -> None:
-  """SljaxError when more than half of a view's matched disparities are negative (as
-  scene.negative_share refuses a scene on load): LEFT and RIGHT swapped."""
+def swapped(decoded: StereoDecoded) -> tuple[str, float] | None:
+  """(view, share) of the first view whose matched disparities are more than half negative (as
+  scene.negative_share refuses a scene on load): LEFT and RIGHT swapped; None otherwise."""
   for view, d in zip(("left", "right"), (decoded.disp0, decoded.disp1)):
     share = negative_share(d)
     if share is not None:
-      raise SljaxError(f"{where[0]} and {where[1]} look swapped: {share:.0%} of the {view} "
-                       "view's matched disparities are negative (x_left - x_right < 0); give "
-                       "the left camera's frames first. Nothing written")
+      return view, share
+  return None
+
+
+def check_signs(decoded: StereoDecoded, where: tuple[str, str]) -> None:
+  """SljaxError when the views look swapped (swapped())."""
+  found = swapped(decoded)
+  if found is not None:
+    view, share = found
+    raise SljaxError(f"{where[0]} and {where[1]} look swapped: {share:.0%} of the {view} "
+                     "view's matched disparities are negative (x_left - x_right < 0); give "
+                     "the left camera's frames first. Nothing written")
 
 
 def check_rows(decoded: StereoDecoded, where: tuple[str, str], calibration: str) -> None:

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from sljax.capture import refusals
 from sljax.data import preflight
 from sljax.data.dataset import FolderSource
 from sljax.data.pfm import write_pfm
@@ -14,7 +15,7 @@ from sljax.data.scene import write_patterns
 from sljax.images import read_image
 from sljax.errors import SljaxError, require
 from sljax.sl.decode import DecodeConfig, count_patterns
-from sljax.sl.stereo import decode_views, match_views
+from sljax.sl.stereo import MatchConfig, decode_views, match_views
 
 _DEFAULT_SHADOW = 10.0  # 8-bit grey levels; mirrors sljax.sl.decode.DecodeConfig
 _DEFAULT_BIT = 6.0
@@ -28,8 +29,10 @@ def register(subparsers) -> None:
       "optional inverses i000...), classify each pattern bit, write sl0/ and sl1/ "
       "(0 dark, 255 lit, 128 unknown) and, where absent, disp0.pfm / disp1.pfm from matching "
       "equal codes along the rectified scanlines, left-right checked (inf = unknown; the same "
-      "decoding and matching as import-captures). Existing disparity files are "
-      "never replaced (they may be ground truth); delete them to recompute.")
+      "decoding, matching and filters as import-captures: a disparity below 0 or beyond the "
+      "width is unknown, and a scene whose views look swapped gets no disparity and exit "
+      "code 1). Existing disparity files are never replaced (they may be ground truth); "
+      "delete them to recompute.")
   p.add_argument("dataset", metavar="DATASET", help="dataset root (or one scene folder)")
   p.add_argument("--overwrite", action="store_true", help="replace existing sl0/ and sl1/")
   p.add_argument("--code", choices=("binary", "gray"), default=None,
@@ -91,7 +94,7 @@ def run(args: argparse.Namespace) -> int:
     for cam in (0, 1):
       _check_contrast(src.paths[i] / f"raw{cam}", config.shadow_threshold)
 
-  written_disp, kept_disp, coverage, disp_known = 0, [], [], []
+  written_disp, kept_disp, coverage, disp_known, swaps = 0, [], [], [], []
   for i in tqdm(todo, desc="decode", unit="scene", file=sys.stderr, disable=None):
     path = src.paths[i]
     scene = src.get(i, parts={"raw"})  # load_scene checks sizes and that raw0, raw1 agree
@@ -106,15 +109,22 @@ def run(args: argparse.Namespace) -> int:
       continue
     targets = [path / f"disp{cam}.pfm" for cam in (0, 1)]
     absent = [not p.exists() for p in targets]
+    kept_disp += [str(p) for p, missing in zip(targets, absent) if not missing]
     if any(absent):
       match_views(dec)
-      disps = (dec.disp0, dec.disp1)
+      found = refusals.swapped(dec)
+      if found is not None:  # the loader would refuse the scene: write no disparity for it
+        swaps.append(f"scene {path}: raw0 and raw1 look swapped ({found[1]:.0%} of the "
+                     f"{found[0]} view's matched disparities are negative); no disparity "
+                     "written for it")
+        continue
+      *disps, _ = refusals.plausible(dec.disp0, dec.disp1, dec.disp0.shape[1],
+                                     MatchConfig().lr_tolerance)
       disp_known.append(float(np.isfinite(disps[0]).mean()))
       for p, missing, disp in zip(targets, absent, disps):
         if missing:
           write_pfm(p, disp)
           written_disp += 1
-    kept_disp += [str(p) for p, missing in zip(targets, absent) if not missing]
 
   print(f"decoded {len(todo)} scene(s) of {len(src)} below {src.root}: sl0/ and sl1/ written; "
         f"pixels with a decoded code: {np.mean(coverage):.1%} on average")
@@ -123,7 +133,9 @@ def run(args: argparse.Namespace) -> int:
              if disp_known else "")
     print(f"disparity files written: {written_disp}{known}; kept existing: {len(kept_disp)}"
           + (f" (e.g. {kept_disp[0]}; delete to recompute)" if kept_disp else ""))
-  return 0
+  for line in swaps:
+    print(f"sljax decode: {line}", file=sys.stderr)
+  return 1 if swaps else 0
 
 
 def _check_capture_files(src: FolderSource, todo: list[int]) -> None:

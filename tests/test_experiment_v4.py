@@ -299,5 +299,9 @@ def test_grid_claims_on_fake_records(tmp_path):
   # The pretraining cells score nothing: their group has no set, the curves are by step.
   pre = next(g for g in agg["groups"] if g["factors"]["setting"] == "pretrain")
   assert pre["sets"] == {} and [p["step"] for p in pre["curves"]["stl"]] == [2, 4, 6]
+  # The training loss between validations, the seeds' mean per arm (secondary).
+  ft = next(g for g in agg["groups"] if g["factors"]["setting"] == "finetune")
+  assert [(p["step"], p["mean"]) for p in ft["train_curves"]["unc"]] == [(2, 3), (4, 2), (6, 1)]
   md = report.write_report(tmp_path).read_text()
   assert "v4: stl, unc and epr" in md and "overfitting rise" in md
+  assert (tmp_path / "figures" / "v4_curves.png").exists()

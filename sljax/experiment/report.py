@@ -22,6 +22,7 @@ excluded are exploratory (no test was pre-registered for them).
 
 import math
 from pathlib import Path
+from collections.abc import Callable
 from typing import Any, Sequence
 
 import numpy as np
@@ -32,9 +33,10 @@ from sljax.errors import SljaxError
 from sljax.evaluate import json_safe
 from sljax.experiment import stats
 from sljax.experiment.claims import ALPHA, CURVE_SET, PAPER, POWER, claims
-from sljax.experiment.plans import FIXED, HELDOUT, PLANS, TEST_SEED, Plan
+from sljax.experiment.plans import FIXED, HELDOUT, PLANS, TEST_SEED, Cell, Plan
 from sljax.experiment.runner import (DONE_FILE, EVAL_DIR, WINDOWS_FILE, cell_dir,
-                                     curve, plan_args, read_json, registered_plans)
+                                     curve, plan_args, read_json, registered_plans,
+                                     train_curve)
 from sljax.train.config import dumps
 
 # (key, header) of the metrics every table shows; lower is better except HIGHER_BETTER.
@@ -187,6 +189,20 @@ def delta_m(arm: dict[str, float], base: dict[str, float]) -> float:
                        higher_better=HIGHER_BETTER)
 
 
+def _mean_curves(cells: list[Cell], arms: list[str], read: Callable[[str], list],
+                 unit: str) -> dict[str, list[dict[str, Any]]]:
+  """Per arm, the seeds' mean and 95% interval at every point all its finished cells share."""
+  curves = {}
+  for a in arms:
+    per_seed = [read(c.name) for c in cells if c.arm == a]
+    per_seed = [cv for cv in per_seed if cv]
+    if per_seed:
+      points = sorted(set.intersection(*[{e for e, _ in cv} for cv in per_seed]))
+      curves[a] = [dict(stats.mean_ci([dict(cv)[e] for cv in per_seed]), **{unit: e})
+                   for e in points]
+  return curves
+
+
 def aggregate(out: Path, plan: Plan) -> dict[str, Any]:
   """Per factor group and evaluation set: per-arm summaries and paired differences."""
   result: dict[str, Any] = {"groups": []}
@@ -224,16 +240,11 @@ def aggregate(out: Path, plan: Plan) -> dict[str, Any]:
                                                      for s in common)}
         paired[a]["delta_m"] = stats.mean_ci([delta_m(seeds[s], base[s]) for s in common])
       group["sets"][set_name] = {"arms": summary, "paired": paired, "missing": missing}
-    curves = {}
     unit = "step" if any(c.config.val_every_steps for c in cells) else "epoch"
-    for a in arms:
-      per_seed = [curve(out, c.name) for c in cells if c.arm == a]
-      per_seed = [cv for cv in per_seed if cv]
-      if per_seed:
-        epochs = sorted(set.intersection(*[{e for e, _ in cv} for cv in per_seed]))
-        curves[a] = [dict(stats.mean_ci([dict(cv)[e] for cv in per_seed]), **{unit: e})
-                     for e in epochs]
-    group["curves"] = curves
+    group["curves"] = _mean_curves(cells, arms, lambda name: curve(out, name), unit)
+    if unit == "step":  # the training loss between validations (validation.jsonl)
+      group["train_curves"] = _mean_curves(cells, arms, lambda name: train_curve(out, name),
+                                           unit)
     result["groups"].append(group)
   done = sum((cell_dir(out, c.name) / DONE_FILE).exists() for c in plan.cells)
   result.update(cells=len(plan.cells), trained=done)
@@ -272,30 +283,43 @@ def _figures(plan: Plan, agg: dict[str, Any], fig_dir: Path) -> list[str]:
   names.append(name)
   with_curves = [g for g in groups if g["curves"]]
   if with_curves:
-    fig = Figure(figsize=(4.5 * len(with_curves), 3.4))
-    axes = fig.subplots(1, len(with_curves), squeeze=False)
-    for ax, g in zip(axes[0], with_curves):
-      for k, (a, pts) in enumerate(g["curves"].items()):
-        unit = "step" if "step" in pts[0] else "epoch"
-        e = np.array([p[unit] for p in pts])
-        m = np.array([p["mean"] for p in pts])
-        style = "--" if a == plan.baseline else "-"
-        ax.plot(e, m, style, color=f"C{k}", label=a)
-        lo = np.array([p["lo"] for p in pts], float)
-        hi = np.array([p["hi"] for p in pts], float)
-        if np.isfinite(lo).all():
-          ax.fill_between(e, lo, hi, color=f"C{k}", alpha=0.15)
-      ax.set_xlabel(unit)
-      ax.set_ylabel("validation MAE (px)")
-      ax.set_title(", ".join(g["factors"].values()), fontsize=9)
-      ax.legend(fontsize=7)
-    fig.suptitle(f"{plan.name}: validation MAE per {unit} (mean, 95% band over seeds)",
-                 fontsize=10)
+    # A second row, the training loss between validations, where the cells validated by steps.
+    rows = [("curves", "validation MAE (px)")] + (
+        [("train_curves", "training L_disp (log)")]
+        if any(g.get("train_curves") for g in with_curves) else [])
+    fig = Figure(figsize=(4.5 * len(with_curves), 3.4 * len(rows)))
+    axes = fig.subplots(len(rows), len(with_curves), squeeze=False)
+    for r, (key, label) in enumerate(rows):
+      for ax, g in zip(axes[r], with_curves):
+        unit = _curve_panel(ax, g.get(key, {}), plan.baseline)
+        ax.set_xlabel(unit)
+        ax.set_ylabel(label)
+        if key == "train_curves":
+          ax.set_yscale("log")
+        ax.set_title(", ".join(g["factors"].values()), fontsize=9)
+        ax.legend(fontsize=7)
+    what = "validation MAE" + (" and training loss" if len(rows) > 1 else "")
+    fig.suptitle(f"{plan.name}: {what} per {unit} (mean, 95% band over seeds)", fontsize=10)
     fig.tight_layout()
     name = f"{plan.name}_curves.png"
     files.save_figure(fig, fig_dir / name, dpi=110)
     names.append(name)
   return names
+
+
+def _curve_panel(ax, curves: dict[str, list[dict[str, Any]]], baseline: str) -> str:
+  """Each arm's mean curve (the baseline dashed) and its 95% band; returns the x unit."""
+  unit = "epoch"
+  for k, (a, pts) in enumerate(curves.items()):
+    unit = "step" if "step" in pts[0] else "epoch"
+    e = np.array([p[unit] for p in pts])
+    ax.plot(e, [p["mean"] for p in pts], "--" if a == baseline else "-", color=f"C{k}",
+            label=a)
+    lo = np.array([p["lo"] for p in pts], float)
+    hi = np.array([p["hi"] for p in pts], float)
+    if np.isfinite(lo).all():
+      ax.fill_between(e, lo, hi, color=f"C{k}", alpha=0.15)
+  return unit
 
 
 # ----------------------------------------------------------------------------- markdown

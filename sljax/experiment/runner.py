@@ -156,6 +156,13 @@ def curve(out: Path, name: str) -> list[tuple[int, float]]:
   return [(r["epoch"], r["val_mae"]) for r in recs if r.get("val_mae") is not None]
 
 
+def train_curve(out: Path, name: str) -> list[tuple[int, float]]:
+  """(step, mean training disparity loss since the previous validation) of a cell that
+  validated by steps; [] for one that did not."""
+  return [(r["step"], r["train_loss_disp"]) for r in step_curve(out, name)
+          if r.get("train_loss_disp") is not None]
+
+
 def step_curve(out: Path, name: str) -> list[dict[str, Any]]:
   """The rows of a cell's validation.jsonl (validation by steps): step, validation MAE and the
   mean training losses since the previous validation."""

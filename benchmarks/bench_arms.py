@@ -4,9 +4,8 @@ docs/plan-v4.md sizes its test grid by the seconds its cells need: the pilot mea
 step (s) and an 80-scene validation (v) with a throwaway run; the grid's twins (unc, epr)
 count at their measured ratio to stl. This benchmark measures that ratio: for each arm it runs
 `sljax.train.loop.train` on the v4 pilot's first from-scratch cell's configuration (1/32 at
-the cpu scale) (the arm's
-strategy swapped in; unc and epr train the twin), a few steps with two validations on every
-validation scene, and reports the steady steps (the first epoch, which compiles, and the epochs
+the cpu scale) with the arm's strategy swapped in (unc and epr train the twin), a few steps with
+two validations on every validation scene, and reports the steady steps (the first epoch, which compiles, and the epochs
 holding a validation are left out) and the second validation (the first compiles). Each arm
 runs in its own process, one after the other, so the compile caches and threads of one never
 help or slow another.
@@ -57,6 +56,9 @@ def child(arm: str, scale: str, steps: int, workdir: str) -> None:
   per_epoch = -(-config.steps // max(1, len(rows)))  # steps per full epoch
   first_val = (steps // 2) // per_epoch + 1          # the epoch holding the first validation
   steady = [r for r in rows if 2 <= r["epoch"] < first_val]
+  if not steady:
+    raise SystemExit(f"bench_arms: --steps {steps} leaves no epoch between the first (compiling) "
+                     "and the first validation's; give more steps")
   sec = sum(r["seconds"] for r in steady) / (per_epoch * len(steady))
   print(json.dumps({"arm": arm, "sec_per_step": sec, "steady_steps": per_epoch * len(steady),
                     "validation_s": val_times[-1], "validations": len(val_times),

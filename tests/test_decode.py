@@ -347,12 +347,15 @@ def test_cli_decode_applies_the_importers_filters(tmp_path, scene, capsys, monke
   # consistent partner in the right view, and one beyond the width at (4, 50).
   from sljax.commands import decode as decode_cmd  # pylint: disable=import-outside-toplevel
   match = decode_cmd.match_views
+  d = read_pfm(good / "disp0.pfm")[4, 50]
+  partner = 50 - int(round(float(d)))  # the right pixel of the left pixel (4, 50)
 
   def planted(dec, *a, **k):
     match(dec, *a, **k)
     d0, d1 = dec.disp0.copy(), dec.disp1.copy()
     d0[3, 40], d1[3, 42] = -2.0, -2.0  # right pixel 42 = 40 - (-2)
-    d0[4, 50] = W + 5.0                # its partner would lie left of the image
+    assert np.isfinite(d0[4, 50]) and np.isfinite(d1[4, partner])
+    d0[4, 50] = W + 5.0                # its right partner was consistent until now
     dec.disp0, dec.disp1 = d0, d1
     return dec
 
@@ -363,5 +366,7 @@ def test_cli_decode_applies_the_importers_filters(tmp_path, scene, capsys, monke
   capsys.readouterr()
   d0, d1 = read_pfm(good / "disp0.pfm"), read_pfm(good / "disp1.pfm")
   assert np.isinf(d0[3, 40]) and np.isinf(d1[3, 42]) and np.isinf(d0[4, 50])
-  assert (np.isfinite(d0) & ((d0 < 0) | (d0 > W))).sum() == 0
+  assert np.isinf(d1[4, partner])  # the left-right check again: its partner went too
+  for d in (d0, d1):
+    assert (np.isfinite(d) & ((d < 0) | (d > W))).sum() == 0
   assert np.isfinite(d0).mean() > 0.5  # the rest kept

@@ -231,14 +231,17 @@ def test_the_seed_rule_by_hand(monkeypatch):
     return len(split_indices(open_source(config), config.test_fraction, seed=config.seed)[1])
 
   per_scene = 8.0 / 80
-  seconds = 0.0
-  for step_ratio, val_ratio in ((1.0, 1.0), (1.5, 2.0), (1.5, 2.0)):
-    seconds += step_ratio * 100.0 * (4 + 4)  # pretraining 4 steps, the regime's 4
-    seconds += val_ratio * per_scene * (2 * n_val(pre) + 2 * n_val(ft) + 2 * smoke.v2.test_n)
-  rule = regime.grid_seeds("smoke", design.regime)
-  assert rule["hours_per_seed"] == pytest.approx(seconds / 3600)
-  assert rule["seeds"] == min(10, max(3, int(24 // (seconds / 3600))))
-  assert [c["steps"] for c in rule["cells"]] == [4, 4] * 3
+  # Fine-tuning 4 steps validates at 2 and 4; 5 steps at 2, 4 and the last, 5.
+  for steps, ft_validations in ((4, 2), (5, 3)):
+    seconds = 0.0
+    for step_ratio, val_ratio in ((1.0, 1.0), (1.5, 2.0), (1.5, 2.0)):
+      seconds += step_ratio * 100.0 * (4 + steps)  # the pretraining's 4 steps, the regime's
+      seconds += val_ratio * per_scene * (2 * n_val(pre) + ft_validations * n_val(ft)
+                                          + 2 * smoke.v2.test_n)
+    rule = regime.grid_seeds("smoke", ("finetune", "1/2", steps))
+    assert rule["hours_per_seed"] == pytest.approx(seconds / 3600)
+    assert rule["seeds"] == min(10, max(3, int(24 // (seconds / 3600))))
+    assert [c["steps"] for c in rule["cells"]] == [4, steps] * 3
   # The clip: cheap seeds stop at 10, dear ones still run 3.
   _measured(monkeypatch, 1.0)
   assert regime.grid_seeds("smoke", design.regime)["seeds"] == 10
@@ -283,7 +286,10 @@ def test_grid_claims_on_fake_records(tmp_path):
   rise = {"stl": [0.3, 0.2, 0.4], "unc": [0.1, 0.1, 0.2], "epr": [0.3, 0.3, 0.3]}
   for cell in plan.cells:
     k = cell.seed - 300
-    _fake(tmp_path, cell.name, [(2, 1.0, 3), (4, 0.5, 2), (6, 0.5 + rise[cell.arm][k], 1)])
+    if dict(cell.factors)["setting"] == "pretrain":  # another curve: the claims must not read it
+      _fake(tmp_path, cell.name, [(2, 1.0, 3), (4, 0.2, 2), (6, 2.0, 1)])
+      continue
+    _fake(tmp_path, cell.name, [(2, 1.0, 3 + k), (4, 0.5, 2), (6, 0.5 + rise[cell.arm][k], 1)])
     for e in cell.evals:
       path = runner.cell_dir(tmp_path, cell.name) / "eval" / f"{e.name}.json"
       path.parent.mkdir(exist_ok=True)
@@ -299,9 +305,18 @@ def test_grid_claims_on_fake_records(tmp_path):
   # The pretraining cells score nothing: their group has no set, the curves are by step.
   pre = next(g for g in agg["groups"] if g["factors"]["setting"] == "pretrain")
   assert pre["sets"] == {} and [p["step"] for p in pre["curves"]["stl"]] == [2, 4, 6]
-  # The training loss between validations, the seeds' mean per arm (secondary).
+  # The training loss between validations, the seeds' mean per arm (secondary): 3, 4 and 5.
   ft = next(g for g in agg["groups"] if g["factors"]["setting"] == "finetune")
-  assert [(p["step"], p["mean"]) for p in ft["train_curves"]["unc"]] == [(2, 3), (4, 2), (6, 1)]
+  assert [(p["step"], p["mean"]) for p in ft["train_curves"]["unc"]] == [(2, 4), (4, 2), (6, 1)]
   md = report.write_report(tmp_path).read_text()
   assert "v4: stl, unc and epr" in md and "overfitting rise" in md
   assert (tmp_path / "figures" / "v4_curves.png").exists()
+  assert "Not finite at some validation" not in md
+  # A diverged cell (a NaN validation) is named: its rise counts the finite values only.
+  name = plan.cells_of(setting="finetune")[0].name
+  import shutil  # pylint: disable=import-outside-toplevel
+  shutil.rmtree(runner.cell_dir(tmp_path, name))
+  _fake(tmp_path, name, [(2, 1.0, 3), (4, 0.5, 2), (6, float("nan"), 1)])
+  md = report.write_report(tmp_path).read_text()
+  assert f"(diverged; the rise above is over the finite values only, so it understates theirs): " \
+         f"{name}." in md

@@ -45,8 +45,8 @@ def check_lit(decoded: StereoDecoded, where: tuple[str, str]) -> None:
 
 
 def swapped(decoded: StereoDecoded) -> tuple[str, float] | None:
-  """(view, share) of the first view whose matched disparities are more than half negative (as
-  scene.negative_share refuses a scene on load): LEFT and RIGHT swapped; None otherwise."""
+  """(view, share) of a view whose matched disparities are mostly negative, else None."""
+  # The rule by which scene.negative_share refuses a scene on load: LEFT and RIGHT swapped.
   for view, d in zip(("left", "right"), (decoded.disp0, decoded.disp1)):
     share = negative_share(d)
     if share is not None:

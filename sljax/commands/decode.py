@@ -19,6 +19,7 @@ from sljax.sl.stereo import MatchConfig, decode_views, match_views
 
 _DEFAULT_SHADOW = 10.0  # 8-bit grey levels; mirrors sljax.sl.decode.DecodeConfig
 _DEFAULT_BIT = 6.0
+_MATCH = MatchConfig()  # import-captures' defaults: the matching and its left-right tolerance
 
 
 def register(subparsers) -> None:
@@ -111,15 +112,17 @@ def run(args: argparse.Namespace) -> int:
     absent = [not p.exists() for p in targets]
     kept_disp += [str(p) for p, missing in zip(targets, absent) if not missing]
     if any(absent):
-      match_views(dec)
+      match_views(dec, _MATCH)
       found = refusals.swapped(dec)
       if found is not None:  # the loader would refuse the scene: write no disparity for it
-        swaps.append(f"scene {path}: raw0 and raw1 look swapped ({found[1]:.0%} of the "
-                     f"{found[0]} view's matched disparities are negative); no disparity "
-                     "written for it")
+        swaps.append(path)  # said now: a later scene's error must not hide it
+        tqdm.write(f"sljax decode: scene {path}: raw0 and raw1 look swapped ({found[1]:.0%} of "
+                   f"the {found[0]} view's matched disparities are negative); no disparity "
+                   "written for it: swap the two folders and rerun with --overwrite",
+                   file=sys.stderr)
         continue
       *disps, _ = refusals.plausible(dec.disp0, dec.disp1, dec.disp0.shape[1],
-                                     MatchConfig().lr_tolerance)
+                                     _MATCH.lr_tolerance)
       disp_known.append(float(np.isfinite(disps[0]).mean()))
       for p, missing, disp in zip(targets, absent, disps):
         if missing:
@@ -133,8 +136,6 @@ def run(args: argparse.Namespace) -> int:
              if disp_known else "")
     print(f"disparity files written: {written_disp}{known}; kept existing: {len(kept_disp)}"
           + (f" (e.g. {kept_disp[0]}; delete to recompute)" if kept_disp else ""))
-  for line in swaps:
-    print(f"sljax decode: {line}", file=sys.stderr)
   return 1 if swaps else 0
 
 

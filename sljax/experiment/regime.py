@@ -180,14 +180,15 @@ def _grid_cells(scale: str, regime_: tuple[str, str, int]) -> list[plans.Cell]:
   """One seed's cells of the v4 grid at a scale, were the rule to choose regime_."""
   sc = plans.SCALES[scale]
   sc = dataclasses.replace(sc, v4=dataclasses.replace(sc.v4, regime=regime_))
+  # The builder itself, not build_plan: n is what build_plan would refuse without.
   build = plans.BUILDERS[plans.V4][0]
   return build(plans.Seeded(sc, sc.v4.grid_first_seed, None, (), sc.budget))
 
 
 def grid_seeds(scale: str, regime_: tuple[str, str, int]) -> dict[str, Any]:
-  """docs/plan-v4.md's seed rule: the hours of one seed of the grid (every cell's steps,
-  validations and test scoring at stl's measured seconds times each arm's measured ratio) and
-  n, the most seeds that fit GRID_HOURS, clipped to GRID_SEEDS."""
+  """docs/plan-v4.md's seed rule: the hours of one seed of the grid and n, the seeds that fit."""
+  # Every cell's steps, validations and test scorings at stl's measured seconds times the arm's
+  # measured ratio; n = GRID_HOURS // hours, clipped to GRID_SEEDS.
   design = plans.SCALES[scale].v4
   require(design.step_seconds is not None and design.val_seconds is not None
           and design.arm_ratios,

@@ -80,6 +80,13 @@ def curve_metrics(out: Path, name: str) -> dict[str, float] | None:
   return {"rise": values[-1] - min(values), "final_val": values[-1], "min_val": min(values)}
 
 
+def nonfinite_curves(out: Path, cells: Sequence[Cell]) -> list[str]:
+  """The finished cells whose validation curve holds a NaN or inf (a diverged run): their
+  rise is taken over the finite values only, so the report names them."""
+  return [c.name for c in cells if (cell_dir(out, c.name) / DONE_FILE).exists()
+          and any(v is None or not math.isfinite(v) for _, v in curve(out, c.name))]
+
+
 def cell_metrics(out: Path, name: str, set_name: str) -> dict[str, float] | None:
   """The pooled metrics of a cell's final checkpoint on a set, or its curve's (CURVE_SET);
   None when not scored yet."""
@@ -291,13 +298,14 @@ def _figures(plan: Plan, agg: dict[str, Any], fig_dir: Path) -> list[str]:
     axes = fig.subplots(len(rows), len(with_curves), squeeze=False)
     for r, (key, label) in enumerate(rows):
       for ax, g in zip(axes[r], with_curves):
-        unit = _curve_panel(ax, g.get(key, {}), plan.baseline)
-        ax.set_xlabel(unit)
+        _curve_panel(ax, g.get(key, {}), plan.baseline, _unit(g))
+        ax.set_xlabel(_unit(g))
         ax.set_ylabel(label)
         if key == "train_curves":
           ax.set_yscale("log")
         ax.set_title(", ".join(g["factors"].values()), fontsize=9)
         ax.legend(fontsize=7)
+    unit = _unit(with_curves[0])
     what = "validation MAE" + (" and training loss" if len(rows) > 1 else "")
     fig.suptitle(f"{plan.name}: {what} per {unit} (mean, 95% band over seeds)", fontsize=10)
     fig.tight_layout()
@@ -307,11 +315,14 @@ def _figures(plan: Plan, agg: dict[str, Any], fig_dir: Path) -> list[str]:
   return names
 
 
-def _curve_panel(ax, curves: dict[str, list[dict[str, Any]]], baseline: str) -> str:
-  """Each arm's mean curve (the baseline dashed) and its 95% band; returns the x unit."""
-  unit = "epoch"
+def _unit(group: dict[str, Any]) -> str:
+  """The x axis of a group's curves: steps where its cells validated by steps, else epochs."""
+  return "step" if any("step" in pts[0] for pts in group["curves"].values()) else "epoch"
+
+
+def _curve_panel(ax, curves: dict[str, list[dict[str, Any]]], baseline: str, unit: str) -> None:
+  """Each arm's mean curve (the baseline dashed) and its 95% band."""
   for k, (a, pts) in enumerate(curves.items()):
-    unit = "step" if "step" in pts[0] else "epoch"
     e = np.array([p[unit] for p in pts])
     ax.plot(e, [p["mean"] for p in pts], "--" if a == baseline else "-", color=f"C{k}",
             label=a)
@@ -319,7 +330,6 @@ def _curve_panel(ax, curves: dict[str, list[dict[str, Any]]], baseline: str) -> 
     hi = np.array([p["hi"] for p in pts], float)
     if np.isfinite(lo).all():
       ax.fill_between(e, lo, hi, color=f"C{k}", alpha=0.15)
-  return unit
 
 
 # ----------------------------------------------------------------------------- markdown
@@ -388,6 +398,11 @@ def _plan_markdown(out: Path, plan: Plan, agg: dict[str, Any], cl: list[dict[str
                   "smaller rise; p: paired t-test, unadjusted; seeds where the arm rose less):",
                   ""]
         lines += _md_table(["arm", "Δ overfitting rise px"], prow)
+        diverged = nonfinite_curves(out, [c for c in plan.cells
+                                          if dict(c.factors) == g["factors"]])
+        if diverged:
+          lines += [f"Not finite at some validation (diverged; the rise above is over the "
+                    f"finite values only, so it understates theirs): {', '.join(diverged)}.", ""]
       elif res["paired"]:
         prow = []
         for a, p in res["paired"].items():

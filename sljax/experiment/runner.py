@@ -144,8 +144,7 @@ def _first_difference(old: Any, new: Any, path: str = "") -> str:
 
 
 def curve(out: Path, name: str) -> list[tuple[int, float]]:
-  """(epoch, validation MAE) of a cell's training log; (step, validation MAE) for a cell that
-  validated by steps (its validation.jsonl)."""
+  """(epoch, validation MAE) of a cell's training log, or (step, ...) if it validated by steps."""
   if (cell_dir(out, name) / VALIDATION_FILE).exists():
     return [(r["step"], r["val_mae"]) for r in step_curve(out, name)
             if r.get("val_mae") is not None]
@@ -157,8 +156,7 @@ def curve(out: Path, name: str) -> list[tuple[int, float]]:
 
 
 def train_curve(out: Path, name: str) -> list[tuple[int, float]]:
-  """(step, mean training disparity loss since the previous validation) of a cell that
-  validated by steps; [] for one that did not."""
+  """(step, mean training L_disp since the previous validation) of a cell validated by steps."""
   return [(r["step"], r["train_loss_disp"]) for r in step_curve(out, name)
           if r.get("train_loss_disp") is not None]
 

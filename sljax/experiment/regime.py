@@ -258,32 +258,50 @@ def markdown_v4(result: dict[str, Any]) -> list[str]:
   return lines + [""]
 
 
+def _panels(n: int) -> tuple[Figure, np.ndarray]:
+  """A figure of n panels in a row (at least one)."""
+  fig = Figure(figsize=(4.2 * max(1, n), 3.4))
+  return fig, fig.subplots(1, max(1, n), squeeze=False)[0]
+
+
+def _rule_lines(ax, r: dict[str, Any], unit: str) -> None:
+  """The seeds' mean curve, its trailing mean (what the rule reads) and the minimum's x."""
+  x, v = np.array(r["mean"]).T
+  ax.plot(x, v, color="k", lw=1.5, label="mean of seeds")
+  x, v = np.array(r["smoothed"]).T
+  ax.plot(x, v, "--", color="0.4", lw=1.2, label=f"trailing mean of {SMOOTH}")
+  ax.axvline(r[f"min_{unit}"], color="0.5", lw=0.8, label=f"minimum ({unit} {r[f'min_{unit}']})")
+
+
+def _save(fig: Figure, title: str, path: Path) -> None:
+  fig.suptitle(title, fontsize=10)
+  fig.tight_layout()
+  path.parent.mkdir(parents=True, exist_ok=True)
+  files.save_figure(fig, path, dpi=110)
+
+
 def figure_v4(result: dict[str, Any], path: Path) -> None:
-  """Per setting and fraction: each seed's validation MAE (solid) and its training disparity
-  loss over each interval (dotted, right axis); the mean's smoothed minimum marked."""
+  """Per setting and fraction: each seed's validation MAE (thin) and training disparity loss
+  between validations (dotted, right axis), the seeds' mean and its trailing mean, the minimum."""
   panels = [(s, f, r) for s in V4_SETTINGS
             for f, r in result["settings"][s]["fractions"].items()]
   if not panels:
     return
-  fig = Figure(figsize=(4.2 * len(panels), 3.4))
-  axes = fig.subplots(1, len(panels), squeeze=False)[0]
+  fig, axes = _panels(len(panels))
   for ax, (setting, fraction, r) in zip(axes, panels):
     twin = ax.twinx()
     for k, rows in enumerate(result["settings"][setting]["curves"][fraction].values()):
       steps = [row["step"] for row in rows]
-      ax.plot(steps, [row["val_mae"] for row in rows], color=f"C{k}", lw=1.0)
+      ax.plot(steps, [row["val_mae"] for row in rows], color=f"C{k}", lw=0.8)
       twin.plot(steps, [row["train_loss_disp"] for row in rows], ":", color=f"C{k}", lw=1.0)
-    ax.axvline(r["min_step"], color="0.5", lw=0.8)
+    _rule_lines(ax, r, "step")
     ax.set_title(f"{setting} {fraction}: rise {100 * r['rise']:+.1f}%", fontsize=9)
     ax.set_xlabel("step")
-    ax.set_ylabel("validation Full MAE (px), solid")
-    twin.set_ylabel("training L_disp, dotted")
+    ax.set_ylabel("validation Full MAE (px)")
+    ax.legend(fontsize=7)
+    twin.set_ylabel("training L_disp, dotted (log)")
     twin.set_yscale("log")
-  fig.suptitle("v4 pilot: stl's validation error and training loss (seeds in colour)",
-               fontsize=10)
-  fig.tight_layout()
-  path.parent.mkdir(parents=True, exist_ok=True)
-  files.save_figure(fig, path, dpi=110)
+  _save(fig, "v4 pilot: stl's validation error and training loss (seeds in colour)", path)
 
 
 def markdown(result: dict[str, Any]) -> list[str]:
@@ -314,25 +332,17 @@ def markdown(result: dict[str, Any]) -> list[str]:
 def figure(result: dict[str, Any], path: Path) -> None:
   """Each fraction's seeds (thin), mean (thick) and smoothed mean (dashed), minimum marked."""
   rows = result["fractions"]
-  fig = Figure(figsize=(4.2 * max(1, len(rows)), 3.4))
-  axes = fig.subplots(1, max(1, len(rows)), squeeze=False)
-  for ax, (fraction, r) in zip(axes[0], rows.items()):
+  fig, axes = _panels(len(rows))
+  for ax, (fraction, r) in zip(axes, rows.items()):
     for name, pts in r["curves"].items():
       e, v = np.array(pts).T
       ax.plot(e, v, color="0.7", lw=0.8)
-    e, v = np.array(r["mean"]).T
-    ax.plot(e, v, color="C0", lw=1.5, label="mean of seeds")
-    e, v = np.array(r["smoothed"]).T
-    ax.plot(e, v, "--", color="C1", lw=1.2, label=f"trailing mean of {result['smooth']}")
-    ax.axvline(r["min_epoch"], color="C2", lw=0.8, label=f"minimum (epoch {r['min_epoch']})")
+    _rule_lines(ax, r, "epoch")
     ax.set_title(f"{fraction}: rise {100 * r['rise']:+.1f}%", fontsize=9)
     ax.set_xlabel("epoch")
     ax.set_ylabel("validation Full MAE (px)")
     ax.legend(fontsize=7)
-  fig.suptitle("v3 pilot: stl's validation MAE at a constant learning rate", fontsize=10)
-  fig.tight_layout()
-  path.parent.mkdir(parents=True, exist_ok=True)
-  files.save_figure(fig, path, dpi=110)
+  _save(fig, "v3 pilot: stl's validation MAE at a constant learning rate", path)
 
 
 def write(out: str | Path, scale: str = "cpu", seeds: int = 2) -> dict[str, Any]:

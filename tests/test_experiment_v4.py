@@ -320,3 +320,21 @@ def test_grid_claims_on_fake_records(tmp_path):
   md = report.write_report(tmp_path).read_text()
   assert f"(diverged; the rise above is over the finite values only, so it understates theirs): " \
          f"{name}." in md
+
+
+def test_the_committed_regime_is_the_rules_on_the_committed_pilot():
+  """scales.py's v4 regime and n are what main's rule gives on docs/results/v4-pilot: none
+  before every pilot cell is committed; afterwards the chosen setting, fraction, budget and n."""
+  from pathlib import Path  # pylint: disable=import-outside-toplevel
+  records = Path(__file__).resolve().parents[1] / "docs" / "results" / "v4-pilot"
+  design = plans.SCALES["cpu"].v4
+  result = regime.v4(records, "cpu", 2)
+  if result["missing"]:
+    assert design.regime is None and design.grid_seeds is None, result["missing"]
+    return
+  if result["grid_setting"] is None:
+    assert design.regime == plans.NO_REGIME and design.grid_seeds is None
+    return
+  chosen = result["settings"][result["grid_setting"]]["regime"]
+  assert design.regime == (result["grid_setting"], chosen["fraction"], chosen["budget_steps"])
+  assert design.grid_seeds == result["grid_seeds"]["seeds"]

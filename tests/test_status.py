@@ -126,3 +126,27 @@ def test_says_whether_a_runner_holds_the_folder(grid, capsys):
   assert cli.main(["experiment", "status", str(grid)]) == 0
   text = capsys.readouterr().out
   assert "holds this folder" not in text and "Running here" not in text
+
+
+def test_cells_budgeted_in_steps_are_estimated_at_the_arms_seconds_a_step(tmp_path):
+  """The v4 pilot at the cpu scale: one from-scratch cell finished (2,700 steps in 2,700 s on
+  this CPU, 1 s a step): every other stl cell, of any setting, counts its steps at 1 s; the
+  fine-tuning cells' own group has no finished cell."""
+  plan = plans.build_plan("v4-pilot", "cpu", 2)
+  out = tmp_path / "v4"
+  runner.register(out, plan)
+  first = plan.cells[0]
+  _done(out, first.name, 2700.0, X, evals=())
+  states = status.plan_status(out, plan)
+  left, unknown = status.seconds_left(states, X)
+  assert unknown == 0
+  assert left == pytest.approx(sum(c.config.steps for c in plan.cells[1:]) * 1.0)
+  # Another finished cell of the same group as a waiting one: that group's own mean wins.
+  _done(out, plan.cells[1].name, 5400.0, X, evals=())  # 2 s a step in the 1/64 group
+  states = status.plan_status(out, plan)
+  left, _ = status.seconds_left(states, X)
+  per_step = (1.0 + 2.0) / 2
+  twin_1_64 = next(c for c in plan.cells[2:] if c.factors == plan.cells[1].factors)
+  twin_1_32 = next(c for c in plan.cells[2:] if c.factors == plan.cells[0].factors)
+  rest = [c for c in plan.cells[2:] if c not in (twin_1_64, twin_1_32)]
+  assert left == pytest.approx(5400.0 + 2700.0 + per_step * sum(c.config.steps for c in rest))

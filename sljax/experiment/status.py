@@ -86,24 +86,35 @@ def plan_status(out: Path, plan: Plan) -> list[CellState]:
   return [cell_state(out, cell) for cell in plan.cells]
 
 
+def _mean_here(states: list[CellState], value, here: str) -> float:
+  """The mean of value(state) over the states finished on this CPU, else over all of them."""
+  values = [value(s) for s in states if s.machine == here] or [value(s) for s in states]
+  return sum(values) / len(values)
+
+
 def seconds_left(states: list[CellState], here: str) -> tuple[float, int]:
-  """(estimated training seconds left, unfinished cells with no estimate). A group's estimate
-  is the mean of its finished cells on this CPU (`here`), else on any CPU; a training cell
-  counts the share of its budget still to run."""
+  """(estimated training seconds left, unfinished cells with no estimate)."""
+  # A group's estimate is the mean of its finished cells (on this CPU where it has some); a
+  # cell budgeted in steps whose group has none is estimated at its arm's seconds a step in
+  # finished cells budgeted in steps (the v4 settings differ in steps, not in the step's
+  # cost); a training cell counts the share of its budget still to run.
   timed = [s for s in states if s.seconds is not None]
-  mean: dict[tuple, float] = {}
-  for group in {s.group for s in timed}:
-    times = ([s.seconds for s in timed if s.group == group and s.machine == here]
-             or [s.seconds for s in timed if s.group == group])
-    mean[group] = sum(times) / len(times)
+  mean = {g: _mean_here([s for s in timed if s.group == g], lambda s: s.seconds, here)
+          for g in {s.group for s in timed}}
+  stepped = [s for s in timed if s.cell.config.steps]
+  per_step = {a: _mean_here([s for s in stepped if s.cell.arm == a],
+                            lambda s: s.seconds / s.cell.config.steps, here)
+              for a in {s.cell.arm for s in stepped}}
   left, unknown = 0.0, 0
   for s in states:
     if s.state in (DONE, SCORING):
       continue
-    if s.group not in mean:
+    if s.group in mean:
+      left += mean[s.group] * (1 - s.share)
+    elif s.cell.config.steps and s.cell.arm in per_step:
+      left += per_step[s.cell.arm] * s.cell.config.steps * (1 - s.share)
+    else:
       unknown += 1
-      continue
-    left += mean[s.group] * (1 - s.share)
   return left, unknown
 
 
@@ -142,7 +153,7 @@ def format_status(plan: Plan, states: list[CellState], here: str) -> str:
   if count[TRAINING] + count[WAITING]:
     when = f"{left / 3600:.1f} h" if left >= 3600 else f"{left / 60:.0f} min"
     lines.append(f"Training left: about {when}, at this CPU's pace where it finished cells of "
-                 "the arm, else at other CPUs'"
+                 "the arm, else at other CPUs' (budgets in steps: at the arm's seconds a step)"
                  + (f"; {unknown} cell(s) of arms with no finished cell not counted"
                     if unknown else "") + "; scoring adds minutes a cell")
   return "\n".join(lines)

@@ -312,18 +312,23 @@ def _v3_pilot(a: Seeded) -> list[Cell]:
   return cells
 
 
+def _require_regime(plan: str, scale: str, regime: Any, run: str, where: str) -> None:
+  """SljaxError while a grid's pilot has no committed regime, or when it found none."""
+  require(regime is not None,
+          f"plan {plan}: scale {scale} has no regime yet: {run} (`sljax experiment run "
+          f"{plan}-pilot`), apply the rule (`sljax experiment regime`) and commit the regime "
+          f"with the outcome in docs/plan-{plan}.md")
+  require(regime != NO_REGIME,
+          f"plan {plan}: at scale {scale} the pilot found no {where} where stl overfits "
+          f"(docs/plan-{plan}.md, the pilot's outcome), so by the pre-registered rule {plan} "
+          "ends there and no test cell runs")
+
+
 def _v3(a: Seeded) -> list[Cell]:
   """stl, unc and epr in the pilot's regime (fraction and budget), constant learning rate,
   every validation scene every val_every epochs; scored on the fixed test sets."""
   design = a.scale.v3
-  require(design.regime is not None,
-          f"plan v3: scale {a.scale.name} has no regime yet: run the pilot (`sljax experiment "
-          "run v3-pilot`), apply the rule (`sljax experiment regime`) and commit the regime "
-          "with the outcome in docs/plan-v3.md")
-  require(design.regime != NO_REGIME,
-          f"plan v3: at scale {a.scale.name} the pilot found no training fraction where stl "
-          "overfits (docs/plan-v3.md, the pilot's outcome), so by the pre-registered rule v3 "
-          "ends there and no test cell runs")
+  _require_regime("v3", a.scale.name, design.regime, "run the pilot", "training fraction")
   fraction, epochs = design.regime
   evals = (test_set("objects", a.scale), test_set("tissue", a.scale),
            test_set("objects", a.scale, "best"))
@@ -370,14 +375,7 @@ def _v4(a: Seeded) -> list[Cell]:
   rates, every validation scene every val_every steps; the final and the best checkpoint scored
   on the setting's fixed test set. Fine-tuning starts each arm from its own objects model."""
   design = a.scale.v4
-  require(design.regime is not None,
-          f"plan v4: scale {a.scale.name} has no regime yet: finish the pilot (`sljax experiment "
-          "run v4-pilot`), apply the rule (`sljax experiment regime`) and commit the regime "
-          "with the outcome in docs/plan-v4.md")
-  require(design.regime != NO_REGIME,
-          f"plan v4: at scale {a.scale.name} the pilot found no setting where stl overfits "
-          "(docs/plan-v4.md, the pilot's outcome), so by the pre-registered rule v4 ends there "
-          "and no test cell runs")
+  _require_regime("v4", a.scale.name, design.regime, "finish the pilot", "setting")
   setting, fraction, steps = design.regime
   domain = "tissue" if setting == "finetune" else "objects"
   evals = (test_set(domain, a.scale), test_set(domain, a.scale, "best"))

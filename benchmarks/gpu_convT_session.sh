@@ -25,19 +25,9 @@
 set -uo pipefail
 cd "$(dirname "$0")/.."
 dry=${1:-}
-OUT=${OUT:-/tmp/gpu_convT_session}
-mkdir -p "$OUT"
-export PYTHONPATH=$PWD PYTHONUNBUFFERED=1 SLJAX_BENCH_RESULTS=$OUT/records
-PY=${PYTHON:-python3}
-start=$(date +%s); deadline=$((start + ${DEADLINE:-450}))
-left() { local l=$((deadline - $(date +%s))); [ $l -lt 1 ] && l=1; echo $l; }
-log() {
-  echo "== $(date -u +%H:%M:%S) (+$(($(date +%s) - start)) s) $*" | tee -a "$OUT/session.log"
-}
-ran() { local rc=$?; log "exit code $rc$([ $rc = 124 ] && echo ' (timed out)')"; }
+session=gpu_convT_session deadline_s=450
+source benchmarks/gpu_common.sh
 
-ref=${REFERENCE:-.ref/PSMNet}
-refarg=""; [ -f "$ref/models/stackhourglass.py" ] && refarg="--reference $ref"
 convT="--shapes paper --profile dx,dk,both"
 step="--shapes paper --precisions fp32 --impls gpu,lax,gpu-phase --twin none --warm-start"
 step="$step --profile-top 8"
@@ -51,13 +41,7 @@ if [ -n "$dry" ]; then
   convT_limit=600; crop_need=300
 fi
 
-log "gpu_convT_session ${dry:+(dry run)};" \
-  "reference: ${refarg:-none (no $ref/models/stackhourglass.py)}"
-{ nvidia-smi -L 2>/dev/null || echo "no nvidia-smi"; git log --oneline -1;
-  $PY -c "import jax, flax; print('jax', jax.__version__, jax.devices(), 'flax', flax.__version__)";
-  $PY -c "import torch; print('torch', torch.__version__, torch.cuda.is_available())" 2>&1 |
-    tail -1; } \
-  2>&1 | tee -a "$OUT/session.log"
+header
 
 log "1. bench_convT.py $convT (within $convT_limit s)"
 timeout "$convT_limit" $PY benchmarks/bench_convT.py $convT > "$OUT/bench_convT.log" 2>&1
@@ -76,6 +60,4 @@ if [ "$(left)" -ge "$crop_need" ]; then
 else
   log "3. skipped: $(left) s left, the crop shape needs about $crop_need"
 fi
-nvidia-smi --query-gpu=name,memory.used,memory.total --format=csv 2>/dev/null |
-  tee -a "$OUT/session.log"
-log "done"
+footer

@@ -25,19 +25,9 @@
 set -uo pipefail
 cd "$(dirname "$0")/.."
 dry=${1:-}
-OUT=${OUT:-/tmp/gpu_issue42_session}
-mkdir -p "$OUT"
-export PYTHONPATH=$PWD PYTHONUNBUFFERED=1 SLJAX_BENCH_RESULTS=$OUT/records
-PY=${PYTHON:-python3}
-start=$(date +%s); deadline=$((start + ${DEADLINE:-530}))
-left() { local l=$((deadline - $(date +%s))); [ $l -lt 1 ] && l=1; echo $l; }
-log() {
-  echo "== $(date -u +%H:%M:%S) (+$(($(date +%s) - start)) s) $*" | tee -a "$OUT/session.log"
-}
-ran() { local rc=$?; log "exit code $rc$([ $rc = 124 ] && echo ' (timed out)')"; }
+session=gpu_issue42_session deadline_s=530
+source benchmarks/gpu_common.sh
 
-ref=${REFERENCE:-.ref/PSMNet}
-refarg=""; [ -f "$ref/models/stackhourglass.py" ] && refarg="--reference $ref"
 first_args="--strategy epr --preset paper"
 first="--part run --later-steps 3"
 kernels="--size 256 --maxdisp 96 --batch 12 --kernels indexed,nchwToNhwc"
@@ -51,13 +41,7 @@ if [ -n "$dry" ]; then
   first_limit=400; kernels_limit=300; kernels_need=10; fullres_need=10
 fi
 
-log "gpu_issue42_session ${dry:+(dry run)};" \
-  "reference: ${refarg:-none (no $ref/models/stackhourglass.py)}"
-{ nvidia-smi -L 2>/dev/null || echo "no nvidia-smi"; git log --oneline -1;
-  $PY -c "import jax, flax; print('jax', jax.__version__, jax.devices(), 'flax', flax.__version__)";
-  $PY -c "import torch; print('torch', torch.__version__, torch.cuda.is_available())" 2>&1 |
-    tail -1; } \
-  2>&1 | tee -a "$OUT/session.log"
+header
 
 log "1. bench_compile.py $first --train-args '$first_args' (within $first_limit s)"
 timeout "$first_limit" $PY benchmarks/bench_compile.py $first --train-args "$first_args" \
@@ -81,6 +65,4 @@ if [ "$(left)" -ge "$fullres_need" ]; then
 else
   log "3. skipped: $(left) s left, full-resolution inference needs about $fullres_need"
 fi
-nvidia-smi --query-gpu=name,memory.used,memory.total --format=csv 2>/dev/null |
-  tee -a "$OUT/session.log"
-log "done"
+footer

@@ -13,24 +13,18 @@
 # `dry` runs the same at a tiny size, on any machine (check a part on a CPU before a GPU call):
 #   OUT=/tmp/gpu bash benchmarks/gpu_session.sh step dry
 # `speed` compares with the reference PyTorch PSMNet when a checkout of it is in .ref/PSMNet
-# (mkdir -p .ref && cp -r PSMNET_CHECKOUT .ref/PSMNet); without one it times sljax alone.
+# (mkdir -p .ref && cp -r PSMNET_CHECKOUT .ref/PSMNet, or REFERENCE=DIR); without one it times
+# sljax alone. The plumbing the session scripts share is benchmarks/gpu_common.sh.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 part=${1:-}
 dry=${2:-}
-OUT=${OUT:-/tmp/gpu_session}
-mkdir -p "$OUT"
-export PYTHONPATH=$PWD PYTHONUNBUFFERED=1 SLJAX_BENCH_RESULTS=$OUT/records
-PY=${PYTHON:-python3}
-log() { echo "== $(date -u +%H:%M:%S) $*" | tee -a "$OUT/session.log"; }
-ran() { local rc=$?; log "exit code $rc$([ $rc = 124 ] && echo ' (timed out)')"; }
-
 case "$part" in suite|speed|step) ;; *)
   echo "usage: bash benchmarks/gpu_session.sh suite|speed|step [dry]" >&2; exit 2 ;;
 esac
-log "part $part ${dry:+(dry run)}"
-{ nvidia-smi -L 2>/dev/null || echo "no nvidia-smi"
-  $PY -c "import jax; print(jax.__version__, jax.devices())"; } 2>&1 | tee -a "$OUT/session.log"
+session=gpu_session deadline_s=540
+source benchmarks/gpu_common.sh
+header "part $part"
 
 if [ "$part" = suite ]; then
   export XLA_PYTHON_CLIENT_PREALLOCATE=false  # the workers share the GPU's memory
@@ -43,11 +37,10 @@ if [ "$part" = suite ]; then
     -o addopts="-ra --durations=25" --tb=line $files > "$OUT/tests-suite.log" 2>&1
   ran; grep -E "^(FAILED|ERROR)|passed|failed" "$OUT/tests-suite.log" | tail -40 | tee -a "$OUT/session.log"
 elif [ "$part" = speed ]; then
-  ref=""; [ -d .ref/PSMNet ] && ref="--reference .ref/PSMNet"
   args="--batch 4 --models psmnet,unet-sl"
   [ -n "$dry" ] && args="--size 64 --maxdisp 32 --batch 1 --repeats 1 --models psmnet"
-  log "bench_gpu $args $ref"
-  timeout 540 $PY benchmarks/bench_gpu.py $args $ref > "$OUT/bench_gpu.log" 2>&1
+  log "bench_gpu $args $refarg"
+  timeout 540 $PY benchmarks/bench_gpu.py $args $refarg > "$OUT/bench_gpu.log" 2>&1
   ran; cat "$OUT/bench_gpu.log" >> "$OUT/session.log"
 else
   args="--preset paper --steps 20"; limit=270
@@ -61,4 +54,4 @@ else
     done
   done
 fi
-log "done"
+footer

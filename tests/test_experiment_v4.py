@@ -89,6 +89,8 @@ def test_v3_rule_on_steps_by_hand():
   assert r["rise"] == pytest.approx(0.8 / 0.7 - 1)
   assert out["regime"] == {"fraction": "1/64", "budget_steps": 800, "min_step": 400}
   assert r["memorisation"]["s200"]["ratio"] == pytest.approx(1 / 3)  # min at 300 (0.5)
+  # s201's minimum 0.7 first at 300 (training loss 3), 0.5 at the end: 1/6; the mean 1/4.
+  assert r["memorisation_mean"] == pytest.approx((1 / 3 + 1 / 6) / 2)
   none = regime.v4_setting({"1/32": {"s200": flat}}, ("1/32", "1/64"), 100)
   assert none["regime"]["fraction"] is None
 
@@ -128,6 +130,9 @@ def test_the_grid_setting_by_the_rule(tmp_path, scratch, finetune, grid):
   (runner.cell_dir(tmp_path, plan.cells[0].name) / runner.DONE_FILE).unlink()
   assert regime.v4(tmp_path, "smoke", 1)["grid_setting"] is None
   assert regime.v4(tmp_path, "smoke", 1)["missing"] == [plan.cells[0].name]
+  md = regime.markdown_v4(regime.v4(tmp_path, "smoke", 1))
+  assert "Regime: fraction" not in "\n".join(md)
+  assert md.count("Regime: decided once every cell has finished.") == 2
 
 
 def test_status_reads_a_step_budget_by_steps():
@@ -338,3 +343,71 @@ def test_the_committed_regime_is_the_rules_on_the_committed_pilot():
   chosen = result["settings"][result["grid_setting"]]["regime"]
   assert design.regime == (result["grid_setting"], chosen["fraction"], chosen["budget_steps"])
   assert design.grid_seeds == result["grid_seeds"]["seeds"]
+
+
+def test_a_diverged_grid_cell_is_left_out_and_the_grid_goes_on(tmp_path, monkeypatch):
+  """A cell whose training loss goes non-finite is recorded (diverged.json) and the runner goes
+  on without it and the cells fine-tuned from it; a rerun keeps them out; status and the
+  report name them, and the pairs leave their seeds out (docs/plan-v4.md's addendum)."""
+  import json  # pylint: disable=import-outside-toplevel
+  from sljax.experiment import report, runner, status  # pylint: disable=import-outside-toplevel
+  from sljax.train.record import TrainingDiverged  # pylint: disable=import-outside-toplevel
+  plan = plans.build_plan("v4", "smoke", 3)
+  by = _by(plan)
+  blows_up = {by[("stl", "pretrain", 300)].name, by[("epr", "finetune", 302)].name}
+  trained = []
+
+  def fake_train(out, cell, bar, weight):
+    trained.append(cell.name)
+    if cell.name in blows_up:  # one validation before the loss went NaN
+      wd = runner.cell_dir(out, cell.name)
+      wd.mkdir(parents=True)
+      (wd / "validation.jsonl").write_text(json.dumps(_rows([(2, 1.0, 3)])[0]) + "\n")
+      raise TrainingDiverged(f"non-finite loss (nan) at step 3 in {cell.name}")
+    _fake(out, cell.name, [(2, 1.0, 3), (4, 0.5, 2), (6, 0.6, 1)])
+    return {"step": 6}
+
+  def fake_evaluate(out, cell, evalset):
+    rep = {"pooled": {"full": {"mae": 1.0 + 0.1 * (cell.seed - 300)
+                               - 0.2 * (cell.arm != "stl")}}}
+    path = runner.cell_dir(out, cell.name) / "eval" / f"{evalset.name}.json"
+    path.parent.mkdir(exist_ok=True)
+    path.write_text(json.dumps(rep))
+    return rep
+
+  monkeypatch.setattr(runner, "train_cell", fake_train)
+  monkeypatch.setattr(runner, "evaluate_cell", fake_evaluate)
+  res = runner.run(plan, tmp_path, progress=False, log=lambda _: None)
+  stl_ft = by[("stl", "finetune", 300)].name
+  assert set(res["diverged"]) == blows_up | {stl_ft}
+  assert res["diverged"][stl_ft] == f"fine-tuned from {by[('stl', 'pretrain', 300)].name}, " \
+                                    "which diverged"
+  assert stl_ft not in trained and res["trained"] == len(plan.cells) - 3
+  for name in blows_up:
+    rec = json.loads((runner.cell_dir(tmp_path, name) / runner.DIVERGED_FILE).read_text())
+    assert name in rec["message"] and "machine" in rec
+    assert not (runner.cell_dir(tmp_path, name) / runner.DONE_FILE).exists()
+  assert not (runner.cell_dir(tmp_path, stl_ft) / runner.DIVERGED_FILE).exists()
+  # Run again: nothing to do, the same three left out.
+  trained.clear()
+  again = runner.run(plan, tmp_path, progress=False, log=lambda _: None)
+  assert trained == [] and again["trained"] == again["evaluated"] == 0
+  assert again["diverged"].keys() == res["diverged"].keys()
+  states = status.plan_status(tmp_path, plan)
+  assert {s.cell.name for s in states if s.state == status.DIVERGED} == set(res["diverged"])
+  text = status.format_status(plan, states, "here")
+  assert "3 left out (diverged)" in text and "Training left" not in text
+  # The report: named, not "not scored yet", and the pairs over the seeds both arms have.
+  agg = report.aggregate(tmp_path, plan)
+  ft = next(g for g in agg["groups"] if g["factors"]["setting"] == "finetune")
+  test = ft["sets"]["test-tissue"]
+  assert test["missing"] == [] and set(test["diverged"]) == {stl_ft, by[("epr", "finetune",
+                                                                          302)].name}
+  assert test["paired"]["unc"]["mae"]["n"] == 2  # seeds 301 and 302 (stl's 300 left out)
+  assert test["paired"]["epr"]["mae"]["n"] == 1  # seed 301 only
+  assert test["paired"]["unc"]["mae"]["mean"] == pytest.approx(-0.2)
+  assert [p["n"] for p in ft["curves"]["stl"]] == [2, 2, 2]
+  # epr's mean curve over its two finished seeds, not cut to the diverged cell's one step.
+  assert [(p["step"], p["n"]) for p in ft["curves"]["epr"]] == [(2, 2), (4, 2), (6, 2)]
+  md = report.write_report(tmp_path).read_text()
+  assert "Left out, diverged" in md and stl_ft in md

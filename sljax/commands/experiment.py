@@ -92,8 +92,11 @@ def run_plan(args: argparse.Namespace) -> int:
   seeds = args.seeds if args.seeds is not None else 1 if args.scale == "smoke" else 3
   plan = plans.build_plan(args.plan, args.scale, seeds, args.data, tuple(args.eval_data))
   res = runner.run(plan, args.out, progress=not args.no_progress)
+  left_out = (f"; {len(res['diverged'])} cell(s) left out as diverged (each diverged.json "
+              "says why)" if res["diverged"] else "")
   print(f"{args.plan}: trained {res['trained']} cell(s), scored {res['evaluated']} set(s) in "
-        f"{res['seconds'] / 60:.1f} min; report with: sljax experiment report {args.out}")
+        f"{res['seconds'] / 60:.1f} min{left_out}; report with: sljax experiment report "
+        f"{args.out}")
   return 0
 
 

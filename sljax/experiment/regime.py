@@ -125,8 +125,11 @@ def v4_setting(curves: Mapping[str, Mapping[str, Sequence[dict[str, Any]]]],
     pts = {name: [(r["step"], r["val_mae"]) for r in rs] for name, rs in cells.items()}
     mean = mean_curve(list(pts.values()))
     rise = fraction_rise(mean)
+    per_cell = {n: memorisation(rs) for n, rs in cells.items()}
+    ratios = [m["ratio"] for m in per_cell.values() if m["ratio"] is not None]
     rows[fraction] = dict(rise, min_step=rise.pop("min_epoch"), mean=[list(p) for p in mean],
-                          memorisation={n: memorisation(rs) for n, rs in cells.items()})
+                          memorisation=per_cell,
+                          memorisation_mean=sum(ratios) / len(ratios) if ratios else None)
   chosen = choose({f: dict(r, min_epoch=r["min_step"]) for f, r in rows.items()}, fractions,
                   val_every)
   return {"fractions": rows, "regime": {"fraction": chosen["fraction"],
@@ -223,17 +226,24 @@ def markdown_v4(result: dict[str, Any]) -> list[str]:
     r = result["settings"][setting]
     lines += [f"## {setting}", "", "| fraction | minimum (smoothed mean) | its step | final "
               "(smoothed mean) | rise | overfits (rise >= 10%) | training loss at the end / at "
-              "the minimum, per seed |", "| --- | ---: | ---: | ---: | ---: | --- | --- |"]
+              "the minimum, per seed (mean) |", "| --- | ---: | ---: | ---: | ---: | --- | --- |"]
     for fraction, f in r["fractions"].items():
       ratios = ", ".join("-" if m["ratio"] is None else f"{m['ratio']:.2f}"
                          for m in f["memorisation"].values())
+      if f["memorisation_mean"] is not None:
+        ratios += f" ({f['memorisation_mean']:.2f})"
       lines.append(f"| {fraction} | {f['min_smoothed']:.3f} px | {f['min_step']} | "
                    f"{f['final_smoothed']:.3f} px | {100 * f['rise']:+.1f}% | "
                    f"{'yes' if f['overfits'] else 'no'} | {ratios} |")
     chosen = r["regime"]
-    lines += ["", (f"Regime: fraction {chosen['fraction']}, budget {chosen['budget_steps']} steps "
-                   f"(twice the minimum's step {chosen['min_step']})." if chosen["fraction"]
-                   else "No fraction overfits here."), ""]
+    if result["missing"]:  # a fraction not finished yet could still take the regime
+      verdict = "Regime: decided once every cell has finished."
+    elif chosen["fraction"]:
+      verdict = (f"Regime: fraction {chosen['fraction']}, budget {chosen['budget_steps']} steps "
+                 f"(twice the minimum's step {chosen['min_step']}).")
+    else:
+      verdict = "No fraction overfits here."
+    lines += ["", verdict, ""]
   for name, p in result["pretrain"].items():
     lines.append(f"Pretraining {name}: v2's plateau rule " + (
         f"reached at step {p['plateau_epoch']}." if p["reached"] else

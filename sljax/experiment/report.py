@@ -35,7 +35,7 @@ from sljax.experiment import stats
 from sljax.experiment.claims import ALPHA, CURVE_SET, PAPER, POWER, claims
 from sljax.experiment.plans import FIXED, HELDOUT, PLANS, TEST_SEED, Cell, Plan
 from sljax.experiment.runner import (DONE_FILE, EVAL_DIR, WINDOWS_FILE, cell_dir,
-                                     curve, plan_args, read_json, registered_plans,
+                                     curve, diverged, plan_args, read_json, registered_plans,
                                      train_curve)
 from sljax.train.config import dumps
 
@@ -214,6 +214,7 @@ def aggregate(out: Path, plan: Plan) -> dict[str, Any]:
   """Per factor group and evaluation set: per-arm summaries and paired differences."""
   result: dict[str, Any] = {"groups": []}
   arms = _arms(plan)
+  left_out = diverged(out, plan)
   for factors in _groups(plan):
     cells = [c for c in plan.cells if c.factors == factors]
     scored = [e.name for e in cells[0].evals]
@@ -223,6 +224,8 @@ def aggregate(out: Path, plan: Plan) -> dict[str, Any]:
       per_arm: dict[str, dict[int, dict[str, float]]] = {a: {} for a in arms}
       missing = []
       for c in cells:
+        if c.name in left_out:
+          continue
         m = cell_metrics(out, c.name, set_name)
         if m is None:
           missing.append(c.name)
@@ -247,10 +250,14 @@ def aggregate(out: Path, plan: Plan) -> dict[str, Any]:
                                                      for s in common)}
         paired[a]["delta_m"] = stats.mean_ci([delta_m(seeds[s], base[s]) for s in common])
       group["sets"][set_name] = {"arms": summary, "paired": paired, "missing": missing}
+      out_here = [c.name for c in cells if c.name in left_out]
+      if out_here:  # only then: reports of grids with none stay as they were
+        group["sets"][set_name]["diverged"] = out_here
     unit = "step" if any(c.config.val_every_steps for c in cells) else "epoch"
-    group["curves"] = _mean_curves(cells, arms, lambda name: curve(out, name), unit)
+    kept = [c for c in cells if c.name not in left_out]  # a diverged curve would cut the means
+    group["curves"] = _mean_curves(kept, arms, lambda name: curve(out, name), unit)
     if unit == "step":  # the training loss between validations (validation.jsonl)
-      group["train_curves"] = _mean_curves(cells, arms, lambda name: train_curve(out, name),
+      group["train_curves"] = _mean_curves(kept, arms, lambda name: train_curve(out, name),
                                            unit)
     result["groups"].append(group)
   done = sum((cell_dir(out, c.name) / DONE_FILE).exists() for c in plan.cells)
@@ -425,6 +432,10 @@ def _plan_markdown(out: Path, plan: Plan, agg: dict[str, Any], cl: list[dict[str
                             "Δm %"], prow)
       if res["missing"]:
         lines += [f"Not scored yet: {', '.join(res['missing'])}.", ""]
+      if res.get("diverged"):
+        lines += [f"Left out, diverged (the training loss, or the pretraining's, went NaN or "
+                  f"infinite: not scored, and the seed is left out of that arm's pairs): "
+                  f"{', '.join(res['diverged'])}.", ""]
   if plan.name.removesuffix("-v2") in PAPER:
     lines += _rank_table(plan, agg)
   lines += ["### Every seed", ""]

@@ -9,6 +9,9 @@ OUT/cells/NAME/done.json written once training finished: final step (and best st
 OUT/cells/NAME/eval/SET.json  the final (or best) checkpoint's evaluation report on that set
 OUT/cells/NAME/eval/windows.json  v2 unet-sl: validation MAE per candidate correlation window
                          and the window chosen (the lowest; ties: the smaller)
+OUT/cells/NAME/diverged.json  written when the cell's training loss went NaN or infinite: the
+                         trainer's message and the CPU. The runner goes on without the cell and
+                         without the cells fine-tuned from it; deleting the file trains it again
 
 Idempotent and resumable: a cell with done.json is not trained again, one with checkpoints
 continues exactly (train's --resume), an evaluation already written is not redone. A cell
@@ -45,7 +48,7 @@ from sljax.models import checkpoint as ckpt
 from sljax.models import load as trained
 from sljax.train.config import config_from_json, dumps
 from sljax.train.workdir import VALIDATION_FILE
-from sljax.train.loop import open_source, train
+from sljax.train.loop import TrainingDiverged, open_source, train
 
 PLAN_FILE = "plan.json"
 CELLS_DIR = "cells"
@@ -53,6 +56,7 @@ DONE_FILE = "done.json"
 EVAL_DIR = "eval"
 WINDOWS_FILE = "windows.json"
 LOG_FILE = "train.log"
+DIVERGED_FILE = "diverged.json"
 FORMAT_VERSION = 1
 
 
@@ -370,10 +374,27 @@ def best_step(checkpoints: Path) -> int:
   return int(step)
 
 
+def diverged(out: Path, plan: Plan) -> dict[str, str]:
+  """The cells that will not be trained, with why: those whose training loss went non-finite
+  (diverged.json) and, after them, every cell fine-tuned from one."""
+  why = {}
+  for cell in plan.cells:  # a cell's init_cell comes before it in the plan
+    rec = read_json(cell_dir(out, cell.name) / DIVERGED_FILE)
+    if rec is not None:
+      why[cell.name] = str(rec.get("message", "diverged"))
+    elif cell.init_cell in why:
+      why[cell.name] = f"fine-tuned from {cell.init_cell}, which diverged"
+  return why
+
+
 def pending(out: Path, plan: Plan) -> list[tuple[Cell, bool, list[EvalSet]]]:
-  """(cell, needs training, evaluation sets still to score) for every unfinished cell."""
+  """(cell, needs training, evaluation sets still to score) for every unfinished cell that
+  has not diverged."""
   todo = []
+  skipped = diverged(out, plan)
   for cell in plan.cells:
+    if cell.name in skipped:
+      continue
     wd = cell_dir(out, cell.name)
     trained = (wd / DONE_FILE).exists()
     evals = [e for e in cell.evals if not (wd / EVAL_DIR / f"{e.name}.json").exists()]
@@ -385,7 +406,7 @@ def pending(out: Path, plan: Plan) -> list[tuple[Cell, bool, list[EvalSet]]]:
 def run(plan: Plan, out: str | os.PathLike, *, progress: bool = True,
         log: Callable[[str], None] = print) -> dict[str, Any]:
   """Trains and scores every unfinished cell of the plan under OUT; returns {'trained',
-  'evaluated', 'seconds'}."""
+  'evaluated', 'seconds', 'diverged'} (diverged: the cells left out, with why)."""
   out = Path(out)
   # One runner per folder: a second (the grid started again while it still runs) would train
   # the same cells into the same folders.
@@ -397,7 +418,10 @@ def _run(plan: Plan, out: Path, progress: bool, log: Callable[[str], None]) -> d
   """run() once OUT is held."""
   register(out, plan)
   todo = pending(out, plan)
-  log(describe(plan) + f"; {len(plan.cells) - len(todo)} cell(s) already finished under {out}")
+  skipped = diverged(out, plan)
+  log(describe(plan) + f"; {len(plan.cells) - len(todo) - len(skipped)} cell(s) already "
+      f"finished under {out}" + (f"; {len(skipped)} left out, diverged: {', '.join(skipped)}"
+                                 if skipped else ""))
   weights = {cell.name: _seconds_per_step(cell) for cell, _, _ in todo}
   # Scoring a scene costs about a third of a training sample.
   eval_cost = {(c.name, e.name): weights[c.name] / c.config.batch_size / 3
@@ -412,8 +436,24 @@ def _run(plan: Plan, out: Path, progress: bool, log: Callable[[str], None]) -> d
   try:
     for k, (cell, needs_training, evals) in enumerate(todo, 1):
       t_cell = time.perf_counter()
+      if cell.init_cell in skipped:
+        skipped[cell.name] = f"fine-tuned from {cell.init_cell}, which diverged"
+        bar.write(f"[{k}/{len(todo)}] {cell.name}: left out ({skipped[cell.name]})")
+        continue
       if needs_training:
-        done = train_cell(out, cell, bar, weights[cell.name])
+        try:
+          done = train_cell(out, cell, bar, weights[cell.name])
+        except TrainingDiverged as e:
+          # One diverged cell must not stop a grid of many; docs/plan-v4.md says how the
+          # report treats it.
+          path = cell_dir(out, cell.name) / DIVERGED_FILE
+          path.parent.mkdir(parents=True, exist_ok=True)
+          write_json(path, {"message": str(e), "machine": machine.cpu_description()})
+          skipped[cell.name] = str(e)
+          bar.write(f"[{k}/{len(todo)}] {cell.name}: diverged ({e}). Recorded in {path}; the "
+                    "run goes on without it and the cells fine-tuned from it (delete that file "
+                    "to train it again)")
+          continue
         trained += 1
       else:
         done = read_json(cell_dir(out, cell.name) / DONE_FILE)
@@ -430,4 +470,5 @@ def _run(plan: Plan, out: Path, progress: bool, log: Callable[[str], None]) -> d
                 + f" ({(time.perf_counter() - t_cell) / 60:.1f} min)")
   finally:
     bar.close()
-  return {"trained": trained, "evaluated": evaluated, "seconds": time.perf_counter() - t0}
+  return {"trained": trained, "evaluated": evaluated, "seconds": time.perf_counter() - t0,
+          "diverged": skipped}

@@ -14,11 +14,13 @@ from pathlib import Path
 
 from sljax import files, machine
 from sljax.experiment.plans import Cell, Plan
-from sljax.experiment.runner import DONE_FILE, EVAL_DIR, cell_dir, read_json, registered_plans
+from sljax.experiment.runner import (DONE_FILE, EVAL_DIR, cell_dir, diverged, read_json,
+                                     registered_plans)
 from sljax.models.checkpoint import CHECKPOINT_DIR
 from sljax.train.workdir import EPOCHS_FILE
 
 DONE, SCORING, TRAINING, WAITING = "finished", "trained, not scored", "training", "waiting"
+DIVERGED = "left out (diverged)"  # its training loss, or its pretraining's, went non-finite
 
 
 @dataclasses.dataclass(frozen=True)
@@ -83,7 +85,9 @@ def cell_state(out: Path, cell: Cell) -> CellState:
 
 def plan_status(out: Path, plan: Plan) -> list[CellState]:
   """Every cell's state, in the plan's order."""
-  return [cell_state(out, cell) for cell in plan.cells]
+  left_out = diverged(out, plan)
+  return [CellState(cell, DIVERGED) if cell.name in left_out else cell_state(out, cell)
+          for cell in plan.cells]
 
 
 def _mean_here(states: list[CellState], value, here: str) -> float:
@@ -107,7 +111,7 @@ def seconds_left(states: list[CellState], here: str) -> tuple[float, int]:
               for a in {s.cell.arm for s in stepped}}
   left, unknown = 0.0, 0
   for s in states:
-    if s.state in (DONE, SCORING):
+    if s.state in (DONE, SCORING, DIVERGED):
       continue
     if s.group in mean:
       left += mean[s.group] * (1 - s.share)
@@ -120,13 +124,15 @@ def seconds_left(states: list[CellState], here: str) -> tuple[float, int]:
 
 def format_status(plan: Plan, states: list[CellState], here: str) -> str:
   """The plan's lines: counts, cells in progress, a table per group, what is left."""
-  count = {k: sum(s.state == k for s in states) for k in (DONE, SCORING, TRAINING, WAITING)}
+  count = {k: sum(s.state == k for s in states)
+           for k in (DONE, SCORING, TRAINING, WAITING, DIVERGED)}
   seeds = (f"seeds {plan.seeds[0]}-{plan.seeds[-1]}" if len(plan.seeds) > 1
            else f"seed {plan.seeds[0]}")
   lines = [f"{plan.name} (scale {plan.scale.name}, {seeds}): "
            + ", ".join(f"{n} {k}" for k, n in count.items() if n) + f" of {len(states)} cells"]
   lines += [f"  training: {s.cell.name}, {s.where}"
             for s in states if s.state == TRAINING]
+  lines += [f"  left out (diverged): {s.cell.name}" for s in states if s.state == DIVERGED]
   lines += ["", "| arm | factors | finished | seeds finished | minutes a cell on this CPU, "
             "mean (range) | elsewhere, range |", "| --- | --- | --- | --- | --- | --- |"]
   groups: dict[tuple, list[CellState]] = {}

@@ -411,3 +411,26 @@ def test_a_diverged_grid_cell_is_left_out_and_the_grid_goes_on(tmp_path, monkeyp
   assert [(p["step"], p["n"]) for p in ft["curves"]["epr"]] == [(2, 2), (4, 2), (6, 2)]
   md = report.write_report(tmp_path).read_text()
   assert "Left out, diverged" in md and stl_ft in md
+
+
+def test_a_nan_score_leaves_its_seed_out_of_that_pair_only(tmp_path):
+  """A finished cell scored NaN (None in its report) on the test set: that seed drops out of
+  that metric's pair; the claim is still computed over the other seeds."""
+  import json  # pylint: disable=import-outside-toplevel
+  from sljax.experiment import claims, report, runner  # pylint: disable=import-outside-toplevel
+  plan = plans.build_plan("v4", "smoke", 3)
+  runner.register(tmp_path, plan)
+  mae = {"stl": [1.0, 1.2, None], "unc": [0.9, 1.0, 1.05], "epr": [1.0, 1.1, 1.2]}
+  for cell in plan.cells:
+    _fake(tmp_path, cell.name, [(2, 1.0, 3), (4, 0.5, 2), (6, 0.6, 1)])
+    for e in cell.evals:
+      path = runner.cell_dir(tmp_path, cell.name) / "eval" / f"{e.name}.json"
+      path.parent.mkdir(exist_ok=True)
+      path.write_text(json.dumps({"pooled": {"full": {
+          "mae": mae[cell.arm][cell.seed - 300], "bad_2": 0.1}}}))
+  agg = report.aggregate(tmp_path, plan)
+  ft = next(g for g in agg["groups"] if g["factors"]["setting"] == "finetune")
+  unc = ft["sets"]["test-tissue"]["paired"]["unc"]
+  assert unc["mae"]["n"] == 2 and unc["mae"]["mean"] == pytest.approx(-0.15)
+  assert unc["bad_2"]["n"] == 3
+  assert claims.claims(plan, agg)[0]["difference"]["n"] == 2

@@ -244,10 +244,12 @@ def aggregate(out: Path, plan: Plan) -> dict[str, Any]:
           continue
         common = sorted(set(seeds) & set(base))
         # Paired by seed: the arm's seed s against the baseline's seed s, never by position.
-        paired[a] = {k: stats.paired_test([seeds[s][k] for s in common],
-                                          [base[s][k] for s in common])
-                     for k in keys if common and all(k in seeds[s] and k in base[s]
-                                                     for s in common)}
+        # Per metric over the seeds where both have it: a NaN score (None in its report) in
+        # one seed leaves that seed out of that pair, not the metric out of the report.
+        has = {k: [s for s in common if k in seeds[s] and k in base[s]] for k in keys}
+        paired[a] = {k: stats.paired_test([seeds[s][k] for s in has[k]],
+                                          [base[s][k] for s in has[k]])
+                     for k in keys if has[k]}
         paired[a]["delta_m"] = stats.mean_ci([delta_m(seeds[s], base[s]) for s in common])
       group["sets"][set_name] = {"arms": summary, "paired": paired, "missing": missing}
       out_here = [c.name for c in cells if c.name in left_out]

@@ -157,7 +157,9 @@ SCALES = {s.name: s for s in (
                       # the arms' ratios, the mean of two bench_arms runs in opposite orders.
                       step_seconds=1.059, val_seconds=5.12, val_scenes=80,
                       arm_ratios=(("stl", 1.0, 1.0), ("unc", 1.17, 1.20),
-                                  ("epr", 1.28, 1.43)))),
+                                  ("epr", 1.28, 1.43)),
+                      # The pilot's outcome (docs/plan-v4.md): no setting overfits.
+                      regime=NO_REGIME)),
     Scale("cpu128", size=128, t=7, maxdisp=32, objects_n=400, tissue_n=80, batch_size=4,
           lr=1e-3, lr_drop=True, corr_window=9, unet_width=16, unet_depth=4, max_val=40,
           schedule=Schedule(12, 96, 40, val_every=1, small_val_every=8),

@@ -15,7 +15,7 @@ inputs, batch groups) go to jax2onnx's own lowering.
 The smallest case jax2onnx fails on (for an upstream report):
   jax2onnx.to_onnx(lambda x, k: jax.lax.conv_general_dilated(x, k, (1, 1, 1), "SAME",
       dimension_numbers=("NDHWC", "DHWIO", "NDHWC")), [(1, 4, 4, 4, 1), (3, 3, 3, 1, 1)])
-  -> NotImplementedError: Unsupported conv layouts: lhs=(0, 4, 1, 2, 3), rhs=(4, 3, 0, 1, 2), ...
+  raises jax2onnx's "Unsupported conv layouts: lhs=(0, 4, 1, 2, 3), rhs=(4, 3, 0, 1, 2), ..."
 """
 
 from __future__ import annotations

@@ -374,6 +374,11 @@ def best_step(checkpoints: Path) -> int:
   return int(step)
 
 
+def _after_diverged(init_cell: str) -> str:
+  """Why a cell fine-tuned from a diverged one is left out."""
+  return f"fine-tuned from {init_cell}, which diverged"
+
+
 def diverged(out: Path, plan: Plan) -> dict[str, str]:
   """The cells that will not be trained, with why: those whose training loss went non-finite
   (diverged.json) and, after them, every cell fine-tuned from one."""
@@ -383,17 +388,17 @@ def diverged(out: Path, plan: Plan) -> dict[str, str]:
     if rec is not None:
       why[cell.name] = str(rec.get("message", "diverged"))
     elif cell.init_cell in why:
-      why[cell.name] = f"fine-tuned from {cell.init_cell}, which diverged"
+      why[cell.name] = _after_diverged(cell.init_cell)
   return why
 
 
-def pending(out: Path, plan: Plan) -> list[tuple[Cell, bool, list[EvalSet]]]:
-  """(cell, needs training, evaluation sets still to score) for every unfinished cell that
-  has not diverged."""
+def pending(out: Path, plan: Plan,
+            left_out: dict[str, str]) -> list[tuple[Cell, bool, list[EvalSet]]]:
+  """(cell, needs training, evaluation sets still to score) for every unfinished cell not
+  left out (`diverged`)."""
   todo = []
-  skipped = diverged(out, plan)
   for cell in plan.cells:
-    if cell.name in skipped:
+    if cell.name in left_out:
       continue
     wd = cell_dir(out, cell.name)
     trained = (wd / DONE_FILE).exists()
@@ -417,8 +422,8 @@ def run(plan: Plan, out: str | os.PathLike, *, progress: bool = True,
 def _run(plan: Plan, out: Path, progress: bool, log: Callable[[str], None]) -> dict[str, Any]:
   """run() once OUT is held."""
   register(out, plan)
-  todo = pending(out, plan)
   skipped = diverged(out, plan)
+  todo = pending(out, plan, skipped)
   log(describe(plan) + f"; {len(plan.cells) - len(todo) - len(skipped)} cell(s) already "
       f"finished under {out}" + (f"; {len(skipped)} left out, diverged: {', '.join(skipped)}"
                                  if skipped else ""))
@@ -437,7 +442,7 @@ def _run(plan: Plan, out: Path, progress: bool, log: Callable[[str], None]) -> d
     for k, (cell, needs_training, evals) in enumerate(todo, 1):
       t_cell = time.perf_counter()
       if cell.init_cell in skipped:
-        skipped[cell.name] = f"fine-tuned from {cell.init_cell}, which diverged"
+        skipped[cell.name] = _after_diverged(cell.init_cell)
         bar.write(f"[{k}/{len(todo)}] {cell.name}: left out ({skipped[cell.name]})")
         continue
       if needs_training:

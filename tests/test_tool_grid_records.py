@@ -52,3 +52,17 @@ def test_copies_finished_cells_and_then_only_what_is_new(tmp_path, monkeypatch):
   assert grid_records.copy_finished(src, dst) == ["psmnet-stl-objects-s0: eval/test-tissue.json"]
   assert json.loads((stl / "eval" / "test-tissue.json").read_text())["pooled"]["full"]["mae"] == 1
   assert (stl / "train.log").read_text() == "psmnet-stl-objects-s0 train.log"  # not recopied
+
+
+def test_a_diverged_cell_comes_over_with_its_record_and_once(tmp_path):
+  src, dst = tmp_path / "runs" / "g", tmp_path / "docs" / "g"
+  plan = plans.build_plan("table2", "smoke", 1)
+  runner.register(src, plan)
+  _cell(src, "psmnet-stl-objects-s0", evals=())
+  runner.write_json(runner.cell_dir(src, "psmnet-stl-objects-s0") / runner.DIVERGED_FILE,
+                    {"message": "loss NaN at step 3"})
+  assert grid_records.copy_finished(src, dst) == ["psmnet-stl-objects-s0: diverged"]
+  d = runner.cell_dir(dst, "psmnet-stl-objects-s0")
+  assert sorted(os.listdir(d)) == ["config.json", "diverged.json", "epochs.jsonl", "train.log"]
+  assert runner.diverged(dst, plan)["psmnet-stl-objects-s0"] == "loss NaN at step 3"
+  assert grid_records.copy_finished(src, dst) == []

@@ -6,7 +6,8 @@ committed results folder (what docs/results.md is written from), and optionally 
 Per finished cell (done.json present and nothing left to score): config.json, epochs.jsonl,
 train.log, notes.txt and eval/*.json, and done.json with the CPU it ran on added (`machine`,
 when the runner did not record it; written back to the grid's folder too). Checkpoints and
-metrics.jsonl stay behind. A cell already copied gets only its new evaluation files (a plan
+metrics.jsonl stay behind. A cell whose training diverged (diverged.json) comes over with
+that file and its logs, so that a report written from the records names it too. A cell already copied gets only its new evaluation files (a plan
 that scores trained cells on more test sets, e.g. table3-v2 after fig7-v2). plan.json is
 copied as it is. Safe beside the running grid: it reads finished cells only.
 """
@@ -32,9 +33,18 @@ def copy_finished(src: Path, dst: Path) -> list[str]:
   shutil.copy(src / runner.PLAN_FILE, dst / runner.PLAN_FILE)
   seen = set()
   for plan in runner.registered_plans(src):
-    waiting = {cell.name for cell, _, _ in runner.pending(src, plan)}
+    left_out = runner.diverged(src, plan)
+    waiting = {cell.name for cell, _, _ in runner.pending(src, plan, left_out)}
     for cell in plan.cells:
       s, d = runner.cell_dir(src, cell.name), runner.cell_dir(dst, cell.name)
+      if (s / runner.DIVERGED_FILE).exists() and not (d / runner.DIVERGED_FILE).exists():
+        # The report written from the records must name it, as it would from the grid's folder.
+        d.mkdir(parents=True, exist_ok=True)
+        for name in KEPT + (runner.DIVERGED_FILE,):
+          if (s / name).exists():
+            shutil.copy(s / name, d / name)
+        changes.append(f"{cell.name}: diverged")
+        continue
       if cell.name in seen or cell.name in waiting or not (s / runner.DONE_FILE).exists():
         continue
       seen.add(cell.name)

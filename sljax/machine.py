@@ -1,4 +1,5 @@
-"""What CPU this is: model, family and model numbers, the ISA flags that decide kernel speed.
+"""What CPU this is: model, family and model numbers, the ISA flags that decide kernel speed;
+and how busy other processes keep it.
 
 One description serves the tuner's cache key (`sljax.tune`) and the benchmarks' records.
 """
@@ -6,6 +7,7 @@ One description serves the tuner's cache key (`sljax.tune`) and the benchmarks' 
 import os
 import platform
 import re
+import time
 
 # /proc/cpuinfo flag -> the name people know; AMX and AVX512_BF16 decide bf16 speed.
 ISA_FLAGS = (("avx2", "AVX2"), ("avx512f", "AVX-512"), ("avx512_bf16", "AVX512_BF16"),
@@ -57,3 +59,40 @@ def cpu_key(cpu: dict | None = None) -> str:
     parts.append(f"f{cpu['family']}-m{cpu.get('model_number') or 'x'}")
   parts.append("avx512" if "AVX-512" in cpu["isa"] else "avx2" if "AVX2" in cpu["isa"] else "")
   return re.sub(r"[^a-z0-9]+", "-", "-".join(parts).lower()).strip("-") or "unknown-cpu"
+
+
+# ----------------------------------------------------------------------------- other processes
+
+
+def cpu_snapshot(stat: str = "/proc/stat") -> tuple[float, float, float] | None:
+  """(CPU seconds of all cores so far, of them busy, of them this process's), or None where
+  /proc/stat cannot be read. A virtual machine's steal (the host running others) counts busy."""
+  try:
+    with open(stat, encoding="ascii") as f:
+      fields = f.readline().split()
+    # cpu user nice system idle iowait irq softirq steal (guest time is inside user already)
+    ticks = [int(x) for x in fields[1:9]]
+  except (OSError, ValueError):
+    return None
+  if fields[0] != "cpu" or len(ticks) < 8:
+    return None
+  hz = os.sysconf("SC_CLK_TCK")
+  own = os.times()
+  return sum(ticks) / hz, (sum(ticks) - ticks[3] - ticks[4]) / hz, own.user + own.system
+
+
+def others_share(before: tuple[float, float, float] | None,
+                 after: tuple[float, float, float] | None) -> float | None:
+  """The share of all cores' time between two `cpu_snapshot`s that other processes used: about
+  0 on an idle machine, 0.5 with one of two cores busy elsewhere; None when either is None."""
+  if before is None or after is None or after[0] <= before[0]:
+    return None
+  others = (after[1] - before[1]) - (after[2] - before[2])
+  return min(1.0, max(0.0, others / (after[0] - before[0])))
+
+
+def others_now(seconds: float = 0.5) -> float | None:
+  """`others_share` over the next `seconds` (this process sleeping meanwhile)."""
+  before = cpu_snapshot()
+  time.sleep(seconds)
+  return others_share(before, cpu_snapshot())

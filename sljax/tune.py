@@ -20,7 +20,12 @@ them in interleaved rounds: about a minute on a 2-core CPU, most of it compiling
 replaces XLA's default only when it was faster in every round and by more than `MARGIN` in the
 median round (two tunings on a busy Zen 3 once disagreed when one fastest call decided); when
 the median says faster but a round disagrees, a fresh batch of rounds decides (up to `RETRIES`),
-since caching the default after one burst of load would keep it for good. The
+since caching the default after one burst of load would keep it for good. Load that lasts
+the whole measurement fools the rounds alike: beside a training run on a 2-core Zen 4 every
+round said the fusions win (off/on 1.13-1.74), where idle every round said they lose (0.61-0.88).
+So `tuned` also records the share of the CPUs other processes used meanwhile
+(`sljax.machine.others_share`); above `BUSY` the choice is provisional: kept, and measured
+again by the first run that finds the machine quiet. The
 winner is kept in a JSON cache in the user's cache directory (`$SLJAX_CACHE_DIR`, else
 `$XDG_CACHE_HOME/sljax`, else `~/.cache/sljax`), keyed by the CPU kind
 (`sljax.machine.cpu_key`) and the jax and jaxlib versions: measured once per machine kind and
@@ -49,7 +54,10 @@ ENV_TUNE = "SLJAX_TUNE"
 YNN_OFF = {"xla_cpu_experimental_ynn_fusion_type": ""}
 MARGIN = 0.05  # a setting replaces XLA's default only when it is this much faster
 RETRIES = 3  # fresh batches of rounds for a kind whose rounds disagreed
-RULE = 2  # the decision rule's version: choices cached under another rule are measured again
+# The decision rule's version: choices cached under another rule are measured again (3: the
+# load beside the measurement is recorded; older entries may have been measured on a busy machine).
+RULE = 3
+BUSY = 0.1  # other processes' share of the CPUs above which a measurement is provisional
 
 
 KINDS = ("forward", "train")  # the program kinds a choice is made for
@@ -111,32 +119,61 @@ def read_cache(path: Path | None = None) -> dict:
 
 
 def write_cache(key: str, choice: KernelChoice, table: list[dict], seconds: float,
-                path: Path | None = None) -> Path:
-  """Stores one key's choice and its measurements (atomically: write, then rename)."""
+                path: Path | None = None, others: float | None = None) -> Path:
+  """Stores one key's choice, its measurements and the share of the CPUs other processes used
+  meanwhile (None: unknown) atomically: write, then rename."""
   path = path or cache_path()
   data = read_cache(path)
   data[key] = {"choice": dataclasses.asdict(choice), "rule": RULE, "table": table,
                "seconds": round(seconds, 1), "cpu": machine.cpu_description(),
+               "others": None if others is None else round(others, 3),
                "time": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
   path.parent.mkdir(parents=True, exist_ok=True)
   files.write_text(path, json.dumps(data, indent=1))
   return path
 
 
+def busy(others: Any) -> bool:
+  """Whether a recorded share of the CPUs used by other processes makes a measurement
+  provisional (unknown, where /proc/stat is absent, does not)."""
+  return _positive_number(others) and others > BUSY
+
+
 def cached_choice(path: Path | None = None) -> KernelChoice | None:
-  """This machine's cached choice, or None."""
+  """This machine's cached choice, or None: none cached, or a provisional one (measured on a
+  busy machine) while the machine is quiet now, so that it is measured again."""
   entry = read_cache(path).get(cache_key())
   if not entry or entry.get("rule") != RULE:
     return None
   try:
-    return KernelChoice(**entry["choice"])
+    found = KernelChoice(**entry["choice"])
   except (KeyError, TypeError):
     return None  # written by another version of this module: measure again
+  if busy(entry.get("others")) and not busy(machine.others_now()):
+    return None
+  return found
+
+
+def tuned(repeats: int = 5) -> tuple[KernelChoice, list[dict], float | None]:
+  """`measure`, and the share of the CPUs other processes used meanwhile (None: unknown)."""
+  before = machine.cpu_snapshot()
+  best, table = measure(repeats=repeats)
+  return best, table, machine.others_share(before, machine.cpu_snapshot())
+
+
+def busy_note(others: float | None) -> str:
+  """A sentence for a measurement taken beside other work, else ''."""
+  if not busy(others):
+    return ""
+  return (f"other processes used {others:.0%} of the CPUs while it measured, which can turn the "
+          "choice around: it is provisional, and the first run that finds the machine quiet "
+          "measures again (`sljax tune` on an idle machine does it now)")
 
 
 def choice(tune: bool | None = None, log: Callable[[str], None] = print) -> KernelChoice:
   """The kernel choice for this process: defaults off the CPU or with tuning off; else the
-  cached choice, measured first when this CPU kind and jax version have none."""
+  cached choice, measured first when this CPU kind and jax version have none (or only a
+  provisional one and the machine is quiet now)."""
   if jax.default_backend() != "cpu" or not enabled(tune):
     return DEFAULT
   found = cached_choice()
@@ -145,14 +182,15 @@ def choice(tune: bool | None = None, log: Callable[[str], None] = print) -> Kern
   log(f"tuning XLA's settings for this CPU ({machine.cpu_description()}), once per CPU kind and "
       f"jax version; SLJAX_TUNE=0 skips it")
   t0 = time.perf_counter()
-  best, table = measure()
+  best, table, others = tuned()
   try:
-    path = write_cache(cache_key(), best, table, time.perf_counter() - t0)
+    path = write_cache(cache_key(), best, table, time.perf_counter() - t0, others=others)
     log(f"tuned in {time.perf_counter() - t0:.0f} s: {describe(best)} (cached in {path})")
   except OSError as e:  # a read-only home must not stop a run: the choice holds for this process
     log(f"tuned in {time.perf_counter() - t0:.0f} s: {describe(best)} (not cached: {e})")
-  if note := undecided_note(table):
-    log(note)
+  for note in (undecided_note(table), busy_note(others)):
+    if note:
+      log(note)
   return best
 
 

@@ -39,20 +39,34 @@ def run(args: argparse.Namespace) -> int:
       raise SljaxError(f"{path}: the entry for {key} has no readable choice; run `sljax tune` "
                        "to measure again") from None
     table = entry.get("table") if isinstance(entry.get("table"), list) else []
-    print(f"measured {entry.get('time', '?')} in {entry.get('seconds', '?')} s\n\n"
-          f"{tune.format_table(table, best)}\n\nchoice: {tune.describe(best)}")
-    if note := tune.undecided_note(table):
-      print(note)
+    others = entry.get("others")
+    print(f"measured {entry.get('time', '?')} in {entry.get('seconds', '?')} s"
+          f"{_beside(others)}\n\n{tune.format_table(table, best)}\n\n"
+          f"choice: {tune.describe(best)}")
+    _notes(table, others)
     return 0
   t0 = time.perf_counter()
-  best, table = tune.measure(repeats=args.repeats)
+  best, table, others = tune.tuned(repeats=args.repeats)
   seconds = time.perf_counter() - t0
-  print(f"measured in {seconds:.0f} s\n\n{tune.format_table(table, best)}\n\n"
+  print(f"measured in {seconds:.0f} s{_beside(others)}\n\n{tune.format_table(table, best)}\n\n"
         f"choice: {tune.describe(best)}")
-  if note := tune.undecided_note(table):
-    print(note)
+  _notes(table, others)
   try:
-    tune.write_cache(key, best, table, seconds)
+    tune.write_cache(key, best, table, seconds, others=others)
   except OSError as e:
     print(f"not cached ({path}: {e.strerror or e})")
   return 0
+
+
+def _beside(others) -> str:
+  """', other processes using N% of the CPUs meanwhile' where it was recorded."""
+  if not isinstance(others, (int, float)) or isinstance(others, bool):
+    return ""
+  return f", other processes using {others:.0%} of the CPUs meanwhile"
+
+
+def _notes(table: list[dict], others) -> None:
+  """Prints why a choice may not be this machine's when idle."""
+  for note in (tune.undecided_note(table), tune.busy_note(others)):
+    if note:
+      print(note)

@@ -64,28 +64,59 @@ def cpu_key(cpu: dict | None = None) -> str:
 # ----------------------------------------------------------------------------- other processes
 
 
-def cpu_snapshot(stat: str = "/proc/stat") -> tuple[float, float, float] | None:
-  """(CPU seconds of all cores so far, of them busy, of them this process's), or None where
-  /proc/stat cannot be read. A virtual machine's steal (the host running others) counts busy."""
+MIN_SECONDS = 0.25  # a shorter interval holds a few clock ticks: its share means nothing
+
+
+def _usable_cpus() -> set[int] | None:
+  """The cores this process may run on (None where the OS does not say)."""
+  try:
+    return set(os.sched_getaffinity(0))
+  except (AttributeError, OSError):
+    return None
+
+
+def cpu_snapshot(stat: str = "/proc/stat", cpus: set[int] | None = None
+                 ) -> tuple[float, float, float] | None:
+  """(CPU seconds so far of the cores this process may use, of them busy, of them this
+  process's), or None where /proc/stat cannot be read. A virtual machine's steal (the host
+  running others) counts busy. `cpus`: those cores (default: this process's affinity)."""
+  cpus = _usable_cpus() if cpus is None else cpus
+  total = busy = 0
+  found = False
   try:
     with open(stat, encoding="ascii") as f:
-      fields = f.readline().split()
-    # cpu user nice system idle iowait irq softirq steal (guest time is inside user already)
-    ticks = [int(x) for x in fields[1:9]]
+      for line in f:
+        fields = line.split()
+        name = fields[0] if fields else ""
+        if not (name.startswith("cpu") and name[3:].isdigit()):
+          continue
+        if cpus is not None and int(name[3:]) not in cpus:
+          continue  # a core this process never runs on: its load does not slow us
+        # user nice system idle iowait irq softirq steal (guest time is inside user already)
+        ticks = [int(x) for x in fields[1:9]]
+        if len(ticks) < 8:
+          return None
+        total += sum(ticks)
+        busy += sum(ticks) - ticks[3] - ticks[4]
+        found = True
   except (OSError, ValueError):
     return None
-  if fields[0] != "cpu" or len(ticks) < 8:
+  if not found:
     return None
   hz = os.sysconf("SC_CLK_TCK")
-  own = os.times()
-  return sum(ticks) / hz, (sum(ticks) - ticks[3] - ticks[4]) / hz, own.user + own.system
+  own = os.times()  # every thread of this process
+  return total / hz, busy / hz, own.user + own.system
 
 
 def others_share(before: tuple[float, float, float] | None,
                  after: tuple[float, float, float] | None) -> float | None:
-  """The share of all cores' time between two `cpu_snapshot`s that other processes used: about
-  0 on an idle machine, 0.5 with one of two cores busy elsewhere; None when either is None."""
-  if before is None or after is None or after[0] <= before[0]:
+  """The share of the cores' time between two `cpu_snapshot`s that other processes used: about
+  0 on an idle machine, 0.5 with one of two cores busy elsewhere; None when either is None or
+  the interval is too short to tell (under `MIN_SECONDS`)."""
+  if before is None or after is None:
+    return None
+  cores = max(1, len(_usable_cpus() or ()) or os.cpu_count() or 1)
+  if after[0] - before[0] < MIN_SECONDS * cores:
     return None
   others = (after[1] - before[1]) - (after[2] - before[2])
   return min(1.0, max(0.0, others / (after[0] - before[0])))

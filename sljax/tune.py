@@ -21,11 +21,12 @@ replaces XLA's default only when it was faster in every round and by more than `
 median round (two tunings on a busy Zen 3 once disagreed when one fastest call decided); when
 the median says faster but a round disagrees, a fresh batch of rounds decides (up to `RETRIES`),
 since caching the default after one burst of load would keep it for good. Load that lasts
-the whole measurement fools the rounds alike: beside a training run on a 2-core Zen 4 every
-round said the fusions win (off/on 1.13-1.74), where idle every round said they lose (0.61-0.88).
-So `tuned` also records the share of the CPUs other processes used meanwhile
-(`sljax.machine.others_share`); above `BUSY` the choice is provisional: kept, and measured
-again by the first run that finds the machine quiet. The
+the whole measurement can turn the choice around with every round agreeing: on a 2-core Zen 4
+beside a training run every training round said the fusions win (off/on 1.13-1.74), where
+idle every round said they lose (0.79-1.00). So `tuned` also records the share of the usable
+cores' time other processes used meanwhile (`sljax.machine.others_share`); above `BUSY` the
+choice is provisional: kept, and measured again by the first run that finds the machine
+quiet. The
 winner is kept in a JSON cache in the user's cache directory (`$SLJAX_CACHE_DIR`, else
 `$XDG_CACHE_HOME/sljax`, else `~/.cache/sljax`), keyed by the CPU kind
 (`sljax.machine.cpu_key`) and the jax and jaxlib versions: measured once per machine kind and
@@ -136,7 +137,7 @@ def write_cache(key: str, choice: KernelChoice, table: list[dict], seconds: floa
 def busy(others: Any) -> bool:
   """Whether a recorded share of the CPUs used by other processes makes a measurement
   provisional (unknown, where /proc/stat is absent, does not)."""
-  return _positive_number(others) and others > BUSY
+  return _positive_number(others) and BUSY < others <= 1
 
 
 def cached_choice(path: Path | None = None) -> KernelChoice | None:

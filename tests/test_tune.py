@@ -120,6 +120,7 @@ def test_rounds_that_keep_disagreeing_keep_the_default_and_say_so(tmp_path, monk
   monkeypatch.setenv(cache.ENV_DIR, str(tmp_path))
   monkeypatch.setenv(tune.ENV_TUNE, "1")
   monkeypatch.setattr(tune, "measure", lambda **_: (best, table))
+  monkeypatch.setattr(tune.machine, "cpu_snapshot", lambda: None)  # no load measured
   lines = []
   assert tune.choice(log=lines.append) == tune.DEFAULT
   assert lines[-1] == note
@@ -137,6 +138,8 @@ def test_format_table_marks_the_choice():
 def cache_dir(tmp_path, monkeypatch, on_cpu):
   monkeypatch.setenv(cache.ENV_DIR, str(tmp_path / "cache"))
   monkeypatch.setenv(tune.ENV_TUNE, "1")
+  # The load beside a fake measurement is no measurement: the tests that want one set it.
+  monkeypatch.setattr(tune.machine, "cpu_snapshot", lambda: None)
   return tmp_path / "cache"
 
 
@@ -335,6 +338,8 @@ def test_a_choice_measured_beside_other_work_is_provisional(cache_dir, monkeypat
 def test_busy_threshold_and_unknown_load():
   assert tune.busy(0.4) and not tune.busy(tune.BUSY) and not tune.busy(0.02)
   assert not tune.busy(None) and not tune.busy("high")  # unknown (no /proc/stat): not provisional
+  for odd in (5.0, float("inf"), float("nan"), -0.2, True):  # edited by hand: no share
+    assert not tune.busy(odd)
   assert tune.busy_note(None) == "" and tune.busy_note(0.05) == ""
 
 

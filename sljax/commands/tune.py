@@ -60,8 +60,8 @@ def run(args: argparse.Namespace) -> int:
 
 def _beside(others) -> str:
   """', other processes using N% of the CPUs meanwhile' where it was recorded."""
-  if not isinstance(others, (int, float)) or isinstance(others, bool):
-    return ""
+  if not isinstance(others, (int, float)) or isinstance(others, bool) or not 0 <= others <= 1:
+    return ""  # unknown, or an entry edited by hand into something that is no share
   return f", other processes using {others:.0%} of the CPUs meanwhile"
 
 

@@ -134,10 +134,16 @@ def write_cache(key: str, choice: KernelChoice, table: list[dict], seconds: floa
   return path
 
 
+def is_share(others: Any) -> bool:
+  """Whether a recorded share of the CPUs is one (a number in [0, 1]; not None, which means
+  unknown, nor what a hand edit made of it)."""
+  return isinstance(others, (int, float)) and not isinstance(others, bool) and 0 <= others <= 1
+
+
 def busy(others: Any) -> bool:
   """Whether a recorded share of the CPUs used by other processes makes a measurement
   provisional (unknown, where /proc/stat is absent, does not)."""
-  return _positive_number(others) and BUSY < others <= 1
+  return is_share(others) and others > BUSY
 
 
 def cached_choice(path: Path | None = None) -> KernelChoice | None:
@@ -189,10 +195,15 @@ def choice(tune: bool | None = None, log: Callable[[str], None] = print) -> Kern
     log(f"tuned in {time.perf_counter() - t0:.0f} s: {describe(best)} (cached in {path})")
   except OSError as e:  # a read-only home must not stop a run: the choice holds for this process
     log(f"tuned in {time.perf_counter() - t0:.0f} s: {describe(best)} (not cached: {e})")
-  for note in (undecided_note(table), busy_note(others)):
-    if note:
-      log(note)
+  for note in notes(table, others):
+    log(note)
   return best
+
+
+def notes(table: list[dict], others: Any) -> list[str]:
+  """Why a choice may not be what this machine would choose idle: rounds that disagreed, load
+  beside the measurement."""
+  return [n for n in (undecided_note(table), busy_note(others)) if n]
 
 
 def describe(c: KernelChoice) -> str:

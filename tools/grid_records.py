@@ -7,9 +7,10 @@ Per finished cell (done.json present and nothing left to score): config.json, ep
 train.log, notes.txt and eval/*.json, and done.json with the CPU it ran on added (`machine`,
 when the runner did not record it; written back to the grid's folder too). Checkpoints and
 metrics.jsonl stay behind. A cell whose training diverged (diverged.json) comes over with
-that file and its logs, so that a report written from the records names it too. A cell already copied gets only its new evaluation files (a plan
-that scores trained cells on more test sets, e.g. table3-v2 after fig7-v2). plan.json is
-copied as it is. Safe beside the running grid: it reads finished cells only.
+that file and its logs, so that a report written from the records names it too. A cell
+already copied gets only its new evaluation files (a plan that scores trained cells on more
+test sets, e.g. table3-v2 after fig7-v2). plan.json is copied as it is. Safe beside the
+running grid: it reads finished cells only.
 """
 
 import argparse
@@ -23,6 +24,14 @@ from sljax.experiment import runner
 from sljax.machine import cpu_description
 
 KEPT = ("config.json", "epochs.jsonl", "validation.jsonl", "train.log", "notes.txt")
+
+
+def _copy_kept(s: Path, d: Path, names: tuple[str, ...]) -> None:
+  """Copies those of `names` that cell folder s holds into d."""
+  d.mkdir(parents=True, exist_ok=True)
+  for name in names:
+    if (s / name).exists():
+      shutil.copy(s / name, d / name)
 
 
 def copy_finished(src: Path, dst: Path) -> list[str]:
@@ -39,20 +48,14 @@ def copy_finished(src: Path, dst: Path) -> list[str]:
       s, d = runner.cell_dir(src, cell.name), runner.cell_dir(dst, cell.name)
       if (s / runner.DIVERGED_FILE).exists() and not (d / runner.DIVERGED_FILE).exists():
         # The report written from the records must name it, as it would from the grid's folder.
-        d.mkdir(parents=True, exist_ok=True)
-        for name in KEPT + (runner.DIVERGED_FILE,):
-          if (s / name).exists():
-            shutil.copy(s / name, d / name)
+        _copy_kept(s, d, KEPT + (runner.DIVERGED_FILE,))
         changes.append(f"{cell.name}: diverged")
         continue
       if cell.name in seen or cell.name in waiting or not (s / runner.DONE_FILE).exists():
         continue
       seen.add(cell.name)
       if not (d / runner.DONE_FILE).exists():
-        d.mkdir(parents=True, exist_ok=True)
-        for name in KEPT:
-          if (s / name).exists():
-            shutil.copy(s / name, d / name)
+        _copy_kept(s, d, KEPT)
         done = json.loads((s / runner.DONE_FILE).read_text())
         if not done.get("machine"):
           done["machine"] = cpu_description()

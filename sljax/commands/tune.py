@@ -60,13 +60,12 @@ def run(args: argparse.Namespace) -> int:
 
 def _beside(others) -> str:
   """', other processes using N% of the CPUs meanwhile' where it was recorded."""
-  if not isinstance(others, (int, float)) or isinstance(others, bool) or not 0 <= others <= 1:
-    return ""  # unknown, or an entry edited by hand into something that is no share
+  if not tune.is_share(others):
+    return ""
   return f", other processes using {others:.0%} of the CPUs meanwhile"
 
 
 def _notes(table: list[dict], others) -> None:
   """Prints why a choice may not be this machine's when idle."""
-  for note in (tune.undecided_note(table), tune.busy_note(others)):
-    if note:
-      print(note)
+  for note in tune.notes(table, others):
+    print(note)

@@ -25,7 +25,7 @@ from pathlib import Path
 import jax
 import jaxlib
 
-from sljax import machine
+from sljax import executables, machine
 
 ENV_DIR = "SLJAX_CACHE_DIR"
 ENV_COMPILE = "SLJAX_COMPILE_CACHE"
@@ -52,12 +52,17 @@ def compile_cache_dir() -> Path | None:
   return root / f"{machine.cpu_key()}-{isa}-jax-{jax.__version__}-jaxlib-{jaxlib.__version__}"
 
 
-def enable_compile_cache() -> Path | None:
-  """Turns JAX's persistent compilation cache on in compile_cache_dir(); returns the folder in
-  use (the user's JAX_COMPILATION_CACHE_DIR when set; None when turned off)."""
+def enable_compile_cache(programs: bool = False) -> Path | None:
+  """Turns JAX's persistent compilation cache on in compile_cache_dir(), and with `programs`
+  sljax's cache of whole compiled programs in the same folder (sljax.executables: command
+  lines only); returns the folder in use (the user's JAX_COMPILATION_CACHE_DIR when set;
+  None when turned off)."""
   if jax.config.jax_compilation_cache_dir:
-    return Path(jax.config.jax_compilation_cache_dir)
+    folder = Path(jax.config.jax_compilation_cache_dir)
+    executables.enable(folder if programs else None)
+    return folder
   folder = compile_cache_dir()
+  executables.enable(folder if programs else None)
   if folder is None:
     return None
   jax.config.update("jax_compilation_cache_dir", str(folder))

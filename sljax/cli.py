@@ -59,7 +59,7 @@ def main(argv: list[str] | None = None) -> int:
   quiet_libraries()
   # Imported here, at the command-line edge, so that `sljax --help` does not import jax.
   from sljax.cache import enable_compile_cache  # pylint: disable=import-outside-toplevel
-  enable_compile_cache()
+  enable_compile_cache(programs=True)
   code, result = run_command(f"sljax {args.command}", lambda: args.func(args),
                              quiet_broken_pipe=True)
   if code:

@@ -1,4 +1,4 @@
-"""Compiler choices per CPU, made by measurement and cached: sljax's cuDNN benchmark mode.
+"""Compiler choices per CPU kind: a table of the kinds measured, and `sljax tune` to measure.
 
 What is chosen. XLA:CPU can hand convolutions and their neighbours to YNNPACK fusions or
 compile them itself; which is faster depends on the CPU (AVX-512 or not, cache sizes), on the
@@ -14,24 +14,27 @@ because `lax` was several times slower on Zen 5, and block sizes of 16 Ki to 1 M
 within the noise on both (docs/benchmarks.md). They are chosen where
 the model is built (its `conv_impl`, `sljax.kernels`).
 
-How. `measure` compiles PSMNet itself (128x128, maxdisp 48, batch 1: the real mix of 2D and 3D
-convolutions) as a forward and as a training program, with the fusions on and off, and times
-them in interleaved rounds: about a minute on a 2-core CPU, most of it compiling. A setting
-replaces XLA's default only when it was faster in every round and by more than `MARGIN` in the
-median round (two tunings on a busy Zen 3 once disagreed when one fastest call decided); when
-the median says faster but a round disagrees, a fresh batch of rounds decides (up to `RETRIES`),
-since caching the default after one burst of load would keep it for good. Load that lasts
-the whole measurement can turn the choice around with every round agreeing: on a 2-core Zen 4
-beside a training run every training round said the fusions win (off/on 1.13-1.74), where
-idle every round said they lose (0.79-1.00). So `tuned` also records the share of the usable
-cores' time other processes used meanwhile (`sljax.machine.others_share`); above `BUSY` the
-choice is provisional: kept, and measured again by the first run that finds the machine
-quiet. The
-winner is kept in a JSON cache in the user's cache directory (`$SLJAX_CACHE_DIR`, else
-`$XDG_CACHE_HOME/sljax`, else `~/.cache/sljax`), keyed by the CPU kind
-(`sljax.machine.cpu_key`) and the jax and jaxlib versions: measured once per machine kind and
-upgrade. `sljax tune` runs it and prints the table; `SLJAX_TUNE=0` (or `--ynn on`)
-keeps XLA's defaults. Off the CPU nothing is measured.
+Where a choice comes from. A run never measures: on a fresh 2-core Zen 3 the measurement
+took 106 s, more than the compile it tunes, and measured beside other work it chose wrongly.
+It takes, in order: this machine's own measurement (`sljax tune`), else `KNOWN`, the choice
+`sljax tune` made on an idle machine of the same CPU kind (`sljax.machine.cpu_key`), else
+`UNKNOWN` for kinds not measured yet (one line says so and how to measure). `SLJAX_TUNE=0`
+(or `--ynn on`) keeps XLA's defaults. Off the CPU nothing is chosen.
+
+How `sljax tune` measures. `measure` compiles PSMNet itself (128x128, maxdisp 48, batch 1: the
+real mix of 2D and 3D convolutions) as a forward and as a training program, with the fusions
+on and off, and times them in interleaved rounds: about a minute on a 2-core CPU, most of it
+compiling. A setting replaces XLA's default only when it was faster in every round and by more
+than `MARGIN` in the median round (two tunings on a busy Zen 3 once disagreed when one fastest
+call decided); when the median says faster but a round disagrees, a fresh batch of rounds
+decides (up to `RETRIES`). Load that lasts the whole measurement can turn the choice around
+with every round agreeing: on a 2-core Zen 4 beside a training run every training round said
+the fusions win (off/on 1.13-1.74), where idle every round said they lose (0.79-1.00). So
+`tuned` also records the share of the usable cores' time other processes used meanwhile
+(`sljax.machine.others_share`); above `BUSY` the choice is provisional: it serves only while
+the machine stays busy. The winner is kept in a JSON cache in the user's cache directory
+(`$SLJAX_CACHE_DIR`, else `$XDG_CACHE_HOME/sljax`, else `~/.cache/sljax`), keyed by the CPU
+kind and the jax and jaxlib versions.
 """
 
 import dataclasses
@@ -60,6 +63,18 @@ RETRIES = 3  # fresh batches of rounds for a kind whose rounds disagreed
 RULE = 3
 BUSY = 0.1  # other processes' share of the CPUs above which a measurement is provisional
 
+
+# The choice per CPU kind (machine.cpu_key) as `sljax tune` measured it on an idle machine,
+# with where: a first run takes it instead of measuring (issue 49: on a fresh 2-core Zen 3 the
+# measurement took 106 s of the 251 s before the first step). A kind not listed takes UNKNOWN:
+# every kind measured idle so far turned the fusions off in forward programs, and off in
+# training on two of three; off also compiles and loads faster (docs/benchmarks.md).
+KNOWN = {
+    "amd-epyc-f25-m1-avx2": ("off", "Zen 3, 2026-11-27"),
+    "amd-epyc-f25-m17-avx2": ("off", "Zen 4 without AVX-512 shown, 2026-11-27"),
+    "amd-epyc-f26-m2-avx512": ("forward-off", "Zen 5, 2026-11-27"),
+}
+UNKNOWN = "off"
 
 KINDS = ("forward", "train")  # the program kinds a choice is made for
 NAMES = {(True, True): "on", (False, False): "off", (False, True): "forward-off",
@@ -147,8 +162,8 @@ def busy(others: Any) -> bool:
 
 
 def cached_choice(path: Path | None = None) -> KernelChoice | None:
-  """This machine's cached choice, or None: none cached, or a provisional one (measured on a
-  busy machine) while the machine is quiet now, so that it is measured again."""
+  """This machine's measured choice, or None: none cached, or a provisional one (measured on a
+  busy machine) while the machine is quiet now."""
   entry = read_cache(path).get(cache_key())
   if not entry or entry.get("rule") != RULE:
     return None
@@ -173,30 +188,31 @@ def busy_note(others: float | None) -> str:
   if not busy(others):
     return ""
   return (f"other processes used {others:.0%} of the CPUs while it measured, which can turn the "
-          "choice around: it is provisional, and the first run that finds the machine quiet "
-          "measures again (`sljax tune` on an idle machine does it now)")
+          "choice around: it is provisional, serving runs only while the machine stays busy "
+          "(then the CPU kind's table serves); `sljax tune` on an idle machine measures again")
+
+
+def known_choice(key: str | None = None) -> tuple[KernelChoice, str]:
+  """(the choice for a CPU kind, where it comes from): the table of kinds measured idle, else
+  `UNKNOWN`."""
+  key = key or machine.cpu_key()
+  if key in KNOWN:
+    return KernelChoice.from_name(KNOWN[key][0]), f"measured on this CPU kind ({KNOWN[key][1]})"
+  return KernelChoice.from_name(UNKNOWN), "the default for CPU kinds not measured yet"
 
 
 def choice(tune: bool | None = None, log: Callable[[str], None] = print) -> KernelChoice:
-  """The kernel choice for this process: defaults off the CPU or with tuning off; else the
-  cached choice, measured first when this CPU kind and jax version have none (or only a
-  provisional one and the machine is quiet now)."""
+  """The kernel choice for this process, never measured here: XLA's defaults off the CPU or
+  with tuning off; else this machine's `sljax tune` entry (a provisional one only while the
+  machine is still busy), else the table of CPU kinds (`known_choice`)."""
   if jax.default_backend() != "cpu" or not enabled(tune):
     return DEFAULT
   found = cached_choice()
   if found is not None:
     return found
-  log(f"tuning XLA's settings for this CPU ({machine.cpu_description()}), once per CPU kind and "
-      f"jax version; SLJAX_TUNE=0 skips it")
-  t0 = time.perf_counter()
-  best, table, others = tuned()
-  try:
-    path = write_cache(cache_key(), best, table, time.perf_counter() - t0, others=others)
-    log(f"tuned in {time.perf_counter() - t0:.0f} s: {describe(best)} (cached in {path})")
-  except OSError as e:  # a read-only home must not stop a run: the choice holds for this process
-    log(f"tuned in {time.perf_counter() - t0:.0f} s: {describe(best)} (not cached: {e})")
-  for note in notes(table, others):
-    log(note)
+  best, where = known_choice()
+  log(f"XLA's settings for this CPU: {describe(best)}, {where}; `sljax tune` measures this "
+      "machine (about a minute) and its choice wins from then on")
   return best
 
 

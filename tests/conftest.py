@@ -54,6 +54,9 @@ ACCELERATORS = _accelerators()
 if ACCELERATORS:  # the suite runs in two processes (pyproject addopts); by default each would take
   os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")  # 75% of the GPU up front
 os.environ.setdefault("SLJAX_TUNE", "0")
+# Whole compiled programs are kept only where a test turns it on (tests/test_executables.py):
+# a test that patches a traced function would otherwise be served another test's program.
+os.environ.setdefault("SLJAX_PROGRAM_CACHE", "off")
 if os.environ.get("SLJAX_TEST_PRECISION", "highest") != "default":  # inherited by subprocesses
   os.environ["JAX_DEFAULT_MATMUL_PRECISION"] = "highest"
 if os.environ.get("SLJAX_TEST_XLA", "fast") != "default" and not ACCELERATORS:  # subprocesses too

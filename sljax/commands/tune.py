@@ -16,8 +16,9 @@ def register(subparsers) -> None:
       description="Compiles PSMNet as a forward-only and as a training program with XLA:CPU's "
                   "YNNPACK fusions on and off, times them, prints the table and caches the "
                   "choice for this CPU kind and jax version, where training (--ynn auto) and "
-                  "inference find it. Both tune on first use by themselves; SLJAX_TUNE=0 or "
-                  "--ynn on keeps XLA's defaults.")
+                  "inference find it. Without it they take the choice measured on this CPU "
+                  "kind before (sljax.tune.KNOWN) or the default for kinds not measured yet; "
+                  "SLJAX_TUNE=0 or --ynn on keeps XLA's defaults.")
   p.add_argument("--show", action="store_true",
                  help="print the cached choice and its table without measuring")
   p.add_argument("--repeats", type=int, default=5,
@@ -32,7 +33,11 @@ def run(args: argparse.Namespace) -> int:
   print(f"{machine.cpu_description()}\ncache: {path} [{key}]")
   if args.show:
     entry = tune.read_cache().get(key)
-    require(entry is not None, f"{path}: no choice cached for {key}; run `sljax tune`")
+    if entry is None:
+      best, where = tune.known_choice()
+      print(f"not measured on this machine: runs take {tune.describe(best)}, {where}; "
+            "`sljax tune` measures it")
+      return 0
     try:
       best = tune.KernelChoice(**entry["choice"])
     except (KeyError, TypeError, AttributeError):  # an entry edited by hand or by another version

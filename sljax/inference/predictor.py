@@ -236,8 +236,8 @@ def load(checkpoint: str | os.PathLike, mode: str = "pad", maxdisp: int | None =
 
   maxdisp (PSMNets) replaces the cost volume's depth (a multiple of 16; the weights do not
   depend on it). search_range (unet-sl) is the correlation's search range in the pixels the
-  network sees. tune_kernels: use this CPU's tuned compiler choice (sljax.tune; measured on
-  first use and cached); None follows $SLJAX_TUNE (on unless 0), False keeps XLA's defaults.
+  network sees. tune_kernels: use this CPU's compiler choice (sljax.tune: `sljax tune`'s
+  measurement, else its CPU kind's); None follows $SLJAX_TUNE (on unless 0), False keeps XLA's defaults.
   kernels, when given, is the choice itself (e.g. the one a run trained with) and nothing is
   tuned. conv_impl: the convolution kernels (sljax.kernels.IMPLS; None: $SLJAX_CONV3D's).
   """

@@ -18,6 +18,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
+from sljax import executables
 from sljax.errors import SljaxError
 from sljax.kernels.impl import conv_impl as resolve_conv_impl
 from sljax.nets.registry import NetSpec, check_maxdisp, model_kwargs_for, spec
@@ -129,8 +130,9 @@ INIT_COMPILER_OPTIONS = {"xla_backend_optimization_level": 0,
 @functools.lru_cache(maxsize=8)
 def _init_fn(model: nn.Module, height: int, width: int, channels: int):
   x = jnp.zeros((1, height, width, channels), jnp.float32)
-  return jax.jit(lambda key: model.init(key, x, x, train=False),
-                 compiler_options=INIT_COMPILER_OPTIONS)
+  return executables.Program(jax.jit(lambda key: model.init(key, x, x, train=False),
+                                     compiler_options=INIT_COMPILER_OPTIONS),
+                             "init", (repr(model), height, width, channels))
 
 
 def init_variables(model: nn.Module, seed: int, height: int, width: int,

@@ -143,7 +143,7 @@ def run(args: argparse.Namespace, prog: str = "train.py") -> int:
       jax.config.update("jax_cpu_collectives_implementation", "gloo")
       jax.distributed.initialize()
     quiet_libraries()
-    enable_compile_cache()
+    enable_compile_cache(programs=True)
     config, note, workdir = resolve(args, jax.default_backend())
     return train(config, workdir, resume=args.resume, overwrite=args.overwrite,
                  stop_after=args.stop_after, preset_note=note, profile_dir=args.profile,

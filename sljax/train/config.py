@@ -81,9 +81,9 @@ class TrainConfig:
   precision: str = option("fp32", "fp32, or bf16: bfloat16 computation with float32 "
                           "parameters, optimiser state, losses and disparity softmax",
                           choices=PRECISIONS)
-  ynn: str = option("auto", "XLA:CPU YNNPACK fusions per program kind: auto (chosen for this "
-                    "CPU by measurement once, `sljax tune`, cached; SLJAX_TUNE=0 keeps XLA's "
-                    "default), on, off, forward-off (validation programs) or train-off; the "
+  ynn: str = option("auto", "XLA:CPU YNNPACK fusions per program kind: auto (this machine's "
+                    "`sljax tune` measurement, else the choice measured on its CPU kind; "
+                    "SLJAX_TUNE=0 keeps XLA's default), on, off, forward-off (validation programs) or train-off; the "
                     "resolved value is saved in config.json, so a resume compiles the same "
                     "programs", choices=YNN)
   conv_impl: str = option("auto", "convolution kernels: auto (fast on a CPU, gpu on a GPU, "

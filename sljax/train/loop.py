@@ -32,7 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
-from sljax import tune
+from sljax import executables, tune
 from sljax.errors import SljaxError, require
 from sljax.losses import weighting
 from sljax.nets import registry
@@ -73,11 +73,24 @@ def compiled_steps(model_config: ModelConfig, disp_loss: str, lr: float,
   model = model_config.build()
   tx = st.make_optimizer(lr, lr_drop_step)
   choice = tune.KernelChoice.from_name(ynn)
+  # Where a command line turned it on, a later run loads the compiled steps instead of
+  # tracing, lowering and compiling them (sljax.executables; the description is this key).
+  description = (model_config, disp_loss, lr, lr_drop_step, ynn, repr(mesh))
   return (model, tx,
-          stp.make_train_step(model, model_config, disp_loss=disp_loss, tx=tx, mesh=mesh,
-                              compiler_options=choice.compiler_options("train")),
-          stp.make_eval_step(model, model_config, mesh=mesh,
-                             compiler_options=choice.compiler_options("forward")))
+          executables.Program(stp.make_train_step(
+              model, model_config, disp_loss=disp_loss, tx=tx, mesh=mesh,
+              compiler_options=choice.compiler_options("train")), "train-step", description),
+          executables.Program(stp.make_eval_step(
+              model, model_config, mesh=mesh,
+              compiler_options=choice.compiler_options("forward")), "eval-step", description))
+
+
+def first_step_origin(train_step) -> str:
+  """How the first step's program came, for the progress bar."""
+  origin = getattr(train_step, "origin", None)
+  if origin == "loaded":
+    return "loaded the compiled step"
+  return "compiling, or loading from the compile cache"
 
 
 def task_weights(config: TrainConfig, history: Sequence[Sequence[float]]) -> np.ndarray:
@@ -233,7 +246,7 @@ def _train(config: TrainConfig, workdir: Path, resume: bool, overwrite: bool,
           t_first = time.perf_counter()
         state, metrics = train_step(state, next(batches), weights)
         if step == first:
-          bar.set_postfix(status=f"first step (compiling, or loading from the compile cache) "
+          bar.set_postfix(status=f"first step ({first_step_origin(train_step)}) "
                                  f"{time.perf_counter() - t_first:.0f} s", refresh=True)
         profiler.after(step, state)
         pending.append((step, metrics))

@@ -1,0 +1,222 @@
+"""Compiled programs kept on disk, so that a second run neither traces, lowers nor compiles.
+
+JAX's persistent compilation cache (sljax.cache) saves XLA's compile, but each process still
+traces the Python program to a jaxpr and lowers it to StableHLO before it can look the
+executable up: for the twin's training step on a 2-core CPU that was 4-9 s of a warm first
+step. Here the compiled executable itself is serialised (`jax.experimental.serialize_executable`)
+and loaded by a key computed without tracing: the caller's description of the program (for a
+training step: the resolved model config, loss, optimiser settings, compiler options and mesh),
+the arguments' tree and shapes and dtypes, the jax, jaxlib, flax and optax versions, the
+backend and its devices, the CPU kind and instruction set, XLA_FLAGS and the jax settings that
+change programs, and a digest of sljax's own source files. Anything that could change the
+program changes the key; what cannot be keyed (a function patched at run time) is why the
+cache is off unless a command line turns it on (`enable`), as `python train.py` and `sljax`
+do: code importing sljax and the test suite trace as before.
+
+An entry holds a header (its key and the payload's SHA-256), the pickled argument and output
+trees and XLA's serialised executable. A damaged or unloadable entry (a partial write, another
+XLA) is deleted and compiled again, with one line on stderr; it never runs. Entries sit in the
+compile cache's folder under jax's own file names, so jax's size limit of that folder
+(`sljax.cache.MAX_BYTES`, least recently used first) bounds both, and whatever turns the
+compile cache off (`SLJAX_COMPILE_CACHE=off`) turns this off too. Multi-process runs
+(`--distributed`) are not cached: an executable there spans the processes' devices.
+"""
+
+import functools
+import hashlib
+import json
+import os
+import pickle
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import jax
+import jaxlib
+import numpy as np
+
+from sljax import machine
+
+ENV = "SLJAX_PROGRAM_CACHE"  # 0/off/false/no: never keep or load compiled programs
+MAGIC = b"sljax-executable 1\n"
+PREFIX = "sljax-program-"
+# jax settings that do not change a compiled program (where caches and logs go, checks of
+# the host's use): left out of the key, so that setting them does not miss the cache.
+_IGNORED_SETTINGS = ("compilation_cache", "persistent_cache", "log", "dump", "explain", "pprint",
+                     "traceback", "transfer_guard", "thread_guard", "cross_host", "timeout",
+                     "source_url", "captured_constants")
+
+_state = {"folder": None}
+
+
+def enable(folder: Path | None) -> Path | None:
+  """Keeps compiled programs in `folder` (the compile cache's; None turns it off) unless
+  $SLJAX_PROGRAM_CACHE is off; returns the folder in use."""
+  off = os.environ.get(ENV, "").strip().lower() in ("0", "off", "false", "no")
+  _state["folder"] = None if off or folder is None else Path(folder)
+  return _state["folder"]
+
+
+def folder() -> Path | None:
+  """The folder programs are kept in (None: off)."""
+  return _state["folder"]
+
+
+@functools.cache
+def source_digest() -> str:
+  """SHA-256 over sljax's Python files (their paths and bytes): an edited sljax never loads
+  a program compiled from the old code."""
+  root = Path(__file__).resolve().parent
+  h = hashlib.sha256()
+  for path in sorted(root.rglob("*.py")):
+    h.update(str(path.relative_to(root)).encode() + b"\0" + path.read_bytes() + b"\0")
+  return h.hexdigest()
+
+
+def _versions() -> dict[str, str]:
+  import flax
+  import optax
+  return {"jax": jax.__version__, "jaxlib": jaxlib.__version__, "flax": flax.__version__,
+          "optax": optax.__version__, "numpy": np.__version__,
+          "python": sys.version.split()[0]}
+
+
+@functools.cache
+def _cpu() -> str:
+  flags = ",".join(sorted(machine.cpu_flags()))
+  return f"{machine.cpu_key()} {hashlib.sha1(flags.encode()).hexdigest()[:8]}"
+
+
+def environment() -> dict[str, Any]:
+  """Everything outside the caller's description that changes a compiled program."""
+  settings = {k: repr(v) for k, v in sorted(jax.config.values.items())
+              if not any(word in k for word in _IGNORED_SETTINGS)}
+  env = {k: v for k, v in sorted(os.environ.items())
+         if k in ("XLA_FLAGS", "LIBTPU_INIT_ARGS") or k.startswith("SLJAX_CONV")}
+  devices = [f"{d.platform}:{d.device_kind}:{d.id}" for d in jax.devices()]
+  return {"versions": _versions(), "backend": jax.default_backend(), "devices": devices,
+          "cpu": _cpu(), "settings": settings, "env": env, "sljax": source_digest()}
+
+
+def signature(args: tuple) -> str:
+  """The arguments' tree, shapes, dtypes and weak types (what a compiled program is for)."""
+  leaves, tree = jax.tree.flatten(args)
+  return repr(tree) + repr([(np.shape(x), str(getattr(x, "dtype", type(x).__name__)),
+                             bool(getattr(x, "weak_type", False))) for x in leaves])
+
+
+def entry_key(name: str, description: Any, sig: str) -> str:
+  """The file-name-safe key of one program: a digest of what it is and where it runs."""
+  text = json.dumps({"name": name, "description": repr(description), "signature": sig,
+                     **environment()}, sort_keys=True)
+  return f"{PREFIX}{name}-{hashlib.sha256(text.encode()).hexdigest()[:40]}"
+
+
+def _store(path: Path):
+  """jax's size-limited cache over the compile cache's folder (its locking and eviction)."""
+  from jax._src import lru_cache
+  from sljax.cache import MAX_BYTES
+  try:
+    import filelock  # noqa: F401  (jax's size limit needs it)
+    limit = MAX_BYTES
+  except ImportError:
+    limit = -1
+  return lru_cache.LRUCache(str(path), max_size=limit)
+
+
+def pack(key: str, compiled) -> bytes:
+  """An entry: header, trees, executable."""
+  from jax.experimental import serialize_executable
+  payload, in_tree, out_tree = serialize_executable.serialize(compiled)
+  trees = pickle.dumps((in_tree, out_tree))
+  body = len(trees).to_bytes(8, "little") + trees + payload
+  header = json.dumps({"key": key, "sha256": hashlib.sha256(body).hexdigest()}).encode()
+  return MAGIC + header + b"\n" + body
+
+
+def unpack(key: str, data: bytes):
+  """The compiled program of an entry; ValueError when it is not an intact entry for `key`."""
+  from jax.experimental import serialize_executable
+  if not data.startswith(MAGIC):
+    raise ValueError("not an sljax executable")
+  header, sep, body = data[len(MAGIC):].partition(b"\n")
+  if not sep:
+    raise ValueError("no header")
+  meta = json.loads(header)
+  if meta.get("key") != key:
+    raise ValueError("written for another program")
+  if hashlib.sha256(body).hexdigest() != meta.get("sha256"):
+    raise ValueError("damaged (checksum differs)")
+  n = int.from_bytes(body[:8], "little")
+  in_tree, out_tree = pickle.loads(body[8:8 + n])
+  return serialize_executable.deserialize_and_load(body[8 + n:], in_tree, out_tree)
+
+
+def load_or_compile(jitted, name: str, description: Any, args: tuple,
+                    log: Callable[[str], None]) -> tuple[Any, str]:
+  """(the compiled program for `args`, 'loaded' | 'compiled' | 'compiled, not kept'): loaded
+  from the folder when an intact entry exists, else compiled (through jax's compile cache)
+  and stored."""
+  where = folder()
+  if where is None or jax.process_count() > 1:
+    return jitted.lower(*args).compile(), "compiled, not kept"
+  key = entry_key(name, description, signature(args))
+  store = _store(where)
+  data = store.get(key)
+  if data is not None:
+    try:
+      return unpack(key, data), "loaded"
+    except Exception as e:  # noqa: BLE001  any failure to load means: compile it again
+      log(f"sljax: compiled {name} program {where / key}-cache unusable "
+          f"({type(e).__name__}: {e}); compiling it again")
+      for suffix in ("-cache", "-atime"):
+        (where / f"{key}{suffix}").unlink(missing_ok=True)
+  compiled = jitted.lower(*args).compile()
+  try:
+    store.put(key, pack(key, compiled))
+  except Exception as e:  # noqa: BLE001  a full disk or an unserialisable program: run anyway
+    log(f"sljax: compiled {name} program not kept ({type(e).__name__}: {e})")
+    return compiled, "compiled, not kept"
+  return compiled, "compiled"
+
+
+def _stderr(line: str) -> None:
+  print(line, file=sys.stderr, flush=True)
+
+
+class Program:
+  """A jitted function served from the disk cache: called like it, it loads (or compiles and
+  keeps) one executable per argument signature. Off the cache it is the jitted function."""
+
+  def __init__(self, jitted, name: str, description: Any,
+               log: Callable[[str], None] = _stderr):
+    self.jitted, self.name, self.description, self.log = jitted, name, description, log
+    self._by_signature: dict[str, Any] = {}
+    self._last = None
+    self.origin: str | None = None  # how the last new program came: loaded or compiled
+
+  def lower(self, *args, **kwargs):
+    """The jitted function's lowering (for inspection)."""
+    return self.jitted.lower(*args, **kwargs)
+
+  def __call__(self, *args):
+    if folder() is None:
+      return self.jitted(*args)
+    if self._last is not None:
+      try:
+        return self._last(*args)
+      except (TypeError, ValueError):
+        # Argument types differ from the last program's (its check runs before anything
+        # executes, so a donated argument is intact); the signature decides below.
+        pass
+    sig = signature(args)
+    compiled = self._by_signature.get(sig)
+    if compiled is None:
+      compiled, self.origin = load_or_compile(self.jitted, self.name, self.description, args,
+                                              self.log)
+      self._by_signature[sig] = compiled
+    elif compiled is self._last:
+      return compiled(*args)  # the same signature failed: a genuine error, raised here
+    self._last = compiled
+    return compiled(*args)

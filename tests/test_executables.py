@@ -1,0 +1,231 @@
+"""Whole compiled programs kept on disk (sljax.executables): a second process loads the program
+instead of tracing and compiling it, with the same numbers; anything that changes the program
+changes its key; a damaged entry is compiled again with one line and never runs; the folder is
+bounded with the compile cache's; and `python train.py` run twice continues identically."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from sljax import cache, executables
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _step(state, x):
+  """A small program with a donated, nested state (the training step's shape of arguments)."""
+  new = {"w": state["w"] - 0.1 * jnp.tanh(x @ state["w"]).T @ x, "n": state["n"] + 1}
+  return new, {"loss": jnp.sum(new["w"] ** 2)}
+
+
+def _jitted():
+  return jax.jit(_step, donate_argnums=(0,))
+
+
+def _args(seed=0, rows=4):
+  rng = np.random.default_rng(seed)
+  return ({"w": jnp.asarray(rng.normal(size=(3, 3)), jnp.float32), "n": jnp.zeros((), jnp.int32)},
+          jnp.asarray(rng.normal(size=(rows, 3)), jnp.float32))
+
+
+@pytest.fixture
+def folder(tmp_path, monkeypatch):
+  """Programs kept in a folder of this test's own, turned off again afterwards."""
+  monkeypatch.setenv(executables.ENV, "on")
+  where = executables.enable(tmp_path / "xla")
+  yield where
+  executables.enable(None)
+
+
+def _entries(where: Path, name: str = "") -> list[Path]:
+  return sorted(where.glob(f"{executables.PREFIX}{name}*-cache"))
+
+
+def _reference(seed=0, rows=4, calls=3):
+  """The plain jitted function's outputs over a few calls (the state carried)."""
+  state, x = _args(seed, rows)
+  outs = []
+  for _ in range(calls):
+    state, metrics = _jitted()(state, x)
+    outs.append(jax.tree.map(np.asarray, (state, metrics)))
+  return outs
+
+
+def _run(program, seed=0, rows=4, calls=3):
+  state, x = _args(seed, rows)
+  outs = []
+  for _ in range(calls):
+    state, metrics = program(state, x)
+    outs.append(jax.tree.map(np.asarray, (state, metrics)))
+  return outs
+
+
+def _equal(a, b):
+  for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
+    np.testing.assert_array_equal(x, y)
+
+
+def test_a_new_program_object_loads_what_the_first_compiled(folder):
+  first = executables.Program(_jitted(), "step", ("demo", 1))
+  _equal(_run(first), _reference())
+  assert first.origin == "compiled" and len(_entries(folder, "step")) == 1
+  # A fresh object stands for a fresh process: it must load, not lower or compile.
+  second = executables.Program(_jitted(), "step", ("demo", 1))
+  second.jitted = None  # any use of the jitted function would fail
+  _equal(_run(second), _reference())
+  assert second.origin == "loaded" and len(_entries(folder)) == 1
+
+
+def test_each_signature_gets_its_own_program(folder):
+  program = executables.Program(_jitted(), "step", "demo")
+  _equal(_run(program, rows=4), _reference(rows=4))
+  _equal(_run(program, rows=6), _reference(rows=6))  # another batch shape: another program
+  _equal(_run(program, rows=4), _reference(rows=4))  # and back
+  assert len(_entries(folder, "step")) == 2
+
+
+def test_a_genuine_error_is_raised_not_swallowed(folder):
+  program = executables.Program(_jitted(), "step", "demo")
+  _run(program, calls=1)
+  state, _ = _args()
+  with pytest.raises(TypeError):
+    program(state, "not an array")
+
+
+def test_the_key_changes_with_everything_that_changes_the_program(folder, monkeypatch):
+  sig = executables.signature(_args())
+  base = executables.entry_key("step", ("demo", 1), sig)
+  assert executables.entry_key("step", ("demo", 1), sig) == base  # deterministic
+  assert executables.entry_key("step", ("demo", 2), sig) != base  # the caller's description
+  assert executables.entry_key("eval", ("demo", 1), sig) != base  # the program's name
+  assert executables.entry_key("step", ("demo", 1), executables.signature(_args(rows=5))) != base
+  f64 = (_args()[0], np.zeros((4, 3), np.float64))
+  assert executables.signature(f64) != sig  # dtypes
+  with monkeypatch.context() as m:
+    m.setenv("XLA_FLAGS", os.environ.get("XLA_FLAGS", "") + " --xla_cpu_enable_fast_math=true")
+    assert executables.entry_key("step", ("demo", 1), sig) != base
+  with jax.default_matmul_precision("bfloat16"):
+    assert executables.entry_key("step", ("demo", 1), sig) != base  # a jax setting
+  with monkeypatch.context() as m:
+    m.setattr(executables, "source_digest", lambda: "edited")
+    assert executables.entry_key("step", ("demo", 1), sig) != base  # sljax's own code
+  with monkeypatch.context() as m:
+    m.setattr(executables, "_versions", lambda: {"jax": "0.0"})
+    assert executables.entry_key("step", ("demo", 1), sig) != base  # the libraries
+  # Where caches go and what is logged do not change a program: the same key.
+  with jax.log_compiles(True):
+    assert executables.entry_key("step", ("demo", 1), sig) == base
+  assert executables.entry_key("step", ("demo", 1), sig) == base
+
+
+def test_source_digest_covers_every_module():
+  digest = executables.source_digest()
+  assert len(digest) == 64
+  files = list(Path(executables.__file__).parent.rglob("*.py"))
+  assert len(files) > 100 and Path(executables.__file__) in files
+
+
+@pytest.mark.parametrize("damage", ["flip", "truncate", "other-key", "garbage"])
+def test_a_damaged_entry_is_compiled_again_with_one_line(folder, damage):
+  executables.Program(_jitted(), "step", "demo")(*_args())
+  (path,) = _entries(folder, "step")
+  data = bytearray(path.read_bytes())
+  if damage == "flip":
+    data[-100] ^= 0xFF
+  elif damage == "truncate":
+    data = data[:len(data) // 2]
+  elif damage == "other-key":
+    header, _, body = bytes(data[len(executables.MAGIC):]).partition(b"\n")
+    meta = dict(json.loads(header), key="sljax-program-step-another")
+    data = executables.MAGIC + json.dumps(meta).encode() + b"\n" + body
+  else:
+    data = b"\0" * 64
+  path.write_bytes(bytes(data))
+  if damage == "flip":  # the checksum, not the luck of XLA's parser, refuses it
+    with pytest.raises(ValueError, match="checksum"):
+      executables.unpack(path.name[:-len("-cache")], bytes(data))
+  lines = []
+  program = executables.Program(_jitted(), "step", "demo", log=lines.append)
+  _equal(_run(program), _reference())
+  assert program.origin == "compiled"
+  assert len(lines) == 1 and "unusable" in lines[0] and "compiling it again" in lines[0]
+  assert str(path) in lines[0]
+  # Written anew: the next process loads it.
+  again = executables.Program(_jitted(), "step", "demo", log=lines.append)
+  _equal(_run(again), _reference())
+  assert again.origin == "loaded" and len(lines) == 1
+
+
+def test_off_means_the_plain_jitted_function(tmp_path, monkeypatch):
+  monkeypatch.setenv(executables.ENV, "off")
+  assert executables.enable(tmp_path) is None
+  program = executables.Program(_jitted(), "step", "demo")
+  _equal(_run(program), _reference())
+  assert program.origin is None and not list(tmp_path.iterdir())
+  monkeypatch.setenv(executables.ENV, "on")
+  assert executables.enable(None) is None  # the compile cache off turns it off too
+  executables.enable(None)
+
+
+def test_the_compile_cache_turns_it_on_only_for_command_lines(monkeypatch):
+  monkeypatch.setenv(executables.ENV, "on")
+  try:  # the suite's compile cache is on (conftest): its folder is the one returned
+    folder = cache.enable_compile_cache()
+    assert executables.folder() is None  # library code: not kept
+    assert cache.enable_compile_cache(programs=True) == folder
+    assert executables.folder() == folder
+  finally:
+    executables.enable(None)
+
+
+def test_entries_are_bounded_with_the_compile_cache(folder, monkeypatch):
+  """Entries carry jax's access-time files, so the size limit of the folder evicts them, least
+  recently used first."""
+  executables.Program(_jitted(), "step", "a")(*_args())
+  (first,) = _entries(folder)
+  assert first.with_name(first.name[:-len("-cache")] + "-atime").exists()
+  monkeypatch.setattr(cache, "MAX_BYTES", int(first.stat().st_size * 1.5))
+  executables.Program(_jitted(), "step", "b")(*_args())
+  assert not first.exists() and len(_entries(folder)) == 1
+
+
+def _train(workdir: Path, env: dict) -> subprocess.CompletedProcess:
+  flags = ["--model", "unet-sl", "--unet-depth", "2", "--unet-width", "4", "--size", "32",
+           "--synth-n", "12", "--synth-size", "32", "--batch-size", "2", "--steps", "3",
+           "--val-every-steps", "3", "--max-val", "2", "--workdir", str(workdir)]
+  return subprocess.run([sys.executable, str(ROOT / "train.py"), *flags], env=env, cwd=ROOT,
+                        capture_output=True, text=True, timeout=600)
+
+
+def _rows(workdir: Path) -> list[dict]:
+  return [{k: v for k, v in json.loads(line).items()
+           if k not in ("seconds", "samples_per_s", "time")}
+          for line in (workdir / "metrics.jsonl").read_text().splitlines()]
+
+
+def test_train_py_twice_loads_the_steps_and_trains_identically(tmp_path):
+  env = dict(os.environ, SLJAX_PROGRAM_CACHE="on", SLJAX_COMPILE_CACHE=str(tmp_path / "xla"),
+             SLJAX_CACHE_DIR=str(tmp_path / "cache"))
+  first = _train(tmp_path / "a", env)
+  assert first.returncode == 0, first.stderr[-2000:]
+  names = {p.name.split("-")[2] for p in (tmp_path / "xla").rglob("sljax-program-*-cache")}
+  assert {"init", "train", "eval"} <= names, names
+  second = _train(tmp_path / "b", env)
+  assert second.returncode == 0, second.stderr[-2000:]
+  assert "first step (loaded the compiled step)" in second.stderr
+  assert "first step (loaded" not in first.stderr
+  assert _rows(tmp_path / "a") == _rows(tmp_path / "b") and len(_rows(tmp_path / "a")) == 3
+  # A damaged training step: one line, compiled again, the same numbers.
+  (step,) = (tmp_path / "xla").rglob("sljax-program-train-step-*-cache")
+  step.write_bytes(step.read_bytes()[:1000])
+  third = _train(tmp_path / "c", env)
+  assert third.returncode == 0, third.stderr[-2000:]
+  assert third.stderr.count("unusable") == 1 and "compiling it again" in third.stderr
+  assert _rows(tmp_path / "c") == _rows(tmp_path / "a")

@@ -1,9 +1,11 @@
 """Where the first training step's time goes: tracing, lowering, XLA's passes, the compile
 cache, and which part of the network costs each (issue 42).
 
-Part `run` times the main job (`python train.py --strategy epr`, its preset, SLJAX_TUNE=0 by
-default) as a user runs it, each run a fresh process: first from an empty SLJAX_CACHE_DIR
-(cold), then again from the cache that run filled (warm). The figure is train.py's own "first
+Part `run` times the main job (`python train.py --strategy epr`, its preset) as a user runs
+it, each run a fresh process: first from an empty SLJAX_CACHE_DIR (cold: a fresh machine's
+empty tuner and compile caches), then again from the cache that run filled (warm). Beside
+train.py's own figure it gives the seconds from the process's launch to the end of the first
+step (what a newcomer waits) and whether the step was loaded whole (sljax.executables). The figure is train.py's own "first
 step (...) N s" (from the first step call to its end); beside it, from `jax.monitoring`'s
 events during that call, the seconds spent tracing (jaxpr), lowering (StableHLO), in XLA's
 compile (its passes and code generation) and loading from the persistent cache, and the rest
@@ -82,6 +84,8 @@ def child_run(train_args: list[str]) -> None:
       out = jax.block_until_ready(train_step(*args, **kwargs))
       if "first_start" not in marks:
         marks["first_start"], marks["first_end"] = t0 - t_start, time.perf_counter() - t_start
+        marks["first_end_epoch"] = time.time()
+        marks["origin"] = getattr(train_step, "origin", None) or "jit"
       else:  # the later steps, each waited for: the step time a compile choice costs
         marks.setdefault("later", []).append(time.perf_counter() - t0)
       return out
@@ -102,6 +106,7 @@ def run_once(train_args: list[str], cache_dir: Path, workdir: Path, env_extra: d
   env.pop("JAX_COMPILATION_CACHE_DIR", None)
   env.pop("SLJAX_COMPILE_CACHE", None)
   args = train_args + ["--workdir", str(workdir), "--overwrite"]
+  launched = time.time()
   t0 = time.perf_counter()
   proc = subprocess.run([sys.executable, os.path.abspath(__file__), "--child-run", "--",
                          *args], capture_output=True, text=True, env=env, cwd=ROOT)
@@ -113,6 +118,7 @@ def run_once(train_args: list[str], cache_dir: Path, workdir: Path, env_extra: d
   found = FIRST_STEP.findall(proc.stderr.replace("\r", "\n"))
   data["first_step_line"] = float(found[0]) if found else None
   data["wall"] = wall
+  data["launch_to_first_end"] = data["first_end_epoch"] - launched
   return data
 
 
@@ -139,14 +145,15 @@ def phases(data: dict) -> dict:
           "lower": inside["lower"], "xla": xla, "cache_load": inside["cache_load"],
           "other": other, "hits": hits, "misses": misses,
           "before": before["trace"] + before["lower"] + before["compile"],
-          "to_first_end": end, "wall": data["wall"],
+          "to_first_end": data["launch_to_first_end"], "wall": data["wall"],
+          "origin": data.get("origin", "-"),
           "later_step": min(data["later"]) if data.get("later") else None}
 
 
 def part_run(args) -> list[dict]:
   """Cold and warm runs of the main job (args.runs pairs), one row each."""
   train_args = shlex.split(args.train_args) + ["--stop-after", str(1 + args.later_steps)]
-  env_extra = {} if args.tune else {"SLJAX_TUNE": "0"}
+  env_extra = {"SLJAX_TUNE": "0"} if args.tune_off else {}
   rows = []
   with tempfile.TemporaryDirectory(prefix="bench_compile_") as tmp:
     for i in range(args.runs):
@@ -160,9 +167,10 @@ def part_run(args) -> list[dict]:
 
 
 RUN_HEADER = ("| run | first step (train.py) s | first step call s | trace s | lower s | "
-              "XLA compile s | cache load s | other s | cache hits / misses | programs "
-              "before it s | process to first step end s | later step s (best) |\n"
-              "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
+              "XLA compile s | cache load s | other s | cache hits / misses | step program | "
+              "programs before it s | launch to first step end s | later step s (best) |\n"
+              "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- | ---: | ---: "
+              "| ---: |")
 
 
 def format_run_row(r: dict) -> str:
@@ -170,7 +178,7 @@ def format_run_row(r: dict) -> str:
   line = "-" if r["line"] is None else f"{r['line']:.0f}"
   return (f"| {r['kind']} | {line} | {r['first']:.1f} | {r['trace']:.1f} | {r['lower']:.1f} | "
           f"{r['xla']:.1f} | {r['cache_load']:.2f} | {r['other']:.1f} | {r['hits']} / "
-          f"{r['misses']} | {r['before']:.1f} | {r['to_first_end']:.1f} | "
+          f"{r['misses']} | {r.get('origin', '-')} | {r['before']:.1f} | {r['to_first_end']:.1f} | "
           f"{'-' if r['later_step'] is None else format(r['later_step'], '.2f')} |")
 
 
@@ -281,7 +289,8 @@ def main() -> None:
   p.add_argument("--runs", type=int, default=1, help="cold/warm pairs of part run")
   p.add_argument("--later-steps", type=int, default=3,
                  help="part run: steps after the first, timed one by one (the best is shown)")
-  p.add_argument("--tune", action="store_true", help="leave SLJAX_TUNE alone (default: 0)")
+  p.add_argument("--tune-off", action="store_true",
+                 help="SLJAX_TUNE=0 (XLA's defaults) instead of the CPU kind's choice")
   p.add_argument("--size", type=int, nargs=2, default=(64, 64), help="part parts: H W")
   p.add_argument("--maxdisp", type=int, default=32, help="part parts")
   p.add_argument("--batch", type=int, default=8, help="part parts")
@@ -296,7 +305,7 @@ def main() -> None:
   result = {}
   if args.part in ("all", "run"):
     print(f"\nFirst step of `python train.py {args.train_args}` "
-          f"{'' if args.tune else '(SLJAX_TUNE=0) '}from an empty SLJAX_CACHE_DIR (cold) and "
+          f"{'(SLJAX_TUNE=0) ' if args.tune_off else ''}from an empty SLJAX_CACHE_DIR (cold) and "
           "from the one it filled (warm):")
     print(RUN_HEADER, flush=True)
     result["run"] = part_run(args)

@@ -149,9 +149,22 @@ def trace(predictor, size: tuple[int, int]) -> Traced:
     else:
       raise SljaxError(f"{predictor.name}: cannot convert to ONNX at {h}x{w} in "
                        f"{predictor.mode} mode ({failures[-1]})")
+  if batch == "B":
+    drop_traced_shapes(proto)
   return Traced(proto.SerializeToString(), fn, names,
                 {k: [None if batch == "B" else batch, *v.shape[1:]] for k, v in shapes.items()},
                 time.perf_counter() - start, batch == "B")
+
+
+def drop_traced_shapes(proto) -> int:
+  """Removes the intermediate tensors' shape annotations from a model with a symbolic batch;
+  returns how many. The converter writes some with the trace's batch of 1 ('bcast_out_5':
+  [1, 64]), and ONNX Runtime, finding [8, 64] at batch 8, warned "Error merging shape info" at
+  every load: harmless (batch 4 equals 4 x batch 1 exactly) but read as a broken model. The
+  annotations are optional; runtimes infer the shapes from the inputs."""
+  n = len(proto.graph.value_info)
+  del proto.graph.value_info[:]
+  return n
 
 
 def check_pair(size: tuple[int, int], channels: int) -> tuple[np.ndarray, np.ndarray]:

@@ -22,6 +22,7 @@ compile cache off (`SLJAX_COMPILE_CACHE=off`) turns this off too. Multi-process 
 (`--distributed`) are not cached: an executable there spans the processes' devices.
 """
 
+import concurrent.futures
 import functools
 import hashlib
 import json
@@ -36,11 +37,12 @@ import jax
 import jaxlib
 import numpy as np
 
-from sljax import machine
+from sljax import files, machine
 
 ENV = "SLJAX_PROGRAM_CACHE"  # 0/off/false/no: never keep or load compiled programs
 MAGIC = b"sljax-executable 1\n"
 PREFIX = "sljax-program-"
+INDEXED = 4  # argument signatures remembered per program (batch shapes of one run)
 # jax settings that do not change a compiled program (where caches and logs go, checks of
 # the host's use): left out of the key, so that setting them does not miss the cache.
 _IGNORED_SETTINGS = ("compilation_cache", "persistent_cache", "log", "dump", "explain", "pprint",
@@ -106,13 +108,6 @@ def signature(args: tuple) -> str:
                              bool(getattr(x, "weak_type", False))) for x in leaves])
 
 
-def entry_key(name: str, description: Any, sig: str) -> str:
-  """The file-name-safe key of one program: a digest of what it is and where it runs."""
-  text = json.dumps({"name": name, "description": repr(description), "signature": sig,
-                     **environment()}, sort_keys=True)
-  return f"{PREFIX}{name}-{hashlib.sha256(text.encode()).hexdigest()[:40]}"
-
-
 def _store(path: Path):
   """jax's size-limited cache over the compile cache's folder (its locking and eviction)."""
   from jax._src import lru_cache
@@ -153,31 +148,87 @@ def unpack(key: str, data: bytes):
   return serialize_executable.deserialize_and_load(body[8 + n:], in_tree, out_tree)
 
 
-def load_or_compile(jitted, name: str, description: Any, args: tuple,
-                    log: Callable[[str], None]) -> tuple[Any, str]:
-  """(the compiled program for `args`, 'loaded' | 'compiled' | 'compiled, not kept'): loaded
-  from the folder when an intact entry exists, else compiled (through jax's compile cache)
-  and stored."""
+def _digest(obj: Any) -> str:
+  return hashlib.sha256(json.dumps(obj, sort_keys=True).encode()).hexdigest()[:40]
+
+
+def entry_key(name: str, description: Any, sig: str) -> str:
+  """The file-name-safe key of one program: a digest of what it is and where it runs."""
+  digest = _digest({"name": name, "description": repr(description), "signature": sig,
+                    **environment()})
+  return f"{PREFIX}{name}-{digest}"
+
+
+def index_path(where: Path, name: str, description: Any) -> Path:
+  """The file listing the argument signatures a program was last used with (newest first):
+  what a later process loads before its first call."""
+  digest = _digest({"name": name, "description": repr(description), **environment()})
+  return where / f"{PREFIX}{name}-signatures-{digest}.json"
+
+
+def _remember(where: Path, name: str, description: Any, sig: str) -> None:
+  """Puts `sig` first in the program's index (at most INDEXED kept); a failure is only a
+  missed prefetch."""
+  path = index_path(where, name, description)
+  try:
+    old = json.loads(path.read_text(encoding="utf-8")) if path.exists() else []
+    sigs = [sig] + [s for s in old if isinstance(s, str) and s != sig][:INDEXED - 1]
+    if sigs != old:
+      files.write_text(path, json.dumps(sigs))
+  except (OSError, ValueError):
+    pass
+
+
+def remembered(name: str, description: Any) -> list[str]:
+  """The signatures in the program's index ([] when there is none or it is unreadable)."""
+  where = folder()
+  if where is None:
+    return []
+  try:
+    sigs = json.loads(index_path(where, name, description).read_text(encoding="utf-8"))
+  except (OSError, ValueError):
+    return []
+  return [s for s in sigs if isinstance(s, str)] if isinstance(sigs, list) else []
+
+
+def load(name: str, description: Any, sig: str, log: Callable[[str], None]):
+  """The kept program for these arguments, or None: none kept, or an entry that is not intact
+  (deleted, with one line)."""
   where = folder()
   if where is None or jax.process_count() > 1:
-    return jitted.lower(*args).compile(), "compiled, not kept"
-  key = entry_key(name, description, signature(args))
-  store = _store(where)
-  data = store.get(key)
-  if data is not None:
-    try:
-      return unpack(key, data), "loaded"
-    except Exception as e:  # noqa: BLE001  any failure to load means: compile it again
-      log(f"sljax: compiled {name} program {where / key}-cache unusable "
-          f"({type(e).__name__}: {e}); compiling it again")
-      for suffix in ("-cache", "-atime"):
-        (where / f"{key}{suffix}").unlink(missing_ok=True)
-  compiled = jitted.lower(*args).compile()
+    return None
+  key = entry_key(name, description, sig)
+  data = _store(where).get(key)
+  if data is None:
+    return None
   try:
-    store.put(key, pack(key, compiled))
+    compiled = unpack(key, data)
+  except Exception as e:  # noqa: BLE001  any failure to load means: compile it again
+    log(f"sljax: compiled {name} program {where / key}-cache unusable "
+        f"({type(e).__name__}: {e}); compiling it again")
+    for suffix in ("-cache", "-atime"):
+      (where / f"{key}{suffix}").unlink(missing_ok=True)
+    return None
+  _remember(where, name, description, sig)
+  return compiled
+
+
+def compile_and_keep(jitted, name: str, description: Any, args: tuple,
+                     log: Callable[[str], None]) -> tuple[Any, str]:
+  """(the program compiled for `args` through jax's compile cache, 'compiled' or 'compiled,
+  not kept'), stored in the folder where it is on."""
+  compiled = jitted.lower(*args).compile()
+  where = folder()
+  if where is None or jax.process_count() > 1:
+    return compiled, "compiled, not kept"
+  sig = signature(args)
+  key = entry_key(name, description, sig)
+  try:
+    _store(where).put(key, pack(key, compiled))
   except Exception as e:  # noqa: BLE001  a full disk or an unserialisable program: run anyway
     log(f"sljax: compiled {name} program not kept ({type(e).__name__}: {e})")
     return compiled, "compiled, not kept"
+  _remember(where, name, description, sig)
   return compiled, "compiled"
 
 
@@ -187,18 +238,42 @@ def _stderr(line: str) -> None:
 
 class Program:
   """A jitted function served from the disk cache: called like it, it loads (or compiles and
-  keeps) one executable per argument signature. Off the cache it is the jitted function."""
+  keeps) one executable per argument signature. Off the cache it is the jitted function.
+
+  `prefetch` starts loading, on background threads, the programs kept for the signatures this
+  program was last used with: XLA's load releases the GIL, so on a 2-core CPU it runs beside
+  the run's data checks and initialisation, and the first call waits only for what is left."""
 
   def __init__(self, jitted, name: str, description: Any,
                log: Callable[[str], None] = _stderr):
     self.jitted, self.name, self.description, self.log = jitted, name, description, log
     self._by_signature: dict[str, Any] = {}
+    self._loading: dict[str, concurrent.futures.Future] = {}
     self._last = None
     self.origin: str | None = None  # how the last new program came: loaded or compiled
 
   def lower(self, *args, **kwargs):
     """The jitted function's lowering (for inspection)."""
     return self.jitted.lower(*args, **kwargs)
+
+  def prefetch(self) -> "Program":
+    """Starts loading the kept programs of the remembered signatures; returns self."""
+    for sig in remembered(self.name, self.description):
+      if sig not in self._by_signature and sig not in self._loading:
+        self._loading[sig] = _POOL.submit(load, self.name, self.description, sig, self.log)
+    return self
+
+  def _program(self, sig: str, args: tuple):
+    """The program for this signature: prefetched, loaded, or compiled and kept."""
+    compiled, self.origin = None, "loaded"
+    if sig in self._loading:
+      compiled = self._loading.pop(sig).result()
+    if compiled is None:
+      compiled = load(self.name, self.description, sig, self.log)
+    if compiled is None:
+      compiled, self.origin = compile_and_keep(self.jitted, self.name, self.description, args,
+                                               self.log)
+    return compiled
 
   def __call__(self, *args):
     if folder() is None:
@@ -213,10 +288,12 @@ class Program:
     sig = signature(args)
     compiled = self._by_signature.get(sig)
     if compiled is None:
-      compiled, self.origin = load_or_compile(self.jitted, self.name, self.description, args,
-                                              self.log)
-      self._by_signature[sig] = compiled
+      compiled = self._by_signature[sig] = self._program(sig, args)
     elif compiled is self._last:
       return compiled(*args)  # the same signature failed: a genuine error, raised here
     self._last = compiled
     return compiled(*args)
+
+
+# Loads run on these threads (a few: programs of one run load side by side).
+_POOL = concurrent.futures.ThreadPoolExecutor(max_workers=2, thread_name_prefix="sljax-load")

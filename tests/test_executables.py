@@ -229,3 +229,35 @@ def test_train_py_twice_loads_the_steps_and_trains_identically(tmp_path):
   assert third.returncode == 0, third.stderr[-2000:]
   assert third.stderr.count("unusable") == 1 and "compiling it again" in third.stderr
   assert _rows(tmp_path / "c") == _rows(tmp_path / "a")
+
+
+def test_prefetch_loads_the_remembered_signatures_before_the_first_call(folder):
+  first = executables.Program(_jitted(), "step", "demo")
+  _run(first, rows=4)
+  _run(first, rows=6)
+  assert executables.remembered("step", "demo") == [executables.signature(_args(rows=6)),
+                                                    executables.signature(_args(rows=4))]
+  second = executables.Program(_jitted(), "step", "demo").prefetch()
+  assert len(second._loading) == 2  # pylint: disable=protected-access
+  second.jitted = None  # neither lowered nor compiled
+  _equal(_run(second, rows=4), _reference(rows=4))
+  assert second.origin == "loaded"
+  # An index that names programs no longer kept, or is garbage, only misses the prefetch.
+  for path in _entries(folder):
+    path.unlink()
+  third = executables.Program(_jitted(), "step", "demo").prefetch()
+  _equal(_run(third, rows=4), _reference(rows=4))
+  assert third.origin == "compiled"
+  executables.index_path(folder, "step", "demo").write_text("{garbage")
+  assert executables.remembered("step", "demo") == []
+  _equal(_run(executables.Program(_jitted(), "step", "demo").prefetch()), _reference())
+
+
+def test_a_damaged_prefetched_entry_is_compiled_again_with_one_line(folder):
+  _run(executables.Program(_jitted(), "step", "demo"), calls=1)
+  (path,) = _entries(folder, "step")
+  path.write_bytes(path.read_bytes()[:-10])
+  lines = []
+  program = executables.Program(_jitted(), "step", "demo", log=lines.append).prefetch()
+  _equal(_run(program), _reference())
+  assert program.origin == "compiled" and len(lines) == 1 and "unusable" in lines[0]

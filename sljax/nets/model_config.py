@@ -132,7 +132,7 @@ def _init_fn(model: nn.Module, height: int, width: int, channels: int):
   x = jnp.zeros((1, height, width, channels), jnp.float32)
   return executables.Program(jax.jit(lambda key: model.init(key, x, x, train=False),
                                      compiler_options=INIT_COMPILER_OPTIONS),
-                             "init", (repr(model), height, width, channels))
+                             "init", (repr(model), height, width, channels)).prefetch()
 
 
 def init_variables(model: nn.Module, seed: int, height: int, width: int,

@@ -82,7 +82,8 @@ def compiled_steps(model_config: ModelConfig, disp_loss: str, lr: float,
   return (model, tx,
           executables.Program(stp.make_train_step(
               model, model_config, disp_loss=disp_loss, tx=tx, mesh=mesh,
-              compiler_options=choice.compiler_options("train")), "train-step", description),
+              compiler_options=choice.compiler_options("train")), "train-step",
+              description).prefetch(),
           executables.Program(stp.make_eval_step(
               model, model_config, mesh=mesh,
               compiler_options=choice.compiler_options("forward")), "eval-step", description))

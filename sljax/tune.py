@@ -64,15 +64,18 @@ RULE = 3
 BUSY = 0.1  # other processes' share of the CPUs above which a measurement is provisional
 
 
-# The choice per CPU kind (machine.cpu_key) as `sljax tune` measured it on an idle machine,
-# with where: a first run takes it instead of measuring (issue 49: on a fresh 2-core Zen 3 the
+# The choice per CPU kind (machine.cpu_key) measured on an idle machine of that kind, with
+# where: a first run takes it instead of measuring (issue 49: on a fresh 2-core Zen 3 the
 # measurement took 106 s of the 251 s before the first step). A kind not listed takes UNKNOWN:
-# every kind measured idle so far turned the fusions off in forward programs, and off in
-# training on two of three; off also compiles and loads faster (docs/benchmarks.md).
+# off on every kind measured so far; without the fusions programs also load about 3x faster
+# (docs/benchmarks.md, "The first run").
 KNOWN = {
-    "amd-epyc-f25-m1-avx2": ("off", "Zen 3, 2026-11-27"),
-    "amd-epyc-f25-m17-avx2": ("off", "Zen 4 without AVX-512 shown, 2026-11-27"),
-    "amd-epyc-f26-m2-avx512": ("forward-off", "Zen 5, 2026-11-27"),
+    "amd-epyc-f25-m1-avx2": ("off", "Zen 3, `sljax tune` idle, 2026-11-27"),
+    "amd-epyc-f25-m17-avx2": ("off", "Zen 4 showing AVX2 only, `sljax tune` idle, 2026-11-27"),
+    # `sljax tune`'s probe (128x128, batch 1) kept the fusions in training (off/on 1.03-1.10),
+    # but at the main job's preset the step without them was 5% faster (0.79-0.83 s against
+    # 0.84-0.93 s) and loaded from the cache in 3.0 s against 9.6-10.0 s.
+    "amd-epyc-f26-m2-avx512": ("off", "Zen 5, the main job's step and start-up, 2026-11-27"),
 }
 UNKNOWN = "off"
 

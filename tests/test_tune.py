@@ -168,14 +168,16 @@ def test_a_run_takes_the_table_and_never_measures(cache_dir, monkeypatch):
   with UNKNOWN; nothing is measured or written, and the line says how to measure."""
   monkeypatch.setattr(tune, "measure", lambda **_: pytest.fail("a run must not measure"))
   monkeypatch.setattr(tune, "write_cache", lambda *a, **k: pytest.fail("nor write"))
+  monkeypatch.setitem(tune.KNOWN, "amd-epyc-f26-m2-avx512", ("forward-off", "Zen 5, by hand"))
   monkeypatch.setattr(tune.machine, "cpu_key", lambda: "amd-epyc-f26-m2-avx512")
   lines = []
-  assert tune.choice(log=lines.append) == tune.KernelChoice(False, True)  # Zen 5: forward-off
-  assert "measured on this CPU kind (Zen 5" in lines[-1] and "`sljax tune`" in lines[-1]
+  assert tune.choice(log=lines.append) == tune.KernelChoice(False, True)  # the table's entry
+  assert "measured on this CPU kind (Zen 5, by hand)" in lines[-1] and "`sljax tune`" in lines[-1]
   monkeypatch.setattr(tune.machine, "cpu_key", lambda: "amd-epyc-f25-m1-avx2")
   assert tune.choice(log=lines.append) == tune.KernelChoice(False, False)  # Zen 3: off
+  monkeypatch.setattr(tune, "UNKNOWN", "train-off")
   monkeypatch.setattr(tune.machine, "cpu_key", lambda: "some-future-cpu-avx10")
-  assert tune.choice(log=lines.append) == tune.KernelChoice.from_name(tune.UNKNOWN)
+  assert tune.choice(log=lines.append) == tune.KernelChoice(True, False)
   assert "not measured yet" in lines[-1]
   assert not (cache_dir / "tune.json").exists()
 
@@ -284,8 +286,8 @@ def test_cli_show_without_a_measurement_names_what_runs_take(cache_dir, capsys, 
   monkeypatch.setattr(tune.machine, "cpu_key", lambda: "amd-epyc-f26-m2-avx512")
   assert cli.main(["tune", "--show"]) == 0
   out = capsys.readouterr().out
-  assert "not measured on this machine: runs take YNNPACK fusions off in forward programs, on " \
-         "in training (--ynn forward-off), measured on this CPU kind (Zen 5" in out
+  assert "not measured on this machine: runs take YNNPACK fusions off in forward programs, off " \
+         "in training (--ynn off), measured on this CPU kind (Zen 5" in out
 
 
 def test_cli_show_prints_the_cached_table(cache_dir, capsys):

@@ -29,6 +29,7 @@ import json
 import os
 import pickle
 import sys
+import threading
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -213,13 +214,48 @@ def load(name: str, description: Any, sig: str, log: Callable[[str], None]):
   return compiled
 
 
+_COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"  # XLA asked (or jax's cache read)
+_HIT_EVENT = "/jax/compilation_cache/cache_hits"  # ... and jax's cache answered
+_events = threading.local()
+
+
+def _on_event(event: str, *args, **kwargs) -> None:
+  if event in (_COMPILE_EVENT, _HIT_EVENT):
+    seen = getattr(_events, "seen", None)
+    if seen is not None:
+      seen.add(event)
+
+
+@functools.cache
+def _listening() -> bool:
+  jax.monitoring.register_event_listener(_on_event)
+  jax.monitoring.register_event_duration_secs_listener(_on_event)
+  return True
+
+
+def fresh_compile(jitted, args: tuple) -> tuple[Any, bool]:
+  """(the program compiled for `args`, whether XLA compiled it in this call). Not fresh: jax
+  took it from its persistent cache or from a compile earlier in this process. Only a fresh
+  executable may be kept: XLA:CPU (jaxlib 0.10.2) serialises an executable it loaded from
+  jax's cache without some of its kernels, and the entry then fails when it runs ("NOT_FOUND:
+  Function transpose_copy_fusion.21 not found"; tests/test_executables.py)."""
+  _listening()
+  _events.seen = set()
+  try:
+    compiled = jitted.lower(*args).compile()
+    return compiled, _events.seen == {_COMPILE_EVENT}
+  finally:
+    _events.seen = None
+
+
 def compile_and_keep(jitted, name: str, description: Any, args: tuple,
                      log: Callable[[str], None]) -> tuple[Any, str]:
   """(the program compiled for `args` through jax's compile cache, 'compiled' or 'compiled,
-  not kept'), stored in the folder where it is on."""
-  compiled = jitted.lower(*args).compile()
+  not kept'), stored in the folder where it is on and XLA compiled it afresh (`fresh_compile`;
+  a program jax's cache gave is kept by the next run that compiles it)."""
+  compiled, fresh = fresh_compile(jitted, args)
   where = folder()
-  if where is None or jax.process_count() > 1:
+  if where is None or jax.process_count() > 1 or not fresh:
     return compiled, "compiled, not kept"
   sig = signature(args)
   key = entry_key(name, description, sig)

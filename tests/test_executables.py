@@ -39,6 +39,7 @@ def _args(seed=0, rows=4):
 def folder(tmp_path, monkeypatch):
   """Programs kept in a folder of this test's own, turned off again afterwards."""
   monkeypatch.setenv(executables.ENV, "on")
+  jax.clear_caches()  # each test's first compile is XLA's, not one kept from another test
   where = executables.enable(tmp_path / "xla")
   yield where
   executables.enable(None)
@@ -152,6 +153,7 @@ def test_a_damaged_entry_is_compiled_again_with_one_line(folder, damage):
     with pytest.raises(ValueError, match="checksum"):
       executables.unpack(path.name[:-len("-cache")], bytes(data))
   lines = []
+  jax.clear_caches()  # as a new process: XLA compiles it again
   program = executables.Program(_jitted(), "step", "demo", log=lines.append)
   _equal(_run(program), _reference())
   assert program.origin == "compiled"
@@ -192,14 +194,15 @@ def test_entries_are_bounded_with_the_compile_cache(folder, monkeypatch):
   (first,) = _entries(folder)
   assert first.with_name(first.name[:-len("-cache")] + "-atime").exists()
   monkeypatch.setattr(cache, "MAX_BYTES", int(first.stat().st_size * 1.5))
+  jax.clear_caches()
   executables.Program(_jitted(), "step", "b")(*_args())
   assert not first.exists() and len(_entries(folder)) == 1
 
 
-def _train(workdir: Path, env: dict) -> subprocess.CompletedProcess:
+def _train(workdir: Path, env: dict, *more: str) -> subprocess.CompletedProcess:
   flags = ["--model", "unet-sl", "--unet-depth", "2", "--unet-width", "4", "--size", "32",
            "--synth-n", "12", "--synth-size", "32", "--batch-size", "2", "--steps", "3",
-           "--val-every-steps", "3", "--max-val", "2", "--workdir", str(workdir)]
+           "--val-every-steps", "3", "--max-val", "2", "--workdir", str(workdir), *more]
   return subprocess.run([sys.executable, str(ROOT / "train.py"), *flags], env=env, cwd=ROOT,
                         capture_output=True, text=True, timeout=600)
 
@@ -222,13 +225,39 @@ def test_train_py_twice_loads_the_steps_and_trains_identically(tmp_path):
   assert "first step (loaded the compiled step)" in second.stderr
   assert "first step (loaded" not in first.stderr
   assert _rows(tmp_path / "a") == _rows(tmp_path / "b") and len(_rows(tmp_path / "a")) == 3
-  # A damaged training step: one line, compiled again, the same numbers.
+  # Stopped after a step and resumed from its checkpoint on loaded programs: the same rows.
+  for more in (["--stop-after", "1", "--save-every", "1"], ["--resume"]):
+    part = _train(tmp_path / "d", env, *more)
+    assert part.returncode == 0, part.stderr[-2000:]
+    assert "first step (loaded the compiled step)" in part.stderr
+  assert _rows(tmp_path / "d") == _rows(tmp_path / "a")
+  # A damaged training step: one line, compiled again (here from jax's compile cache, so not
+  # kept: see the next test), the same numbers.
   (step,) = (tmp_path / "xla").rglob("sljax-program-train-step-*-cache")
   step.write_bytes(step.read_bytes()[:1000])
   third = _train(tmp_path / "c", env)
   assert third.returncode == 0, third.stderr[-2000:]
   assert third.stderr.count("unusable") == 1 and "compiling it again" in third.stderr
   assert _rows(tmp_path / "c") == _rows(tmp_path / "a")
+  assert not list((tmp_path / "xla").rglob("sljax-program-train-step-*-cache"))
+  # And the run after it, which finds none kept, trains as well (it traces and loads jax's).
+  fourth = _train(tmp_path / "e", env)
+  assert fourth.returncode == 0, fourth.stderr[-2000:]
+  assert _rows(tmp_path / "e") == _rows(tmp_path / "a")
+
+
+def test_only_a_fresh_compile_is_kept(folder):
+  """XLA:CPU re-serialises an executable it did not compile in this call (jax's persistent
+  cache, or an earlier compile in the process) without some kernels: such an entry loaded, then
+  failed when run. A program compiled from a cache is used and not kept."""
+  jitted = _jitted()
+  compiled, fresh = executables.fresh_compile(jitted, _args())
+  assert fresh
+  again, fresh = executables.fresh_compile(jitted, _args())  # jax's compile of this process
+  assert not fresh
+  program = executables.Program(jitted, "step", "demo")
+  _equal(_run(program), _reference())
+  assert program.origin == "compiled, not kept" and not _entries(folder)
 
 
 def test_prefetch_loads_the_remembered_signatures_before_the_first_call(folder):
@@ -245,6 +274,7 @@ def test_prefetch_loads_the_remembered_signatures_before_the_first_call(folder):
   # An index that names programs no longer kept, or is garbage, only misses the prefetch.
   for path in _entries(folder):
     path.unlink()
+  jax.clear_caches()
   third = executables.Program(_jitted(), "step", "demo").prefetch()
   _equal(_run(third, rows=4), _reference(rows=4))
   assert third.origin == "compiled"
@@ -258,6 +288,7 @@ def test_a_damaged_prefetched_entry_is_compiled_again_with_one_line(folder):
   (path,) = _entries(folder, "step")
   path.write_bytes(path.read_bytes()[:-10])
   lines = []
+  jax.clear_caches()
   program = executables.Program(_jitted(), "step", "demo", log=lines.append).prefetch()
   _equal(_run(program), _reference())
   assert program.origin == "compiled" and len(lines) == 1 and "unusable" in lines[0]

@@ -1,9 +1,10 @@
 """`sljax experiment run PLAN OUT` / `report OUT` / `status OUT`: the paper's experiments."""
 
 import argparse
+import signal
 
 from sljax.experiment import (calibrate as cal, plans, regime as reg, report as rep, runner,
-                              status as st)
+                              status as st, workers)
 
 
 def register(subparsers) -> None:
@@ -37,6 +38,10 @@ def register(subparsers) -> None:
                  help="table3: also score on this scene-format folder (Middlebury, imported "
                       "SCARED); repeatable")
   r.add_argument("--no-progress", action="store_true", help="no progress bar")
+  r.add_argument("--lease", type=float, default=workers.LEASE_S, metavar="SECONDS",
+                 help="a worker on another host whose heartbeat is this old counts as gone and "
+                      "its cell is taken over (every worker of a grid may run on its own host: "
+                      "start as many as you like on one OUT)")
   r.set_defaults(func=run_plan)
   rep = sub.add_parser("report", help="write OUT/report.md, report.json and figures",
                        description="Reports every plan run under OUT (cells not finished yet "
@@ -91,12 +96,20 @@ def run_plan(args: argparse.Namespace) -> int:
   """Runs the plan and says how to report it."""
   seeds = args.seeds if args.seeds is not None else 1 if args.scale == "smoke" else 3
   plan = plans.build_plan(args.plan, args.scale, seeds, args.data, tuple(args.eval_data))
-  res = runner.run(plan, args.out, progress=not args.no_progress)
+  res = runner.run(plan, args.out, progress=not args.no_progress, lease=args.lease)
   left_out = (f"; {len(res['diverged'])} cell(s) left out as diverged (each diverged.json "
               "says why)" if res["diverged"] else "")
-  print(f"{args.plan}: trained {res['trained']} cell(s), scored {res['evaluated']} set(s) in "
-        f"{res['seconds'] / 60:.1f} min{left_out}; report with: sljax experiment report "
-        f"{args.out}")
+  done = (f"{args.plan}: trained {res['trained']} cell(s), scored {res['evaluated']} set(s) in "
+          f"{res['seconds'] / 60:.1f} min{left_out}")
+  if res["stopped"]:
+    print(f"{done}; stopped by {res['stopped']}: run the same command to go on")
+    return 128 + int(getattr(signal, res["stopped"]))
+  if res["left"]:
+    print(f"{done}; nothing left for this worker: " + "; ".join(
+        f"{cell} {who}" for cell, who in res["left"].items())
+          + f". Follow with: sljax experiment status {args.out}")
+    return 0
+  print(f"{done}; report with: sljax experiment report {args.out}")
   return 0
 
 

@@ -361,6 +361,28 @@ def holders(out: Path, cells: list[str]) -> dict[str, tuple[dict[str, Any], int 
   return found
 
 
+def live_workers(out: Path) -> list[str]:
+  """The workers with a file under OUT/workers: who, since when, their log; one that looks
+  gone (its pid ended on this host, or no heartbeat for its lease) says so."""
+  folder = out / WORKERS_DIR
+  if not folder.is_dir():
+    return []
+  now, said = fs_now(out), []
+  for path in sorted(folder.glob("*.json")):
+    try:
+      rec, age = json.loads(path.read_text(encoding="utf-8")), now - path.stat().st_mtime
+    except (OSError, ValueError):
+      continue  # ended (removed) while read
+    if not isinstance(rec, dict):
+      continue
+    dead = (not pid_alive(int(rec.get("pid", -1)), rec.get("started"))
+            if rec.get("host") == host_name() else age > float(rec.get("lease", LEASE_S)))
+    said.append(f"{describe(rec)} since {when(rec.get('since'))}"
+                + (f", log {rec['log']}" if rec.get("log") else "")
+                + (" (gone: it ended without removing its file)" if dead else ""))
+  return said
+
+
 def late_holders(out: Path, cells: list[str], now: float) -> list[str]:
   """The cells among cells whose holder missed two heartbeats (`late`)."""
   return [cell for cell in cells if late(top(out, cell), now)]

@@ -1,0 +1,271 @@
+"""Workers sharing one experiment folder (sljax.experiment.workers): claims made at the same
+instant by several processes never overlap, a dead worker's claim is taken over (its pid gone,
+its lease over, an earlier run of its job) and a live one's is not, a superseded holder gives
+its cell up, a fine-tuning cell never starts before its base, and the SLURM parameters that
+`experiment submit` builds from its command line. No training here: tests/test_experiment.py
+runs real workers on a smoke grid."""
+
+import json
+import multiprocessing
+import os
+import random
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from sljax import cli
+from sljax.errors import SljaxError
+from sljax.experiment import plans, runner, submit, workers
+
+import toys
+
+
+ROUNDS, PROCESSES = 5, 4
+
+
+def _claim_all(out: str, cells: list[str], barrier, seed: int, results) -> None:
+  """A process that, in each round, claims every cell it can of a fresh folder, all of them
+  starting at the barrier, each in its own order."""
+  me = workers.identity(lease=60)
+  for round_ in range(ROUNDS):
+    order = list(cells)
+    random.Random(seed * 100 + round_).shuffle(order)
+    folder = Path(out) / f"round{round_}"
+    worker = workers.Worker(folder, me)
+    worker.file.parent.mkdir(parents=True, exist_ok=True)
+    worker.file.write_text("{}")
+    barrier.wait()
+    won = []
+    for cell in order:
+      worker.held = None  # one cell at a time: only the claims are under test here
+      if worker.claim(cell):
+        won.append(cell)
+    results.put((round_, won))
+
+
+def test_workers_started_at_the_same_instant_never_claim_the_same_cell(tmp_path):
+  cells = [f"cell-{k}" for k in range(12)]
+  ctx = multiprocessing.get_context("spawn")
+  barrier, results = ctx.Barrier(PROCESSES), ctx.Queue()
+  procs = [ctx.Process(target=_claim_all, args=(str(tmp_path), cells, barrier, k, results))
+           for k in range(PROCESSES)]
+  for p in procs:
+    p.start()
+  won = [results.get(timeout=120) for _ in range(ROUNDS * PROCESSES)]
+  for p in procs:
+    p.join(timeout=60)
+  assert sum(bool(c) for _, c in won) >= 2  # they did contend
+  for round_ in range(ROUNDS):
+    claimed = [cell for r, cells_won in won if r == round_ for cell in cells_won]
+    assert sorted(claimed) == sorted(cells), (round_, won)  # each cell exactly once
+    for cell in cells:  # one claim file each, the winner's
+      folder = workers.claims_dir(tmp_path / f"round{round_}", cell)
+      assert [p.name for p in folder.glob("*.json")] == ["0000.json"]
+
+
+def _claim(out: Path, host: str, job: str | None = None, lease: float = 2.0,
+           pid: int = 1) -> Path:
+  """A claim of cell "c" as another worker's."""
+  path = workers.claim_path(out, "c", workers.top(out, "c").number + 1)
+  record = dict(token="other", host=host, pid=pid, started=None, job=job, lease=lease,
+                since=time.time(), kind=workers.CLAIM)
+  assert workers.create_exclusive(path, record)
+  return path
+
+
+def _backdate(path: Path, seconds: float) -> None:
+  t = time.time() - seconds
+  os.utime(path, (t, t))
+
+
+@pytest.fixture
+def me(tmp_path):
+  """A worker under tmp_path on this host, lease 2 s."""
+  with workers.Worker(tmp_path, workers.identity(lease=2.0)) as worker:
+    yield worker
+
+
+def test_a_claim_on_another_host_is_taken_over_after_its_lease_only(tmp_path, me):
+  claim = _claim(tmp_path, "elsewhere")
+  assert not me.claim("c")              # fresh heartbeat: held
+  _backdate(claim, 1.5)
+  assert not me.claim("c")              # late, within its lease: still held
+  assert workers.late_holders(tmp_path, ["c"], me.clock()) == ["c"]
+  _backdate(claim, 2.5)
+  assert me.claim("c")                  # over the lease: taken over, the next number
+  rec = workers.read_claim(workers.claim_path(tmp_path, "c", 1))
+  assert rec["token"] == me.me.token and "over its 2 s lease" in rec["took_over"]
+  assert workers.top(tmp_path, "c").record["token"] == me.me.token
+
+
+def test_a_heartbeat_keeps_a_claim_and_a_dead_pid_loses_it_at_once(tmp_path, me):
+  claim = _claim(tmp_path, "elsewhere")
+  _backdate(claim, 10)
+  workers.beat_path(claim).write_text("{}")  # the holder's heartbeat file renewed just now
+  assert not me.claim("c")
+  # This host: a pid that ended is gone at once, whatever its heartbeat; a live one is not.
+  proc = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+  try:
+    live = tmp_path / "live"
+    path = workers.claim_path(live, "c", 0)
+    workers.create_exclusive(path, dict(token="t", host=workers.host_name(), pid=proc.pid,
+                                        started=workers.process_started(proc.pid),
+                                        job=None, lease=2.0, since=0, kind=workers.CLAIM))
+    _backdate(path, 100)
+    with workers.Worker(live, workers.identity(2.0)) as other:
+      assert not other.claim("c")
+      proc.kill()
+      proc.wait()
+      assert other.claim("c")
+      assert "has ended" in workers.read_claim(workers.claim_path(live, "c", 1))["took_over"]
+  finally:
+    proc.kill()
+
+
+def test_an_earlier_run_of_the_same_job_is_gone(tmp_path, monkeypatch):
+  monkeypatch.setenv("SLURM_ARRAY_JOB_ID", "77")
+  monkeypatch.setenv("SLURM_ARRAY_TASK_ID", "3")
+  _claim(tmp_path, "node-a", job="77_3", lease=300)  # before the requeue, on another node
+  with workers.Worker(tmp_path, workers.identity(300)) as worker:
+    assert worker.me.job == "77_3" and worker.claim("c")
+  _claim(tmp_path, "node-b", job="77_4", lease=300)  # another task of the array: held
+  with workers.Worker(tmp_path, workers.identity(300)) as worker:
+    assert not worker.claim("c")
+
+
+def test_a_superseded_holder_gives_its_cell_up_and_release_lets_the_next_claim(tmp_path):
+  with workers.Worker(tmp_path, workers.identity(2.0)) as a:
+    assert a.claim("c")
+    a.progress(7)
+    a._renew()  # pylint: disable=protected-access
+    assert workers.holders(tmp_path, ["c"])["c"][1] == 7
+    # Another host took it over (this worker stalled past its lease).
+    _claim(tmp_path, "elsewhere", lease=2.0)
+    a._renew()  # pylint: disable=protected-access
+    assert a.lost
+    a.release("finished")               # not its claim any more: nothing written
+    assert workers.top(tmp_path, "c").record["host"] == "elsewhere"
+  with workers.Worker(tmp_path / "b", workers.identity(2.0)) as b:
+    assert b.claim("c")
+    b.release("stopped by SIGTERM")
+    top = workers.top(tmp_path / "b", "c")
+    assert top.number == 1 and top.record["why"] == "stopped by SIGTERM" and not top.held
+    assert b.claim("c") and workers.top(tmp_path / "b", "c").number == 2
+
+
+def test_a_foreign_claim_file_is_one_line(tmp_path, me):
+  path = workers.claim_path(tmp_path, "c", 0)
+  path.parent.mkdir(parents=True)
+  path.write_text("hello")
+  with pytest.raises(SljaxError, match=f"{path}: not an sljax claim"):
+    me.claim("c")
+
+
+def _fake_cells(out, started, lock):
+  """train_cell and evaluate_cell stand-ins that record when each cell trained."""
+  def train_cell(out_, cell, bar, weight, on_step=lambda s: None):
+    with lock:
+      started.append((cell.name, "start", time.monotonic()))
+    if cell.init_cell is not None:
+      runner.final_checkpoint(out_, cell.init_cell)  # the base must be done
+    time.sleep(0.3)
+    on_step(1)
+    done = {"step": 1}
+    runner.cell_dir(out_, cell.name).mkdir(parents=True, exist_ok=True)
+    runner.write_json(runner.cell_dir(out_, cell.name) / runner.DONE_FILE, done)
+    with lock:
+      started.append((cell.name, "end", time.monotonic()))
+    return done
+
+  def evaluate_cell(out_, cell, evalset):
+    path = runner.cell_dir(out_, cell.name) / runner.EVAL_DIR / f"{evalset.name}.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    runner.write_json(path, {"pooled": {}})
+    return {"pooled": {}}
+  return train_cell, evaluate_cell
+
+
+def test_a_fine_tuning_cell_never_starts_before_its_base(tmp_path, monkeypatch):
+  """Three workers (threads) on table1's two bases and two fine-tuning cells: each cell trains
+  once, every fine-tuning cell after its base ended, and the idle workers wait for it."""
+  out = tmp_path / "out"
+  plan = plans.build_plan("table1", "smoke", 1)
+  events, lock = [], threading.Lock()
+  train_cell, evaluate_cell = _fake_cells(out, events, lock)
+  monkeypatch.setattr(runner, "train_cell", train_cell)
+  monkeypatch.setattr(runner, "evaluate_cell", evaluate_cell)
+  results = []
+  threads = [threading.Thread(target=lambda: results.append(runner.run(
+      plan, out, progress=False, log=lambda line: None, lease=2.0, poll=0.05)))
+             for _ in range(3)]
+  for t in threads:
+    t.start()
+  for t in threads:
+    t.join(timeout=60)
+  assert len(results) == 3 and sum(r["trained"] for r in results) == 4
+  when = {(name, what): t for name, what, t in events}
+  assert len(when) == len(events) == 8  # each cell started and ended once
+  for cell in plan.cells:
+    if cell.init_cell is not None:
+      assert when[cell.name, "start"] >= when[cell.init_cell, "end"], cell.name
+
+
+def test_a_worker_with_another_plan_is_refused_in_one_line(tmp_path, capsys):
+  out = tmp_path / "out"
+  runner.register(out, plans.build_plan("table1", "smoke", 1))
+  with workers.Worker(out, workers.identity(2.0)) as other:  # a live worker holds a cell
+    assert other.claim("unet-sl-objects-s0")
+    assert cli.main(["experiment", "run", "table1", str(out), "--scale", "cpu",
+                     "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "another configuration" in err and str(out) in err, err
+    record = json.loads((out / runner.PLAN_FILE).read_text())
+    assert record["plans"]["table1"]["scale"] == "smoke"  # the plan stays as written once
+    assert [p.name for p in (out / workers.WORKERS_DIR).iterdir()] == [other.file.name]
+
+
+def test_slurm_parameters_from_a_command_line(tmp_path):
+  """The job array submit would ask SLURM for (not run on a real cluster here: the job script
+  is the one submitit would pass to sbatch)."""
+  pytest.importorskip("submitit")
+  res = submit.Resources(
+      32, partition="gpu-preempt", gpus_per_worker=1, cpus_per_worker=8,
+      minutes=submit.parse_minutes("1-02:30:00"), account="lab42",
+      sbatch=submit.parse_sbatch(["qos=low", "constraint=h100", "exclusive"]),
+      setup=("module load cuda",))
+  params = submit.slurm_parameters(res, "sljax-table2-v2")
+  assert params["time"] == 24 * 60 + 150 and params["array_parallelism"] == 32
+  assert params["gpus_per_node"] == 1 and params["cpus_per_task"] == 8
+  assert params["additional_parameters"] == {"requeue": True, "qos": "low",
+                                             "constraint": "h100", "exclusive": True}
+  script = submit.sbatch_script(res, "sljax-table2-v2", tmp_path / "%j")
+  for line in ("#SBATCH --partition=gpu-preempt", "#SBATCH --gpus-per-node=1",
+               "#SBATCH --cpus-per-task=8", "#SBATCH --time=1590", "#SBATCH --account=lab42",
+               "#SBATCH --array=0-31%32", "#SBATCH --signal=USR2@120", "#SBATCH --requeue",
+               "#SBATCH --qos=low", "#SBATCH --constraint=h100", "#SBATCH --exclusive",
+               "#SBATCH --job-name=sljax-table2-v2", "module load cuda"):
+    assert line in script.splitlines(), (line, script)
+  argv = submit.worker_argv("table2-v2", tmp_path / "out", "paper", 3, None, [], 300)
+  assert argv == ["experiment", "run", "table2-v2", str((tmp_path / "out").absolute()),
+                  "--scale", "paper", "--seeds", "3", "--no-progress", "--lease", "300"]
+  assert [submit.parse_minutes(t) for t in ("90", "2:00:00", "1-0", "0:30")] == [90, 120, 1440, 1]
+  for bad, needle in ((lambda: submit.parse_minutes("soon"), "--time soon"),
+                      (lambda: submit.parse_sbatch(["QOS low"]), "--sbatch QOS low")):
+    with pytest.raises(SljaxError, match=needle):
+      bad()
+
+
+def test_submit_without_slurm_is_one_line_and_writes_nothing(tmp_path, capsys, monkeypatch):
+  pytest.importorskip("submitit")
+  monkeypatch.setattr(submit.shutil, "which", lambda name: None)
+  out = tmp_path / "out"
+  assert cli.main(["experiment", "submit", "table1", str(out), "--scale", "smoke",
+                   "--workers", "4"]) == 2
+  err = capsys.readouterr().err
+  assert err.count("\n") == 1 and "no SLURM here (sbatch not found)" in err and "--local" in err
+  assert not out.exists()

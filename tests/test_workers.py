@@ -232,7 +232,7 @@ def test_a_worker_with_another_plan_is_refused_in_one_line(tmp_path, capsys):
 def test_slurm_parameters_from_a_command_line(tmp_path):
   """The job array submit would ask SLURM for (not run on a real cluster here: the job script
   is the one submitit would pass to sbatch)."""
-  pytest.importorskip("submitit")
+  toys.need_submitit()
   res = submit.Resources(
       32, partition="gpu-preempt", gpus_per_worker=1, cpus_per_worker=8,
       minutes=submit.parse_minutes("1-02:30:00"), account="lab42",
@@ -261,7 +261,7 @@ def test_slurm_parameters_from_a_command_line(tmp_path):
 
 
 def test_submit_without_slurm_is_one_line_and_writes_nothing(tmp_path, capsys, monkeypatch):
-  pytest.importorskip("submitit")
+  toys.need_submitit()
   monkeypatch.setattr(submit.shutil, "which", lambda name: None)
   out = tmp_path / "out"
   assert cli.main(["experiment", "submit", "table1", str(out), "--scale", "smoke",

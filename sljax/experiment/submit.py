@@ -21,6 +21,7 @@ from typing import Any
 from sljax.errors import SljaxError, require
 
 LOGS_DIR = "submitit"   # OUT/submitit/: submitit's job files and each worker's log
+LOG_LEVEL = "SUBMITIT_LOG_LEVEL"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -83,6 +84,7 @@ def slurm_parameters(res: Resources, name: str) -> dict[str, Any]:
 
 def sbatch_script(res: Resources, name: str, folder: Path, command: str = "python -m ...") -> str:
   """The job script submitit would pass to sbatch for these resources."""
+  _submitit()
   from submitit.slurm import slurm  # pylint: disable=import-outside-toplevel
   return slurm._make_sbatch_string(command=command, folder=folder,  # pylint: disable=protected-access
                                    **slurm_parameters(res, name), map_count=res.workers)
@@ -132,11 +134,20 @@ class WorkerJob:
 
 def _submitit():
   """The submitit module, or SljaxError saying how to install it."""
+  # Its import configures logging, which closes the handlers the importing program has (a
+  # notebook's, pytest's); the jobs, processes of their own, keep submitit's log lines.
+  before = os.environ.get(LOG_LEVEL)
+  os.environ[LOG_LEVEL] = "NOCONFIG"
   try:
     import submitit  # pylint: disable=import-outside-toplevel
   except ImportError:
     raise SljaxError("sljax experiment submit needs submitit: pip install 'sljax[cluster]' "
                      "(or pip install submitit)") from None
+  finally:
+    if before is None:
+      os.environ.pop(LOG_LEVEL, None)
+    else:
+      os.environ[LOG_LEVEL] = before
   return submitit
 
 

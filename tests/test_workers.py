@@ -269,3 +269,67 @@ def test_submit_without_slurm_is_one_line_and_writes_nothing(tmp_path, capsys, m
   err = capsys.readouterr().err
   assert err.count("\n") == 1 and "no SLURM here (sbatch not found)" in err and "--local" in err
   assert not out.exists()
+
+
+def _stopping_run(out, monkeypatch, sig):
+  """runner.run on table1 with stand-in training that receives `sig` in its first cell."""
+  plan = plans.build_plan("table1", "smoke", 1)
+  events, lock = [], threading.Lock()
+  train_cell, evaluate_cell = _fake_cells(out, events, lock)
+
+  def train_then_signal(out_, cell, bar, weight, on_step=lambda s: None):
+    on_step(3)
+    os.kill(os.getpid(), sig)  # the handler only sets a flag: the next step stops
+    on_step(4)
+    raise AssertionError("not stopped")
+  monkeypatch.setattr(runner, "train_cell", train_then_signal)
+  monkeypatch.setattr(runner, "evaluate_cell", evaluate_cell)
+  return runner.run(plan, out, progress=False, log=lambda line: None, lease=2.0)
+
+
+def test_sigterm_releases_the_claim_and_the_command_says_so(tmp_path, monkeypatch, capfd):
+  out = tmp_path / "out"
+  res = _stopping_run(out, monkeypatch, signal.SIGTERM)
+  assert res["stopped"] == "SIGTERM" and res["trained"] == 0
+  top = workers.top(out, "unet-sl-objects-s0")
+  assert top.record["why"] == "stopped by SIGTERM" and top.record["step"] == 4
+  assert not any(workers.top(out, c).number >= 0 for c in ("unet-disp-objects-s0",))
+  assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL  # put back
+  assert not list((out / workers.WORKERS_DIR).iterdir())
+  assert "SIGTERM: stopping after this step" in capfd.readouterr().err
+  # The command: the signal's exit code, and what to do.
+  assert cli.main(["experiment", "run", "table1", str(out), "--scale", "smoke",
+                   "--no-progress"]) == 128 + signal.SIGTERM
+  said = capfd.readouterr().out
+  assert "unet-sl-objects-s0: stopped by SIGTERM; its checkpoint is kept and its claim " \
+      "released" in said
+  assert said.rstrip().endswith("stopped by SIGTERM: run the same command to go on"), said
+  assert workers.top(out, "unet-sl-objects-s0").number == 3  # claimed and released again
+
+
+def test_slurms_warning_checkpoints_through_submitit_and_requeues(tmp_path, monkeypatch):
+  """SIGUSR2 with submitit's handler installed (as in a SLURM job): the worker stops at a step
+  and releases its cell, then submitit's handler calls WorkerJob.checkpoint, saves the
+  requeued job and exits with the local executor's requeue code."""
+  toys.need_submitit()
+  submit._submitit()  # imported as sljax imports it  # pylint: disable=protected-access
+  monkeypatch.setenv("SUBMITIT_LOCAL_JOB_ID", "42")
+  from submitit.core import job_environment, utils  # pylint: disable=import-outside-toplevel
+  from submitit.local import local  # pylint: disable=import-outside-toplevel
+  argv = ["experiment", "run", "table1", str(tmp_path / "out"), "--scale", "smoke"]
+  delayed = utils.DelayedSubmission(submit.WorkerJob(argv))
+  delayed.set_timeout(60, 3)
+  paths = utils.JobPaths(tmp_path / "job", job_id="42")
+  paths.folder.mkdir(parents=True)
+  handler = job_environment.SignalHandler(local.LocalJobEnvironment(), paths, delayed)
+  previous = signal.signal(signal.SIGUSR2, handler.checkpoint_and_try_requeue)
+  try:
+    with pytest.raises(SystemExit) as exit_:
+      _stopping_run(tmp_path / "out", monkeypatch, signal.SIGUSR2)
+  finally:
+    signal.signal(signal.SIGUSR2, previous)
+  assert exit_.value.code == local.LOCAL_REQUEUE_RETURN_CODE
+  top = workers.top(tmp_path / "out", "unet-sl-objects-s0")
+  assert top.record["why"] == "stopped by SIGUSR2"  # released before the requeue
+  requeued = utils.DelayedSubmission.load(paths.submitted_pickle)
+  assert isinstance(requeued.function, submit.WorkerJob) and requeued.function.argv == argv

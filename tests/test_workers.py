@@ -317,7 +317,7 @@ def test_slurms_warning_checkpoints_through_submitit_and_requeues(tmp_path, monk
   from submitit.core import job_environment, utils  # pylint: disable=import-outside-toplevel
   from submitit.local import local  # pylint: disable=import-outside-toplevel
   argv = ["experiment", "run", "table1", str(tmp_path / "out"), "--scale", "smoke"]
-  delayed = utils.DelayedSubmission(submit.WorkerJob(argv))
+  delayed = utils.DelayedSubmission(submit.WorkerJob(argv, cli.main))
   delayed.set_timeout(60, 3)
   paths = utils.JobPaths(tmp_path / "job", job_id="42")
   paths.folder.mkdir(parents=True)
@@ -333,3 +333,4 @@ def test_slurms_warning_checkpoints_through_submitit_and_requeues(tmp_path, monk
   assert top.record["why"] == "stopped by SIGUSR2"  # released before the requeue
   requeued = utils.DelayedSubmission.load(paths.submitted_pickle)
   assert isinstance(requeued.function, submit.WorkerJob) and requeued.function.argv == argv
+  assert requeued.function.entry is cli.main

@@ -170,8 +170,9 @@ def submit_workers(args: argparse.Namespace) -> int:
                       tuple(args.setup))
   argv = subm.worker_argv(args.plan, out, args.scale, seeds, args.data, args.eval_data,
                          args.lease)
-  subm.submit(argv, out, res, args.local, args.wait, f"sljax-{args.plan}",
-              log=lambda line: print(line, flush=True))
+  from sljax import cli  # pylint: disable=import-outside-toplevel  (cli imports this module)
+  subm.submit(subm.WorkerJob(argv, cli.main), out, res, args.local, args.wait,
+              f"sljax-{args.plan}", log=lambda line: print(line, flush=True))
   return 0
 
 

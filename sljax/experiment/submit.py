@@ -15,6 +15,7 @@ import os
 import re
 import shutil
 import subprocess
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -107,29 +108,29 @@ def local_gpus() -> list[str]:
 
 
 class WorkerJob:
-  """One `sljax experiment run` worker as a submitit job (pickled by reference: the nodes
-  import the same sljax). Checkpointable: on SLURM's warning the worker has already stopped at
-  a step and released its cell (workers.Stop) when submitit calls `checkpoint`, which asks for
-  the same worker again; the requeued job claims whatever cell is free, its own among them."""
+  """One `sljax experiment run` worker as a submitit job: entry(argv) is the command line's
+  entry point, sljax.cli.main (pickled by reference: the nodes import the same sljax).
+  Checkpointable: on SLURM's warning the worker has already stopped at a step and released
+  its cell (workers.Stop) when submitit calls `checkpoint`, which asks for the same worker
+  again; the requeued job claims whatever cell is free, its own among them."""
 
-  def __init__(self, argv: list[str]):
-    self.argv = list(argv)
+  def __init__(self, argv: list[str], entry: Callable[[list[str]], int]):
+    self.argv, self.entry = list(argv), entry
 
   def __call__(self, index: int = 0) -> int:
     """Runs the worker (index: its place in the array); its exit code."""
     del index  # every worker runs the same command; the claims divide the cells
-    from sljax import cli  # pylint: disable=import-outside-toplevel
-    import submitit  # pylint: disable=import-outside-toplevel
+    submitit = _submitit()
     try:
       log = str(submitit.JobEnvironment().paths.stdout)
     except RuntimeError:  # not in a submitit job (called directly)
       log = None
-    return cli.main(self.argv + (["--log-path", log] if log else []))
+    return self.entry(self.argv + (["--log-path", log] if log else []))
 
   def checkpoint(self, *args, **kwargs):
     """The same worker again, for submitit's requeue."""
-    import submitit  # pylint: disable=import-outside-toplevel
-    return submitit.helpers.DelayedSubmission(WorkerJob(self.argv), *args, **kwargs)
+    return _submitit().helpers.DelayedSubmission(WorkerJob(self.argv, self.entry), *args,
+                                                 **kwargs)
 
 
 def _submitit():
@@ -159,16 +160,16 @@ def check_available(local: bool) -> None:
           "to run the workers on this machine")
 
 
-def submit_slurm(argv: list[str], res: Resources, folder: Path, name: str) -> list[Any]:
+def submit_slurm(job: WorkerJob, res: Resources, folder: Path, name: str) -> list[Any]:
   """A job array of res.workers workers; its jobs."""
   submitit = _submitit()
   check_available(local=False)
   executor = submitit.SlurmExecutor(folder=folder, max_num_timeout=30)
   executor.update_parameters(**slurm_parameters(res, name))
-  return executor.map_array(WorkerJob(argv), range(res.workers))
+  return executor.map_array(job, range(res.workers))
 
 
-def submit_local(argv: list[str], res: Resources, folder: Path) -> list[tuple[Any, str]]:
+def submit_local(job: WorkerJob, res: Resources, folder: Path) -> list[tuple[Any, str]]:
   """res.workers local workers through submitit's local executor, one GPU each where the
   machine has several (round robin when there are more workers than GPUs); (job, its GPUs)."""
   submitit = _submitit()
@@ -187,7 +188,7 @@ def submit_local(argv: list[str], res: Resources, folder: Path) -> list[tuple[An
                                gpus_per_node=len(mine),
                                visible_gpus=tuple(int(g) for g in mine if g.isdigit()),
                                setup=setup)
-    jobs.append((executor.submit(WorkerJob(argv)), ",".join(mine) or "none"))
+    jobs.append((executor.submit(job), ",".join(mine) or "none"))
   return jobs
 
 
@@ -203,22 +204,22 @@ def worker_argv(plan_name: str, out: Path, scale: str, seeds: int, data: str | N
   return argv
 
 
-def submit(argv: list[str], out: Path, res: Resources, local: bool, wait: bool, name: str,
-           log=print) -> None:
+def submit(job: WorkerJob, out: Path, res: Resources, local: bool, wait: bool, name: str,
+           log: Callable[[str], None] = print) -> None:
   """Submits the workers (SLURM job array, or local processes) and logs the job ids, each
   worker's log and how to follow; with wait, then how each worker ended."""
   folder = out.absolute() / LOGS_DIR / "%j"
   status = f"sljax experiment status {out}"
   if local:
-    jobs = submit_local(argv, res, folder)
+    jobs = submit_local(job, res, folder)
     log(f"started {len(jobs)} local worker(s) on {out} through submitit's local executor:")
-    for job, gpus in jobs:
-      log(f"  job {job.job_id} (GPU {gpus}): log {job.paths.stdout}, errors {job.paths.stderr}")
+    for one, gpus in jobs:
+      log(f"  job {one.job_id} (GPU {gpus}): log {one.paths.stdout}, errors {one.paths.stderr}")
     log(f"follow with: {status} (it lists the workers' pids; kill -TERM one to stop it: its "
         "cell's claim is released and its checkpoint kept)")
-    plain = [job for job, _ in jobs]
+    plain = [one for one, _ in jobs]
   else:
-    plain = submit_slurm(argv, res, folder, name)
+    plain = submit_slurm(job, res, folder, name)
     array = plain[0].job_id.split("_")[0]
     logs = Path(str(plain[0].paths.stdout).replace(plain[0].job_id, f"{array}_<task>"))
     log(f"submitted job {array}: an array of {len(plain)} worker(s) on {out}")
@@ -228,8 +229,8 @@ def submit(argv: list[str], out: Path, res: Resources, local: bool, wait: bool, 
     folder.rmdir()  # submitit makes the pattern's folder itself; each job has its own
   except OSError:
     pass
-  for job in plain if wait else ():
+  for one in plain if wait else ():
     try:
-      log(f"  job {job.job_id} ended: exit code {job.result()}")
+      log(f"  job {one.job_id} ended: exit code {one.result()}")
     except Exception as e:  # pylint: disable=broad-except  (the worker's log says more)
-      log(f"  job {job.job_id} failed: {(str(e).strip().splitlines() or ['?'])[-1][:300]}")
+      log(f"  job {one.job_id} failed: {(str(e).strip().splitlines() or ['?'])[-1][:300]}")

@@ -308,8 +308,13 @@ def test_three_submitit_local_workers_train_each_cell_once_as_one_runner(smoke_o
   plan = plans.build_plan("table1", "smoke", 1)
   for cell in plan.cells:
     claims = _claims(out, cell.name)
-    assert [c["kind"] for c in claims] == ["claim", "release"], claims
-    assert claims[1]["why"] == "finished" and claims[0]["took_over"] is None
+    # Claim, release, in turn; one worker trained and scored it ("finished"), any other claim
+    # found it finished (a worker may claim between another's last write and its release).
+    assert [c["kind"] for c in claims] == ["claim", "release"] * (len(claims) // 2), claims
+    whys = [c["why"] for c in claims[1::2]]
+    assert whys.count("finished") == 1 and set(whys) <= {"finished", "finished by another "
+                                                         "worker"}, whys
+    assert all(c["took_over"] is None for c in claims[::2])
   _same_cells(smoke_out, out, plan)
   assert cli.main(["experiment", "status", str(out)]) == 0
   status = capsys.readouterr().out

@@ -463,19 +463,29 @@ def _base_done(out: Path, cell: Cell) -> bool:
   return cell.init_cell is None or (cell_dir(out, cell.init_cell) / DONE_FILE).exists()
 
 
+def _left_to_do(out: Path, cell: Cell) -> tuple[bool, list[EvalSet]] | None:
+  """(needs training, evaluation sets to score) of a cell as its files show it now; None when
+  it is finished or left out (diverged)."""
+  wd = cell_dir(out, cell.name)
+  evals = [e for e in cell.evals if not (wd / EVAL_DIR / f"{e.name}.json").exists()]
+  needs = not (wd / DONE_FILE).exists()
+  return None if (wd / DIVERGED_FILE).exists() or not (needs or evals) else (needs, evals)
+
+
 def _claim_next(out: Path, todo, worker: workers.Worker):
   """(cell, needs training, evaluation sets) of the first unfinished cell this worker could
   claim, read again once claimed (another worker may have just finished it); None if none."""
   for cell, _, _ in todo:
-    if not _base_done(out, cell) or not worker.claim(cell.name):
+    # Read again just before claiming: another worker may have finished it since `pending`.
+    if not _base_done(out, cell) or _left_to_do(out, cell) is None:
       continue
-    wd = cell_dir(out, cell.name)
-    evals = [e for e in cell.evals if not (wd / EVAL_DIR / f"{e.name}.json").exists()]
-    needs = not (wd / DONE_FILE).exists()
-    if (wd / DIVERGED_FILE).exists() or not (needs or evals):
+    if not worker.claim(cell.name):
+      continue
+    left = _left_to_do(out, cell)
+    if left is None:
       worker.release("finished by another worker")
       continue
-    return cell, needs, evals
+    return (cell, *left)
   return None
 
 

@@ -132,6 +132,8 @@ class WorkerJob:
     return _submitit().helpers.DelayedSubmission(WorkerJob(self.argv, self.entry), *args,
                                                  **kwargs)
 
+  __submitit_checkpoint__ = checkpoint  # the name later submitit releases look for
+
 
 def _submitit():
   """The submitit module, or SljaxError saying how to install it."""

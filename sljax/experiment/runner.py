@@ -522,6 +522,7 @@ def _run(plan: Plan, out: Path, worker: workers.Worker, stop: workers.Stop, prog
              desc=f"{plan.name} ({len(todo)} cells)")
 
   def on_step(step: int) -> None:
+    """The cell reached step: its heartbeat shows it; a signal or a lost claim stops here."""
     worker.progress(step)
     stop.check()
     if worker.lost:

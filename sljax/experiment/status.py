@@ -3,9 +3,9 @@ ones took, and about how long the rest will take.
 
 Reads only what the workers write (plan.json, each cell's done.json, eval/ and epochs.jsonl,
 their claims and heartbeats: sljax.experiment.workers), so it can be run beside a grid that is
-training, from any host that sees the folder. Estimates come from finished cells of the same arm and factors, preferring
-those finished on this CPU kind (a mean over two CPUs times neither); a group with no finished
-cell has no estimate and is counted as such.
+training, from any host that sees the folder. Estimates come from finished cells of the same
+arm and factors, preferring those finished on this CPU kind (a mean over two CPUs times
+neither); a group with no finished cell has no estimate and is counted as such.
 """
 
 import dataclasses

@@ -87,8 +87,9 @@ def sbatch_script(res: Resources, name: str, folder: Path, command: str = "pytho
   """The job script submitit would pass to sbatch for these resources."""
   _submitit()
   from submitit.slurm import slurm  # pylint: disable=import-outside-toplevel
-  return slurm._make_sbatch_string(command=command, folder=folder,  # pylint: disable=protected-access
-                                   **slurm_parameters(res, name), map_count=res.workers)
+  make = slurm._make_sbatch_string  # pylint: disable=protected-access  (what sbatch receives)
+  return make(command=command, folder=folder, **slurm_parameters(res, name),
+              map_count=res.workers)
 
 
 def local_gpus() -> list[str]:

@@ -246,6 +246,7 @@ class Worker:
     self.file = out / WORKERS_DIR / f"{me.host}-{me.pid}-{me.token}.json"
     self.held: Held | None = None
     self._lock = threading.Lock()
+    self._writing = threading.RLock()  # the heartbeat thread and a claim write the same files
     self._stop = threading.Event()
     self._thread: threading.Thread | None = None
     self._log_path = log_path
@@ -265,11 +266,11 @@ class Worker:
 
   def clock(self) -> float:
     """Now on the shared file system: the mtime of this worker's file, touched now."""
-    try:
-      os.utime(self.file)
-      return self.file.stat().st_mtime
-    except FileNotFoundError:  # removed by hand: write it again
-      files.write_text(self.file, json.dumps(self.me.record()) + "\n")
+    with self._writing:
+      try:
+        os.utime(self.file)
+      except FileNotFoundError:  # removed by hand: write it again
+        files.write_text(self.file, json.dumps(self.me.record()) + "\n")
       return self.file.stat().st_mtime
 
   def claim(self, cell: str) -> bool:
@@ -318,16 +319,17 @@ class Worker:
 
   def _renew(self) -> None:
     """One heartbeat: this worker's file, and the held claim's beat with its step."""
-    self.clock()
-    with self._lock:
-      held = self.held
-    if held is None or held.lost:
-      return
-    if not self._owns(held):
-      held.lost = True
-      return
-    files.write_text(beat_path(held.path), json.dumps({"step": held.step,
-                                                        "token": self.me.token}) + "\n")
+    with self._writing:
+      self.clock()
+      with self._lock:
+        held = self.held
+      if held is None or held.lost:
+        return
+      if not self._owns(held):
+        held.lost = True
+        return
+      files.write_text(beat_path(held.path), json.dumps({"step": held.step,
+                                                          "token": self.me.token}) + "\n")
 
   def _beat_loop(self) -> None:
     """Renews every lease/3 s until the worker ends (a failed write is retried next time)."""

@@ -163,7 +163,7 @@ def submit_workers(args: argparse.Namespace) -> int:
   require(args.workers >= 1, f"--workers {args.workers}: at least 1")
   subm.check_available(args.local)
   out = Path(args.out)
-  with runner.plan_lock(out):
+  with workers.plan_lock(out):
     runner.register(out, plan)  # refused here in one line, not in N job logs
   res = subm.Resources(args.workers, args.partition, args.gpus_per_worker, args.cpus_per_worker,
                       subm.parse_minutes(args.time), args.account, subm.parse_sbatch(args.sbatch),

@@ -26,14 +26,12 @@ cell keeps its final checkpoint (and that best one) only, about 55-85 MB for a P
 cpu scale.
 """
 
-import contextlib
 import dataclasses
-import fcntl
 import json
 import os
 import shutil
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -130,23 +128,6 @@ def register(out: Path, plan: Plan) -> dict[str, Any]:
   if json.dumps(record, sort_keys=True) != before:  # written once: the workers of a grid agree
     write_json(out / PLAN_FILE, record)
   return record
-
-
-@contextlib.contextmanager
-def plan_lock(out: Path) -> Iterator[None]:
-  """OUT itself locked (flock on the folder) while a worker reads and extends plan.json, so
-  that two workers registering different plans at once keep both; unlocked where the file
-  system has no flock on folders (workers of one grid write the same record anyway)."""
-  out.mkdir(parents=True, exist_ok=True)
-  fd = os.open(out, os.O_RDONLY)
-  try:
-    try:
-      fcntl.flock(fd, fcntl.LOCK_EX)
-    except OSError:
-      pass
-    yield
-  finally:
-    os.close(fd)  # drops the lock
 
 
 def registered_plans(out: Path, seeds: int | None = None) -> list[Plan]:
@@ -448,7 +429,7 @@ def run(plan: Plan, out: str | os.PathLike, *, progress: bool = True,
   on another host counts as gone; poll: seconds between looks while waiting (lease/6, at most
   10 s); log_path: this worker's log, for `experiment status`."""
   out = Path(out)
-  with plan_lock(out):
+  with workers.plan_lock(out):
     register(out, plan)
   with workers.Stop() as stop, workers.Worker(out, workers.identity(lease), log_path) as worker:
     result = _run(plan, out, worker, stop, progress, log,

@@ -20,6 +20,7 @@ clocks need not agree. Since numbers only grow, the holder sees at each heartbea
 later claim superseded its own (a worker stalled past its lease) and then gives the cell up.
 """
 
+import contextlib
 import dataclasses
 import errno
 import json
@@ -29,11 +30,17 @@ import signal
 import socket
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 from sljax import files
 from sljax.errors import SljaxError
+
+try:
+  import fcntl
+except ImportError:  # Windows: plan.json is registered unlocked (see plan_lock)
+  fcntl = None
 
 CLAIMS_DIR = "claims"
 WORKERS_DIR = "workers"
@@ -223,6 +230,24 @@ def gone(t: Top, me: Identity, now: float) -> str | None:
 def late(t: Top, now: float) -> bool:
   """Whether a held claim missed two heartbeats (its holder may be dead; the lease decides)."""
   return t.held and now - (t.beat or 0.0) > 2 * float(t.record.get("lease", LEASE_S)) / 3
+
+
+@contextlib.contextmanager
+def plan_lock(out: Path) -> Iterator[None]:
+  """OUT itself locked (flock on the folder) while a worker reads and extends plan.json, so
+  that two workers registering different plans at once keep both; unlocked where the file
+  system has no flock on folders (the workers of one grid write the same record anyway)."""
+  out.mkdir(parents=True, exist_ok=True)
+  fd = os.open(out, os.O_RDONLY)
+  try:
+    try:
+      if fcntl is not None:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+    except OSError:
+      pass
+    yield
+  finally:
+    os.close(fd)  # drops the lock
 
 
 # ----------------------------------------------------------------------------- a worker

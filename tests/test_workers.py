@@ -334,3 +334,44 @@ def test_slurms_warning_checkpoints_through_submitit_and_requeues(tmp_path, monk
   requeued = utils.DelayedSubmission.load(paths.submitted_pickle)
   assert isinstance(requeued.function, submit.WorkerJob) and requeued.function.argv == argv
   assert requeued.function.entry is cli.main
+
+
+def test_a_worker_with_nothing_to_claim_says_what_is_left_and_who_holds_it(tmp_path,
+                                                                          monkeypatch):
+  """table1 with its two bases trained and both fine-tuning cells held by a live worker on
+  another host: nothing can come to this worker, so it exits at once and names the holder."""
+  out = tmp_path / "out"
+  plan = plans.build_plan("table1", "smoke", 1)
+  runner.register(out, plan)
+  for cell in plan.cells:
+    wd = runner.cell_dir(out, cell.name)
+    if cell.init_cell is None:
+      (wd / runner.EVAL_DIR).mkdir(parents=True)
+      runner.write_json(wd / runner.DONE_FILE, {"step": 30})
+      runner.write_json(wd / runner.EVAL_DIR / "heldout.json", {"pooled": {}})
+    else:
+      path = workers.claim_path(out, cell.name, 0)
+      workers.create_exclusive(path, dict(token="t", host="node-3", pid=77, started=None,
+                                          job="9_1", lease=300.0, since=0, kind=workers.CLAIM))
+      workers.beat_path(path).write_text(json.dumps({"step": 5, "token": "t"}))
+  monkeypatch.setattr(runner.time, "sleep", lambda s: pytest.fail("waited"))
+  res = runner.run(plan, out, progress=False, log=lambda line: None, lease=300.0)
+  assert res["trained"] == 0 and set(res["left"]) == {"unet-sl-tissue-ft-s0",
+                                                      "unet-disp-tissue-ft-s0"}
+  assert all(who.startswith("held by node-3 pid 77, job 9_1 since ") and who.endswith(", step 5")
+             for who in res["left"].values()), res["left"]
+
+
+def test_ctrl_c_releases_the_claim_too(tmp_path, monkeypatch):
+  out = tmp_path / "out"
+  plan = plans.build_plan("table1", "smoke", 1)
+
+  def interrupted(out_, cell, bar, weight, on_step=lambda s: None):
+    on_step(3)
+    raise KeyboardInterrupt  # what the trainer raises after a Ctrl-C, at a step
+  monkeypatch.setattr(runner, "train_cell", interrupted)
+  with pytest.raises(KeyboardInterrupt):
+    runner.run(plan, out, progress=False, log=lambda line: None, lease=2.0)
+  top = workers.top(out, "unet-sl-objects-s0")
+  assert top.record["kind"] == workers.RELEASE and top.record["why"] == "interrupted"
+  assert top.record["step"] == 3 and not list((out / workers.WORKERS_DIR).iterdir())

@@ -279,8 +279,9 @@ def _stopping_run(out, monkeypatch, sig):
 
   def train_then_signal(out_, cell, bar, weight, on_step=lambda s: None):
     on_step(3)
-    os.kill(os.getpid(), sig)  # the handler only sets a flag: the next step stops
-    on_step(4)
+    os.kill(os.getpid(), sig)  # the handler only sets a flag
+    on_step(4)  # a fetch that may come before a checkpoint: go on to it
+    on_step(5)  # the next one stops
     raise AssertionError("not stopped")
   monkeypatch.setattr(runner, "train_cell", train_then_signal)
   monkeypatch.setattr(runner, "evaluate_cell", evaluate_cell)
@@ -292,7 +293,7 @@ def test_sigterm_releases_the_claim_and_the_command_says_so(tmp_path, monkeypatc
   res = _stopping_run(out, monkeypatch, signal.SIGTERM)
   assert res["stopped"] == "SIGTERM" and res["trained"] == 0
   top = workers.top(out, "unet-sl-objects-s0")
-  assert top.record["why"] == "stopped by SIGTERM" and top.record["step"] == 4
+  assert top.record["why"] == "stopped by SIGTERM" and top.record["step"] == 5
   assert not any(workers.top(out, c).number >= 0 for c in ("unet-disp-objects-s0",))
   assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL  # put back
   assert not list((out / workers.WORKERS_DIR).iterdir())
@@ -375,3 +376,39 @@ def test_ctrl_c_releases_the_claim_too(tmp_path, monkeypatch):
   top = workers.top(out, "unet-sl-objects-s0")
   assert top.record["kind"] == workers.RELEASE and top.record["why"] == "interrupted"
   assert top.record["step"] == 3 and not list((out / workers.WORKERS_DIR).iterdir())
+
+
+def test_a_worker_that_lost_its_cell_stops_training_it_and_goes_on(tmp_path, monkeypatch):
+  """Another host took this worker's cell over (it stalled past its lease): at its next
+  heartbeat the worker sees the later claim, stops that cell at the next fetch without
+  releasing the other's claim, trains the cells it can, and names the holder at the end."""
+  out = tmp_path / "out"
+  plan = plans.build_plan("table1", "smoke", 1)
+  events, lock = [], threading.Lock()
+  train_cell, evaluate_cell = _fake_cells(out, events, lock)
+  taken = "unet-sl-tissue-ft-s0"
+
+  def train_or_lose(out_, cell, bar, weight, on_step=lambda s: None):
+    if cell.name != taken:
+      return train_cell(out_, cell, bar, weight, on_step)
+    _claim_as(out_, cell.name, "elsewhere")  # the take-over
+    for step in range(1, 200):
+      on_step(step)
+      time.sleep(0.01)
+    raise AssertionError("not stopped")
+  monkeypatch.setattr(runner, "train_cell", train_or_lose)
+  monkeypatch.setattr(runner, "evaluate_cell", evaluate_cell)
+  res = runner.run(plan, out, progress=False, log=lambda line: None, lease=0.6)
+  assert res["trained"] == 3 and set(res["left"]) == {taken}
+  assert res["left"][taken].startswith("held by elsewhere pid 1")
+  claims = [json.loads(p.read_text()) for p in
+            sorted(workers.claims_dir(out, taken).glob("*.json"))]
+  assert [c["host"] for c in claims] == [workers.host_name(), "elsewhere"]  # not released
+
+
+def _claim_as(out: Path, cell: str, host: str) -> None:
+  """The next claim of a cell, by a live worker on another host (lease 300 s)."""
+  path = workers.claim_path(out, cell, workers.top(out, cell).number + 1)
+  assert workers.create_exclusive(path, dict(token="other", host=host, pid=1, started=None,
+                                             job=None, lease=300.0, since=time.time(),
+                                             kind=workers.CLAIM))

@@ -502,12 +502,19 @@ def _run(plan: Plan, out: Path, worker: workers.Worker, stop: workers.Stop, prog
              bar_format="{l_bar}{bar}| {percentage:3.0f}% [{elapsed}<{remaining}] {postfix}",
              desc=f"{plan.name} ({len(todo)} cells)")
 
+  seen = []  # the fetches that saw the stop signal
+
   def on_step(step: int) -> None:
-    """The cell reached step: its heartbeat shows it; a signal or a lost claim stops here."""
+    """The cell's training reached step: its heartbeat shows it; a lost claim stops it here,
+    a signal at the next fetch (the checkpoint due after this one, at an epoch's end or a
+    validation, is saved first: the trainer saves after it fetches)."""
     worker.progress(step)
-    stop.check()
     if worker.lost:
       raise workers.Stopped("lost")
+    if stop.signum is not None:
+      if seen:
+        stop.check()
+      seen.append(step)
 
   try:
     while stop.signum is None:
@@ -543,9 +550,10 @@ def _run(plan: Plan, out: Path, worker: workers.Worker, stop: workers.Stop, prog
           trained += 1
         else:
           done = read_json(cell_dir(out, cell.name) / DONE_FILE)
+        worker.progress(done["step"])
         scores = []
         for evalset in evals:
-          on_step(done["step"])
+          stop.check()
           report = evaluate_cell(out, cell, evalset)
           _advance(bar, eval_cost.get((cell.name, evalset.name), 0.0))
           evaluated += 1

@@ -374,6 +374,38 @@ def test_a_killed_workers_cell_is_finished_by_another_after_the_lease(smoke_out,
   _same_cells(smoke_out, out, plans.build_plan("table1", "smoke", 1))
 
 
+_TERMINATED = textwrap.dedent("""
+    import os, signal, sys
+    from sljax.experiment import plans, runner
+    from sljax.train import loop
+    fetch = loop.fetch_metrics
+    def term_then_fetch(ctx, pending, state):
+      if pending and pending[-1][0] == 15:  # the epoch's last fetch: its checkpoint follows
+        os.kill(os.getpid(), signal.SIGTERM)
+      return fetch(ctx, pending, state)
+    loop.fetch_metrics = term_then_fetch
+    res = runner.run(plans.build_plan("table1", "smoke", 1), sys.argv[1], progress=False)
+    sys.exit(128 + signal.SIGTERM if res["stopped"] == "SIGTERM" else 1)
+""")
+
+
+def test_sigterm_mid_cell_keeps_the_epochs_checkpoint_and_releases_the_cell(smoke_out, tmp_path):
+  """A real worker gets SIGTERM at the fetch that ends an epoch: it saves that epoch's
+  checkpoint, stops at the next fetch and releases its claim with the step it reached."""
+  out = tmp_path / "out"
+  proc = subprocess.run([sys.executable, "-c", _TERMINATED, str(out)],
+                        env=toys.same_device_env(), capture_output=True, text=True, timeout=600)
+  assert proc.returncode == 128 + signal.SIGTERM, proc.stderr[-2000:]
+  assert "SIGTERM: stopping after this step" in proc.stderr
+  cell = "unet-sl-objects-s0"
+  wd = runner.cell_dir(out, cell)
+  assert (wd / "checkpoints" / "15").is_dir() and not (wd / runner.DONE_FILE).exists()
+  (claim, release) = _claims(out, cell)
+  assert release["why"] == "stopped by SIGTERM" and release["step"] == 25
+  rows = (wd / "metrics.jsonl").read_text().splitlines()
+  assert rows == (runner.cell_dir(smoke_out, cell) / "metrics.jsonl").read_text().splitlines()[:25]
+
+
 def test_a_cell_scored_on_its_best_checkpoint_keeps_it(tmp_path):
   """v3 scores the best checkpoint by validation too: the finished cell keeps its final and its
   best checkpoint (the lowest validation MAE of epochs.jsonl) and scores each."""

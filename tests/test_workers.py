@@ -229,35 +229,69 @@ def test_a_worker_with_another_plan_is_refused_in_one_line(tmp_path, capsys):
     assert [p.name for p in (out / workers.WORKERS_DIR).iterdir()] == [other.file.name]
 
 
-def test_slurm_parameters_from_a_command_line(tmp_path):
-  """The job array submit would ask SLURM for (not run on a real cluster here: the job script
-  is the one submitit would pass to sbatch)."""
+_FAKE_SBATCH = """#!/bin/sh
+cp "$1" "$(dirname "$0")/submitted.sh"
+echo "Submitted batch job 4242"
+"""
+
+
+def test_the_slurm_job_array_from_a_command_line(tmp_path, capsys, monkeypatch):
+  """`experiment submit` on a SLURM login node, with sbatch and srun stand-ins on PATH: the
+  job script submitit gives sbatch for the command line's options, the array, the job id,
+  the logs. Not run on a real SLURM cluster here."""
   toys.need_submitit()
-  res = submit.Resources(
-      32, partition="gpu-preempt", gpus_per_worker=1, cpus_per_worker=8,
-      minutes=submit.parse_minutes("1-02:30:00"), account="lab42",
-      sbatch=submit.parse_sbatch(["qos=low", "constraint=h100", "exclusive"]),
-      setup=("module load cuda",))
-  params = submit.slurm_parameters(res, "sljax-table2-v2")
-  assert params["time"] == 24 * 60 + 150 and params["array_parallelism"] == 32
-  assert params["gpus_per_node"] == 1 and params["cpus_per_task"] == 8
-  assert params["additional_parameters"] == {"requeue": True, "qos": "low",
-                                             "constraint": "h100", "exclusive": True}
-  script = submit.sbatch_script(res, "sljax-table2-v2", tmp_path / "%j")
+  bin_ = tmp_path / "bin"
+  bin_.mkdir()
+  (bin_ / "sbatch").write_text(_FAKE_SBATCH)
+  (bin_ / "srun").write_text("#!/bin/sh\nexit 1\n")
+  for tool in ("sbatch", "srun"):
+    (bin_ / tool).chmod(0o755)
+  monkeypatch.setenv("PATH", f"{bin_}:{os.environ['PATH']}")
+  out = tmp_path / "out"
+  assert cli.main(["experiment", "submit", "table1", str(out), "--scale", "smoke", "--workers",
+                   "32", "--partition", "gpu-preempt", "--gpus-per-worker", "1",
+                   "--cpus-per-worker", "8", "--time", "1-02:30:00", "--account", "lab42",
+                   "--sbatch", "qos=low", "--sbatch", "constraint=h100", "--sbatch",
+                   "exclusive", "--setup", "module load cuda", "--lease", "600"]) == 0
+  text = capsys.readouterr().out.splitlines()
+  logs = f"{out.absolute()}/submitit/4242_<task>/4242_<task>_0_log.out"
+  assert text == [f"submitted job 4242: an array of 32 worker(s) on {out}",
+                  f"  logs: {logs} (and .err beside it), task 0 to 31",
+                  f"follow with: sljax experiment status {out}; squeue -j 4242; tail -f {logs}"]
+  script = (bin_ / "submitted.sh").read_text().splitlines()
   for line in ("#SBATCH --partition=gpu-preempt", "#SBATCH --gpus-per-node=1",
                "#SBATCH --cpus-per-task=8", "#SBATCH --time=1590", "#SBATCH --account=lab42",
                "#SBATCH --array=0-31%32", "#SBATCH --signal=USR2@120", "#SBATCH --requeue",
                "#SBATCH --qos=low", "#SBATCH --constraint=h100", "#SBATCH --exclusive",
-               "#SBATCH --job-name=sljax-table2-v2", "module load cuda"):
-    assert line in script.splitlines(), (line, script)
-  argv = submit.worker_argv("table2-v2", tmp_path / "out", "paper", 3, None, [], 300)
-  assert argv == ["experiment", "run", "table2-v2", str((tmp_path / "out").absolute()),
-                  "--scale", "paper", "--seeds", "3", "--no-progress", "--lease", "300"]
-  assert [submit.parse_minutes(t) for t in ("90", "2:00:00", "1-0", "0:30")] == [90, 120, 1440, 1]
-  for bad, needle in ((lambda: submit.parse_minutes("soon"), "--time soon"),
-                      (lambda: submit.parse_sbatch(["QOS low"]), "--sbatch QOS low")):
-    with pytest.raises(SljaxError, match=needle):
-      bad()
+               "#SBATCH --job-name=sljax-table1", "#SBATCH --nodes=1",
+               "#SBATCH --ntasks-per-node=1", "module load cuda"):
+    assert line in script, (line, script)
+  assert any(l.startswith("srun ") and "submitit.core._submit" in l for l in script), script
+  # Each task runs this worker (the pickled job submitit's tasks load).
+  from submitit.core import utils  # pylint: disable=import-outside-toplevel
+  pickled = next((out / "submitit").rglob("*_submitted.pkl"))
+  job = utils.DelayedSubmission.load(pickled).function
+  assert isinstance(job, submit.WorkerJob) and job.entry is cli.main
+  assert job.argv == ["experiment", "run", "table1", str(out.absolute()), "--scale", "smoke",
+                      "--seeds", "1", "--no-progress", "--lease", "600"]
+  assert json.loads((out / runner.PLAN_FILE).read_text())["plans"]["table1"]["scale"] == "smoke"
+
+
+def test_time_and_sbatch_options_are_parsed_or_refused_in_one_line(capsys, tmp_path):
+  assert [submit.parse_minutes(t) for t in ("90", "2:00:00", "1-0", "0:30", "1-02:30:00")] == [
+      90, 120, 1440, 1, 1590]
+  assert submit.parse_sbatch(["qos=low", "--exclusive"]) == (("qos", "low"), ("exclusive", ""))
+  toys.need_submitit()
+  for argv, needle in ((["--time", "soon"], "--time soon: use minutes"),
+                       (["--sbatch", "QOS low"], "--sbatch QOS low: expected NAME=VALUE"),
+                       (["--workers", "0"], "--workers 0: at least 1")):
+    args = ["experiment", "submit", "table1", str(tmp_path / "o"), "--scale", "smoke", "--local"]
+    if "--workers" not in argv:
+      args += ["--workers", "2"]
+    assert cli.main(args + argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and needle in err, err
+    assert not (tmp_path / "o").exists()  # refused before anything is written
 
 
 def test_submit_without_slurm_is_one_line_and_writes_nothing(tmp_path, capsys, monkeypatch):
@@ -267,7 +301,8 @@ def test_submit_without_slurm_is_one_line_and_writes_nothing(tmp_path, capsys, m
   assert cli.main(["experiment", "submit", "table1", str(out), "--scale", "smoke",
                    "--workers", "4"]) == 2
   err = capsys.readouterr().err
-  assert err.count("\n") == 1 and "no SLURM here (sbatch not found)" in err and "--local" in err
+  assert err.count("\n") == 1 and "no SLURM here (sbatch and srun not found)" in err, err
+  assert "--local" in err
   assert not out.exists()
 
 

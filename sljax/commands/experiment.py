@@ -4,7 +4,6 @@ import argparse
 import signal
 from pathlib import Path
 
-from sljax.errors import require
 
 from sljax.experiment import (calibrate as cal, plans, regime as reg, report as rep, runner,
                               status as st, submit as subm, workers)
@@ -157,22 +156,15 @@ def _submit_parser(sub) -> None:
 
 
 def submit_workers(args: argparse.Namespace) -> int:
-  """Checks the plan, records it under OUT and submits the workers."""
+  """Checks the options and the plan, records it under OUT and submits the workers."""
+  res = subm.Resources(args.workers, args.partition, args.gpus_per_worker, args.cpus_per_worker,
+                       subm.parse_minutes(args.time), args.account, subm.parse_sbatch(args.sbatch),
+                       tuple(args.setup))
   seeds = args.seeds if args.seeds is not None else 1 if args.scale == "smoke" else 3
   plan = plans.build_plan(args.plan, args.scale, seeds, args.data, tuple(args.eval_data))
-  require(args.workers >= 1, f"--workers {args.workers}: at least 1")
-  subm.check_available(args.local)
-  out = Path(args.out)
-  with workers.plan_lock(out):
-    runner.register(out, plan)  # refused here in one line, not in N job logs
-  res = subm.Resources(args.workers, args.partition, args.gpus_per_worker, args.cpus_per_worker,
-                      subm.parse_minutes(args.time), args.account, subm.parse_sbatch(args.sbatch),
-                      tuple(args.setup))
-  argv = subm.worker_argv(args.plan, out, args.scale, seeds, args.data, args.eval_data,
-                         args.lease)
   from sljax import cli  # pylint: disable=import-outside-toplevel  (cli imports this module)
-  subm.submit(subm.WorkerJob(argv, cli.main), out, res, args.local, args.wait,
-              f"sljax-{args.plan}", log=lambda line: print(line, flush=True))
+  subm.submit_grid(plan, Path(args.out), res, local=args.local, wait=args.wait,
+                   lease=args.lease, entry=cli.main, log=lambda line: print(line, flush=True))
   return 0
 
 

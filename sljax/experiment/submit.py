@@ -20,6 +20,8 @@ from pathlib import Path
 from typing import Any
 
 from sljax.errors import SljaxError, require
+from sljax.experiment import runner, workers
+from sljax.experiment.plans import Plan
 
 LOGS_DIR = "submitit"   # OUT/submitit/: submitit's job files and each worker's log
 LOG_LEVEL = "SUBMITIT_LOG_LEVEL"
@@ -37,6 +39,9 @@ class Resources:
   sbatch: tuple[tuple[str, str], ...] = ()   # other sbatch options: (name, value)
   setup: tuple[str, ...] = ()                # shell lines before the worker (module load ...)
   signal_delay_s: int = 120                  # SLURM's warning before the time limit
+
+  def __post_init__(self):
+    require(self.workers >= 1, f"--workers {self.workers}: at least 1")
 
 
 def parse_minutes(text: str) -> int:
@@ -68,7 +73,6 @@ def parse_sbatch(options: list[str]) -> tuple[tuple[str, str], ...]:
 
 def slurm_parameters(res: Resources, name: str) -> dict[str, Any]:
   """The submitit SlurmExecutor parameters of the job array (`update_parameters`)."""
-  require(res.workers >= 1, f"--workers {res.workers}: at least 1")
   extra: dict[str, Any] = {"requeue": True}  # preempted jobs come back (PreemptMode=REQUEUE)
   for key, value in res.sbatch:
     extra[key.replace("-", "_")] = value if value != "" else True
@@ -81,15 +85,6 @@ def slurm_parameters(res: Resources, name: str) -> dict[str, Any]:
     if value is not None:
       params[key] = value
   return params
-
-
-def sbatch_script(res: Resources, name: str, folder: Path, command: str = "python -m ...") -> str:
-  """The job script submitit would pass to sbatch for these resources."""
-  _submitit()
-  from submitit.slurm import slurm  # pylint: disable=import-outside-toplevel
-  make = slurm._make_sbatch_string  # pylint: disable=protected-access  (what sbatch receives)
-  return make(command=command, folder=folder, **slurm_parameters(res, name),
-              map_count=res.workers)
 
 
 def local_gpus() -> list[str]:
@@ -156,11 +151,11 @@ def _submitit():
 
 
 def check_available(local: bool) -> None:
-  """SljaxError unless submitit (and, without --local, SLURM's sbatch) is at hand."""
+  """SljaxError unless submitit (and, without --local, SLURM's sbatch and srun) is at hand."""
   _submitit()
-  require(local or shutil.which("sbatch") is not None,
-          "no SLURM here (sbatch not found): submit from a SLURM login node, or pass --local "
-          "to run the workers on this machine")
+  missing = [] if local else [c for c in ("sbatch", "srun") if shutil.which(c) is None]
+  require(not missing, f"no SLURM here ({' and '.join(missing)} not found): submit from a "
+          "SLURM login node, or pass --local to run the workers on this machine")
 
 
 def submit_slurm(job: WorkerJob, res: Resources, folder: Path, name: str) -> list[Any]:
@@ -237,3 +232,16 @@ def submit(job: WorkerJob, out: Path, res: Resources, local: bool, wait: bool, n
       log(f"  job {one.job_id} ended: exit code {one.result()}")
     except Exception as e:  # pylint: disable=broad-except  (the worker's log says more)
       log(f"  job {one.job_id} failed: {(str(e).strip().splitlines() or ['?'])[-1][:300]}")
+
+
+def submit_grid(plan: Plan, out: Path, res: Resources, *, local: bool, wait: bool,
+                lease: float, entry: Callable[[list[str]], int],
+                log: Callable[[str], None] = print) -> None:
+  """Records the plan under OUT (refused in one line here, as a worker would be, rather than
+  in N job logs) and submits res.workers workers of it (see `submit`)."""
+  check_available(local)
+  with workers.plan_lock(out):
+    runner.register(out, plan)
+  argv = worker_argv(plan.name, out, plan.scale.name, len(plan.seeds), plan.data,
+                     list(plan.eval_data), lease)
+  submit(WorkerJob(argv, entry), out, res, local, wait, f"sljax-{plan.name}", log)

@@ -564,6 +564,9 @@ def _run(plan: Plan, out: Path, worker: workers.Worker, stop: workers.Stop, prog
         bar.write(f"[{k}/{len(todo)}] {cell.name}: step {done['step']}"
                   + (f"; {', '.join(scores)}" if scores else "")
                   + f" ({(time.perf_counter() - t_cell) / 60:.1f} min)")
+      except Exception as e:
+        why = f"failed: {type(e).__name__}"  # the traceback or one line says more
+        raise
       except workers.Stopped as e:
         why = f"stopped by {e}" if str(e) != "lost" else why
         bar.write(f"[{k}/{len(todo)}] {cell.name}: " + (
@@ -571,7 +574,10 @@ def _run(plan: Plan, out: Path, worker: workers.Worker, stop: workers.Stop, prog
             if str(e) != "lost" else "taken over by another worker (this one missed its "
             "lease); going on with another cell"))
       finally:
-        worker.release(why)
+        try:
+          worker.release(why)
+        except OSError:  # a full disk: the claim is taken over once this worker has ended
+          pass
   finally:
     bar.close()
   return {"trained": trained, "evaluated": evaluated, "seconds": time.perf_counter() - t0,

@@ -377,25 +377,24 @@ def read_beat(claim: Path) -> dict[str, Any]:
 def holders(out: Path, cells: list[str]) -> dict[str, tuple[dict[str, Any], int | None, float]]:
   """{cell: (claim record, last step, seconds since its heartbeat)} of the claimed cells among
   cells, ages by the shared file system's clock (a probe file touched now)."""
-  now = fs_now(out)
+  tops = {cell: t for cell in cells if (t := top(out, cell)).held}
+  now = fs_now(out) if tops else 0.0
   found = {}
-  for cell in cells:
-    t = top(out, cell)
-    if t.held:
-      beat = read_beat(claim_path(out, cell, t.number))
-      step = beat.get("step") if beat.get("token") == t.record.get("token") else None
-      found[cell] = (t.record, step, now - (t.beat or now))
+  for cell, t in tops.items():
+    beat = read_beat(claim_path(out, cell, t.number))
+    step = beat.get("step") if beat.get("token") == t.record.get("token") else None
+    found[cell] = (t.record, step, now - (t.beat or now))
   return found
 
 
 def live_workers(out: Path) -> list[str]:
   """The workers with a file under OUT/workers: who, since when, their log; one that looks
   gone (its pid ended on this host, or no heartbeat for its lease) says so."""
-  folder = out / WORKERS_DIR
-  if not folder.is_dir():
+  found = sorted((out / WORKERS_DIR).glob("*.json"))
+  if not found:
     return []
   now, said = fs_now(out), []
-  for path in sorted(folder.glob("*.json")):
+  for path in found:
     try:
       rec, age = json.loads(path.read_text(encoding="utf-8")), now - path.stat().st_mtime
     except (OSError, ValueError):
@@ -435,18 +434,18 @@ def when(stamp: float | None) -> str:
 
 
 def fs_now(out: Path) -> float:
-  """Now on the file system holding OUT (a probe file's mtime), for readers that are no
-  worker (`experiment status`); the local clock where OUT cannot be written."""
+  """Now on the file system holding OUT (a probe file's mtime, in the claims' folder that the
+  workers made), for readers that are no worker (`experiment status`); the local clock where
+  that folder cannot be written."""
   probe = out / CLAIMS_DIR / f".clock-{os.getpid()}"
   try:
-    probe.parent.mkdir(parents=True, exist_ok=True)
     probe.touch()
     try:
       return probe.stat().st_mtime
     finally:
       probe.unlink(missing_ok=True)
   except OSError as e:
-    if e.errno not in (errno.EACCES, errno.EROFS, errno.EPERM):
+    if e.errno not in (errno.EACCES, errno.EROFS, errno.EPERM, errno.ENOENT):
       raise
     return time.time()
 

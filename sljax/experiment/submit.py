@@ -2,12 +2,13 @@
 [cluster] extra): a SLURM job array, or local processes (one GPU each where there are several).
 
 Each job runs one worker (sljax.experiment.workers): the workers divide the grid's cells between
-them. On SLURM's warning signal (SIGUSR2, `--signal=USR2@90` in the job script that submitit
-writes) a worker stops after the current training step, releases its cell's claim (the cell's
-checkpoints stay) and hands the signal to submitit, which calls WorkerJob.checkpoint and
-requeues the job; the requeued worker, or any other, resumes the cell from its last checkpoint
-exactly. Not tried on a real SLURM cluster here: the tests check the job script that submitit
-would pass to sbatch, and run the local path end to end.
+them. On SLURM's warning signal (SIGUSR2, `--signal=USR2@120` in the job script that submitit
+writes) a worker stops training at a step (sljax.experiment.runner: the second fetch of the
+step metrics after the signal), releases its cell's claim (the cell's checkpoints stay) and
+hands the signal to submitit, which calls WorkerJob.checkpoint and requeues the job; the
+requeued worker, or any other, resumes the cell from its last checkpoint exactly. Not tried on
+a real SLURM cluster here: the tests submit to stand-ins for sbatch and srun and check the job
+script submitit gives them, and run the local path end to end.
 """
 
 import dataclasses

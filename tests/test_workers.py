@@ -447,3 +447,20 @@ def _claim_as(out: Path, cell: str, host: str) -> None:
   assert workers.create_exclusive(path, dict(token="other", host=host, pid=1, started=None,
                                              job=None, lease=300.0, since=time.time(),
                                              kind=workers.CLAIM))
+
+
+def test_local_workers_get_one_gpu_each_where_there_are_several():
+  res = submit.Resources(3, setup=("source venv/bin/activate",))
+  cpu = submit.local_parameters(res, [])
+  assert [p["gpus_per_node"] for p in cpu] == [0, 0, 0]  # no GPU: CUDA_VISIBLE_DEVICES=""
+  four = submit.local_parameters(res, ["0", "1", "2", "3"])
+  assert [p["visible_gpus"] for p in four] == [(0,), (1,), (2,), (3,)][:3]
+  assert all(p["setup"] == ["source venv/bin/activate"] for p in four)
+  two = submit.local_parameters(res, ["4", "6"])  # CUDA_VISIBLE_DEVICES=4,6: shared
+  assert [p["visible_gpus"] for p in two] == [(4,), (6,), (4,)]
+  assert "export XLA_PYTHON_CLIENT_PREALLOCATE=false" in two[0]["setup"]
+  uuids = submit.local_parameters(submit.Resources(1), ["GPU-a1", "GPU-b2"])
+  assert uuids[0]["gpus_per_node"] == 0
+  assert uuids[0]["setup"][-1] == "export CUDA_VISIBLE_DEVICES=GPU-a1"
+  with pytest.raises(SljaxError, match="--gpus-per-worker 2: this machine has 0 GPU"):
+    submit.local_parameters(submit.Resources(1, gpus_per_worker=2), [])

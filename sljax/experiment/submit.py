@@ -168,26 +168,37 @@ def submit_slurm(job: WorkerJob, res: Resources, folder: Path, name: str) -> lis
   return executor.map_array(job, range(res.workers))
 
 
-def submit_local(job: WorkerJob, res: Resources, folder: Path) -> list[tuple[Any, str]]:
-  """res.workers local workers through submitit's local executor, one GPU each where the
-  machine has several (round robin when there are more workers than GPUs); (job, its GPUs)."""
-  submitit = _submitit()
-  gpus = local_gpus()
+def local_parameters(res: Resources, gpus: list[str]) -> list[dict[str, Any]]:
+  """The LocalExecutor parameters of each of res.workers local workers, given this machine's
+  GPUs (local_gpus): one GPU each where there are GPUs (round robin, jax's preallocation off,
+  when the workers outnumber them), none on a machine without."""
   each = (1 if gpus else 0) if res.gpus_per_worker is None else res.gpus_per_worker
-  require(each <= len(gpus) or not gpus, f"--gpus-per-worker {each}: this machine has "
-          f"{len(gpus)} GPU(s)")
+  require(each <= len(gpus), f"--gpus-per-worker {each}: this machine has {len(gpus)} GPU(s)")
   shared = each and res.workers * each > len(gpus)
   setup = list(res.setup) + (["export XLA_PYTHON_CLIENT_PREALLOCATE=false"] if shared else [])
-  jobs = []
+  params = []
   for k in range(res.workers):
-    mine = [gpus[(k * each + j) % len(gpus)] for j in range(each)] if each else []
+    mine = [gpus[(k * each + j) % len(gpus)] for j in range(each)]
+    if all(g.isdigit() for g in mine):  # submitit's visible_gpus takes indices
+      gpu = {"gpus_per_node": len(mine), "visible_gpus": tuple(int(g) for g in mine),
+             "setup": setup}
+    else:  # UUIDs (GPU-...): the job's shell sets them
+      gpu = {"gpus_per_node": 0, "setup": setup + [f"export CUDA_VISIBLE_DEVICES={','.join(mine)}"]}
+    params.append({"timeout_min": res.minutes, "signal_delay_s": res.signal_delay_s, **gpu})
+  return params
+
+
+def submit_local(job: WorkerJob, res: Resources, folder: Path) -> list[tuple[Any, str]]:
+  """res.workers local workers through submitit's local executor (local_parameters); (job,
+  its GPUs)."""
+  submitit = _submitit()
+  jobs = []
+  for params in local_parameters(res, local_gpus()):
     executor = submitit.LocalExecutor(folder=folder)
-    # visible_gpus takes integers: the names CUDA_VISIBLE_DEVICES (or nvidia-smi) gave.
-    executor.update_parameters(timeout_min=res.minutes, signal_delay_s=res.signal_delay_s,
-                               gpus_per_node=len(mine),
-                               visible_gpus=tuple(int(g) for g in mine if g.isdigit()),
-                               setup=setup)
-    jobs.append((executor.submit(job), ",".join(mine) or "none"))
+    executor.update_parameters(**params)
+    gpus = params.get("visible_gpus") or [l.split("=", 1)[1] for l in params["setup"]
+                                          if l.startswith("export CUDA_VISIBLE_DEVICES=")]
+    jobs.append((executor.submit(job), ",".join(map(str, gpus)) or "none"))
   return jobs
 
 

@@ -460,9 +460,10 @@ class Stopped(BaseException):
 
 class Stop:
   """SIGTERM and the cluster's warning (SIGUSR2: submitit's preemption and time-limit signal),
-  while the block runs in the main thread: they ask the worker to stop after the current
-  step. Ctrl-C stays the trainer's (sljax.train.interrupt). `hand_over` then passes the signal
-  to the handler it replaced: submitit's checkpoints the job and requeues it."""
+  while the block runs in the main thread: they ask the worker to stop at a step (where the
+  runner checks: `check`). Ctrl-C stays the trainer's (sljax.train.interrupt). `hand_over`
+  then passes the signal to the handler it replaced: submitit's checkpoints the job and
+  requeues it."""
 
   SIGNALS = ("SIGTERM", "SIGUSR2")
 

@@ -8,7 +8,6 @@ runs real workers on a smoke grid."""
 import json
 import multiprocessing
 import os
-import random
 import signal
 import subprocess
 import sys
@@ -22,37 +21,19 @@ from sljax import cli
 from sljax.errors import SljaxError
 from sljax.experiment import plans, runner, submit, workers
 
+import claim_race
 import toys
 
 
-ROUNDS, PROCESSES = 5, 4
-
-
-def _claim_all(out: str, cells: list[str], barrier, seed: int, results) -> None:
-  """A process that, in each round, claims every cell it can of a fresh folder, all of them
-  starting at the barrier, each in its own order."""
-  me = workers.identity(lease=60)
-  for round_ in range(ROUNDS):
-    order = list(cells)
-    random.Random(seed * 100 + round_).shuffle(order)
-    folder = Path(out) / f"round{round_}"
-    worker = workers.Worker(folder, me)
-    worker.file.parent.mkdir(parents=True, exist_ok=True)
-    worker.file.write_text("{}")
-    barrier.wait()
-    won = []
-    for cell in order:
-      worker.held = None  # one cell at a time: only the claims are under test here
-      if worker.claim(cell):
-        won.append(cell)
-    results.put((round_, won))
+ROUNDS, PROCESSES = 20, 4
 
 
 def test_workers_started_at_the_same_instant_never_claim_the_same_cell(tmp_path):
   cells = [f"cell-{k}" for k in range(12)]
   ctx = multiprocessing.get_context("spawn")
   barrier, results = ctx.Barrier(PROCESSES), ctx.Queue()
-  procs = [ctx.Process(target=_claim_all, args=(str(tmp_path), cells, barrier, k, results))
+  procs = [ctx.Process(target=claim_race.claim_all,
+                       args=(str(tmp_path), cells, barrier, k, results, ROUNDS))
            for k in range(PROCESSES)]
   for p in procs:
     p.start()

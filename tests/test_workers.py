@@ -216,11 +216,10 @@ echo "Submitted batch job 4242"
 """
 
 
-def test_the_slurm_job_array_from_a_command_line(tmp_path, capsys, monkeypatch):
-  """`experiment submit` on a SLURM login node, with sbatch and srun stand-ins on PATH: the
-  job script submitit gives sbatch for the command line's options, the array, the job id,
-  the logs. Not run on a real SLURM cluster here."""
-  toys.need_submitit()
+@pytest.fixture
+def fake_slurm(tmp_path, monkeypatch):
+  """sbatch and srun stand-ins first on PATH (sbatch keeps the script it is given in
+  submitted.sh beside itself); their folder."""
   bin_ = tmp_path / "bin"
   bin_.mkdir()
   (bin_ / "sbatch").write_text(_FAKE_SBATCH)
@@ -228,6 +227,15 @@ def test_the_slurm_job_array_from_a_command_line(tmp_path, capsys, monkeypatch):
   for tool in ("sbatch", "srun"):
     (bin_ / tool).chmod(0o755)
   monkeypatch.setenv("PATH", f"{bin_}:{os.environ['PATH']}")
+  return bin_
+
+
+def test_the_slurm_job_array_from_a_command_line(tmp_path, capsys, fake_slurm):
+  """`experiment submit` on a SLURM login node, with sbatch and srun stand-ins on PATH: the
+  job script submitit gives sbatch for the command line's options, the array, the job id,
+  the logs. Not run on a real SLURM cluster here."""
+  toys.need_submitit()
+  bin_ = fake_slurm
   out = tmp_path / "out"
   assert cli.main(["experiment", "submit", "table1", str(out), "--scale", "smoke", "--workers",
                    "32", "--partition", "gpu-preempt", "--gpus-per-worker", "1",
@@ -445,3 +453,17 @@ def test_local_workers_get_one_gpu_each_where_there_are_several():
   assert uuids[0]["setup"][-1] == "export CUDA_VISIBLE_DEVICES=GPU-a1"
   with pytest.raises(SljaxError, match="--gpus-per-worker 2: this machine has 0 GPU"):
     submit.local_parameters(submit.Resources(1, gpus_per_worker=2), [])
+
+
+def test_one_slurm_worker_is_a_single_job(tmp_path, capsys, fake_slurm):
+  toys.need_submitit()
+  bin_ = fake_slurm
+  out = tmp_path / "out"
+  assert cli.main(["experiment", "submit", "table1", str(out), "--scale", "smoke", "--workers",
+                   "1"]) == 0
+  text = capsys.readouterr().out.splitlines()
+  log = f"{out.absolute()}/submitit/4242/4242_0_log.out"
+  assert text[:2] == [f"submitted job 4242: 1 worker on {out}", f"  log: {log} (and .err beside "
+                      "it)"], text
+  assert not any(l.startswith("#SBATCH --array") for l in
+                 (bin_ / "submitted.sh").read_text().splitlines())

@@ -231,9 +231,14 @@ def submit(job: WorkerJob, out: Path, res: Resources, local: bool, wait: bool, n
   else:
     plain = submit_slurm(job, res, folder, name)
     array = plain[0].job_id.split("_")[0]
-    logs = Path(str(plain[0].paths.stdout).replace(plain[0].job_id, f"{array}_<task>"))
-    log(f"submitted job {array}: an array of {len(plain)} worker(s) on {out}")
-    log(f"  logs: {logs} (and .err beside it), task 0 to {len(plain) - 1}")
+    if len(plain) == 1:  # submitit submits a single job, not an array of one
+      logs = plain[0].paths.stdout
+      log(f"submitted job {array}: 1 worker on {out}")
+      log(f"  log: {logs} (and .err beside it)")
+    else:
+      logs = Path(str(plain[0].paths.stdout).replace(plain[0].job_id, f"{array}_<task>"))
+      log(f"submitted job {array}: an array of {len(plain)} worker(s) on {out}")
+      log(f"  logs: {logs} (and .err beside it), task 0 to {len(plain) - 1}")
     log(f"follow with: {status}; squeue -j {array}; tail -f {logs}")
   try:
     folder.rmdir()  # submitit makes the pattern's folder itself; each job has its own

@@ -8,6 +8,7 @@ import signal
 import subprocess
 import sys
 import textwrap
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -16,7 +17,7 @@ import pytest
 from sljax import cli, machine
 from sljax.data.dataset import epoch_order
 from sljax.errors import SljaxError
-from sljax.experiment import plans, report, runner
+from sljax.experiment import plans, report, runner, workers
 from sljax.nets import build_model, detach_sl
 from sljax.train import loop
 from sljax.nets.model_config import init_variables
@@ -268,19 +269,141 @@ def test_v2_plan_reuses_the_v1_cells_and_scores_them_on_the_fixed_test_sets(smok
   assert "(v2: fixed test sets)" in md and "Holm p" in md and "corr window" in md
 
 
-def test_a_second_runner_on_a_held_out_is_refused(capsys, tmp_path):
-  # Two runners in one OUT trained the same cells into the same folders.
+def _claims(out, cell):
+  """The records of a cell's claim files, in order."""
+  return [json.loads(p.read_text())
+          for p in sorted(workers.claims_dir(out, cell).glob("[0-9]*.json"))]
+
+
+def _same_cells(a, b, plan):
+  """Every cell of b trained as in a: metrics rows bit for bit, steps, scores."""
+  for cell in plan.cells:
+    wa, wb = runner.cell_dir(a, cell.name), runner.cell_dir(b, cell.name)
+    assert (wa / "metrics.jsonl").read_text() == (wb / "metrics.jsonl").read_text(), cell.name
+    assert (json.loads((wa / runner.DONE_FILE).read_text())["step"]
+            == json.loads((wb / runner.DONE_FILE).read_text())["step"])
+    ra, rb = (json.loads((w / "eval" / "heldout.json").read_text())["pooled"] for w in (wa, wb))
+    assert ra == rb, cell.name
+
+
+def test_three_submitit_local_workers_train_each_cell_once_as_one_runner(smoke_out, tmp_path,
+                                                                         capsys):
+  """`experiment submit --local --workers 3`: three worker processes on one OUT train every
+  cell exactly once, to the records of one runner; status and report follow."""
+  toys.need_submitit()
   out = tmp_path / "out"
-  proc = toys.hold(out, "sljax experiment run table2")
-  try:
-    code = cli.main(["experiment", "run", "table2", str(out), "--scale", "smoke"])
-    err = capsys.readouterr().err
-    assert code == 2 and err.count("\n") == 1, err
-    assert f"{out}: in use by sljax experiment run table2 (pid {proc.pid} on " in err
-    assert os.listdir(out) == [".sljax.lock"]  # no plan.json registered, no cell started
-  finally:
-    proc.kill()
-    proc.wait()
+  capsys.readouterr()
+  assert cli.main(["experiment", "submit", "table1", str(out), "--scale", "smoke", "--seeds",
+                   "1", "--workers", "3", "--local", "--wait", "--lease", "5"]) == 0
+  text = capsys.readouterr().out
+  assert text.startswith(f"started 3 local worker(s) on {out} through submitit's local "), text
+  assert text.count("ended: exit code 0") == 3, text
+  assert f"follow with: sljax experiment status {out}" in text
+  logs = [Path(line.split(" log ")[1].split(",")[0]) for line in text.splitlines()
+          if line.startswith("  job ") and " log " in line]
+  assert len(logs) == 3 and all(log.exists() for log in logs)
+  trained = sum(int(l.split("trained ")[1].split(" ")[0]) for log in logs
+                for l in log.read_text().splitlines() if l.startswith("table1: trained"))
+  assert trained == 4  # each cell once, whichever worker
+  plan = plans.build_plan("table1", "smoke", 1)
+  for cell in plan.cells:
+    claims = _claims(out, cell.name)
+    # Claim, release, in turn; one worker trained and scored it ("finished"), any other claim
+    # found it finished (a worker may claim between another's last write and its release).
+    assert [c["kind"] for c in claims] == ["claim", "release"] * (len(claims) // 2), claims
+    whys = [c["why"] for c in claims[1::2]]
+    assert whys.count("finished") == 1 and set(whys) <= {"finished", "finished by another "
+                                                         "worker"}, whys
+    assert all(c["took_over"] is None for c in claims[::2])
+  _same_cells(smoke_out, out, plan)
+  assert cli.main(["experiment", "status", str(out)]) == 0
+  status = capsys.readouterr().out
+  assert status.startswith("table1 (scale smoke, seed 0): 4 finished of 4 cells"), status
+  assert "held by" not in status and "Workers:" not in status and "No worker" not in status
+  assert cli.main(["experiment", "report", str(out)]) == 0
+  a = _without_times((smoke_out / "report.md").read_text().replace(str(smoke_out), "OUT"))
+  b = _without_times((out / "report.md").read_text().replace(str(out), "OUT"))
+  assert a == b
+
+
+_KILLED_ELSEWHERE = textwrap.dedent("""
+    import os, signal, sys
+    from sljax.experiment import plans, runner
+    from sljax.train import loop
+    fetch = loop.fetch_metrics
+    def fetch_then_die(ctx, pending, state):
+      state, last = fetch(ctx, pending, state)
+      if ctx.run.workdir.name == "unet-disp-objects-s0" and state.step >= 17:
+        ctx.manager.wait_until_finished()  # resume from the checkpoint of step 15
+        os.kill(os.getpid(), signal.SIGKILL)
+      return state, last
+    loop.fetch_metrics = fetch_then_die
+    runner.run(plans.build_plan("table1", "smoke", 1), sys.argv[1], progress=False, lease=2)
+""")
+
+
+def test_a_killed_workers_cell_is_finished_by_another_after_the_lease(smoke_out, tmp_path,
+                                                                      monkeypatch):
+  """kill -9 of a worker "on another host" mid-cell: a second worker waits (the cell fine-tuned
+  from it is left), takes the cell over once the lease is over, and finishes it with the rows
+  of the uninterrupted run."""
+  out = tmp_path / "out"
+  env = dict(toys.same_device_env(), SLJAX_WORKER_HOST="host-a")
+  proc = subprocess.run([sys.executable, "-c", _KILLED_ELSEWHERE, str(out)], env=env,
+                        capture_output=True, text=True, timeout=600)
+  assert proc.returncode == -signal.SIGKILL, proc.stderr[-2000:]
+  killed = "unet-disp-objects-s0"
+  assert _claims(out, killed)[-1]["host"] == "host-a"
+  slept = []
+  real_sleep = runner.time.sleep
+
+  def sleep(seconds):  # a lease that never expires would wait here for ever
+    slept.append(seconds)
+    assert sum(slept) < 30, "waited 30 s for a lease of 2 s"
+    real_sleep(seconds)
+  monkeypatch.setattr(runner.time, "sleep", sleep)
+  lines = []
+  res = runner.run(plans.build_plan("table1", "smoke", 1), out, progress=False,
+                   log=lines.append, lease=2.0)
+  assert res["trained"] == 2 and not res["left"] and slept  # it waited for the lease
+  claims = _claims(out, killed)
+  assert [c["host"] for c in claims] == ["host-a", workers.host_name(), workers.host_name()]
+  assert "over its 2 s lease" in claims[1]["took_over"] and claims[2]["why"] == "finished"
+  log = (runner.cell_dir(out, killed) / runner.LOG_FILE).read_text()
+  assert "resuming from step 15" in log
+  _same_cells(smoke_out, out, plans.build_plan("table1", "smoke", 1))
+
+
+_TERMINATED = textwrap.dedent("""
+    import os, signal, sys
+    from sljax.experiment import plans, runner
+    from sljax.train import loop
+    fetch = loop.fetch_metrics
+    def term_then_fetch(ctx, pending, state):
+      if pending and pending[-1][0] == 15:  # the epoch's last fetch: its checkpoint follows
+        os.kill(os.getpid(), signal.SIGTERM)
+      return fetch(ctx, pending, state)
+    loop.fetch_metrics = term_then_fetch
+    res = runner.run(plans.build_plan("table1", "smoke", 1), sys.argv[1], progress=False)
+    sys.exit(128 + signal.SIGTERM if res["stopped"] == "SIGTERM" else 1)
+""")
+
+
+def test_sigterm_mid_cell_keeps_the_epochs_checkpoint_and_releases_the_cell(smoke_out, tmp_path):
+  """A real worker gets SIGTERM at the fetch that ends an epoch: it saves that epoch's
+  checkpoint, stops at the next fetch and releases its claim with the step it reached."""
+  out = tmp_path / "out"
+  proc = subprocess.run([sys.executable, "-c", _TERMINATED, str(out)],
+                        env=toys.same_device_env(), capture_output=True, text=True, timeout=600)
+  assert proc.returncode == 128 + signal.SIGTERM, proc.stderr[-2000:]
+  assert "SIGTERM: stopping after this step" in proc.stderr
+  cell = "unet-sl-objects-s0"
+  wd = runner.cell_dir(out, cell)
+  assert (wd / "checkpoints" / "15").is_dir() and not (wd / runner.DONE_FILE).exists()
+  (claim, release) = _claims(out, cell)
+  assert release["why"] == "stopped by SIGTERM" and release["step"] == 25
+  rows = (wd / "metrics.jsonl").read_text().splitlines()
+  assert rows == (runner.cell_dir(smoke_out, cell) / "metrics.jsonl").read_text().splitlines()[:25]
 
 
 def test_a_cell_scored_on_its_best_checkpoint_keeps_it(tmp_path):

@@ -2,13 +2,13 @@
 time left, checked on a hand-made experiment folder against hand-computed estimates."""
 
 import json
+import os
+import time
 
 import pytest
 
 from sljax import cli
-from sljax.experiment import plans, runner, status
-
-import toys
+from sljax.experiment import plans, runner, status, workers
 
 X, Y = "CPU X", "CPU Y"
 
@@ -104,28 +104,45 @@ def test_fewer_seeds_than_were_run_keep_every_cell(grid, capsys):
   assert "--seeds 0: at least 1" in capsys.readouterr().err
 
 
-def test_says_whether_a_runner_holds_the_folder(grid, capsys):
+def test_says_who_holds_which_cell_since_when_and_its_last_step(grid, capsys):
   # After a dropped connection the files alone cannot tell a running grid from a stopped one.
   assert cli.main(["experiment", "status", str(grid), "--seeds", "3"]) == 0
   text = capsys.readouterr().out
-  assert text.endswith("\n\nNo `sljax experiment run` holds this folder now: run it again to go "
-                       "on (finished cells are kept; a cell in training continues from its last "
-                       "checkpoint).\n"), text[-300:]
-  proc = toys.hold(grid, "sljax experiment run table2")
-  try:
+  assert text.endswith("\n\nNo worker holds a cell now: run `sljax experiment run` (or "
+                       "`submit`) again to go on (finished cells are kept; a cell in training "
+                       "continues from its last checkpoint).\n"), text[-300:]
+  # A worker of an array job on another node trains stl s2 (step 7), another is starting
+  # cg_a s0 and has missed its heartbeats.
+  since = time.mktime((2026, 11, 27, 9, 30, 0, 0, 0, -1))
+  for cell, host, job, step, age in (("psmnet-stl-objects-s2", "node-7", "123_4", 7, 0),
+                                     ("psmnet-cg_a-objects-s0", "node-9", "123_5", 0, 250)):
+    path = workers.claim_path(grid, cell, 0)
+    assert workers.create_exclusive(path, dict(token=job, host=host, pid=4242, started=None,
+                                               job=job, lease=300.0, since=since,
+                                               kind=workers.CLAIM))
+    workers.beat_path(path).write_text(json.dumps({"step": step, "token": job}))
+    t = time.time() - age
+    os.utime(workers.beat_path(path), (t, t))
+  me = workers.Worker(grid, workers.identity(300.0), log_path="/logs/123_4_0_log.out")
+  with me:
     assert cli.main(["experiment", "status", str(grid), "--seeds", "3"]) == 0
     text = capsys.readouterr().out
-    assert f"\n\nRunning here now: sljax experiment run table2 (pid {proc.pid} on " in text
-  finally:
-    proc.kill()
-    proc.wait()
+  assert ("  training: psmnet-stl-objects-s2, epoch 1 of 2; held by node-7 pid 4242, job 123_4 "
+          "since 2026-11-27 09:30, last step 7, heartbeat 0 s ago\n") in text, text
+  assert ("  starting: psmnet-cg_a-objects-s0; held by node-9 pid 4242, job 123_5 since "
+          "2026-11-27 09:30, last step 0, heartbeat 250 s ago (late: its worker may be gone; "
+          "the lease decides)\n") in text, text
+  assert f"\n\nWorkers: {me.me.name} since " in text
+  assert ", log /logs/123_4_0_log.out" in text and "No worker holds" not in text
   plan = plans.build_plan("table2", "smoke", 2)  # the seeds registered
-  for cell in plan.cells:  # every cell finished: nothing to say about a runner
+  for cell in plan.cells:  # every cell finished: nothing to say about workers
     if not (runner.cell_dir(grid, cell.name) / runner.DONE_FILE).exists():
       _done(grid, cell.name, 60.0, X)
+    runner.write_json(runner.cell_dir(grid, cell.name) / runner.EVAL_DIR / "heldout.json", {})
+    workers.create_exclusive(workers.claim_path(grid, cell.name, 1), {"kind": workers.RELEASE})
   assert cli.main(["experiment", "status", str(grid)]) == 0
   text = capsys.readouterr().out
-  assert "holds this folder" not in text and "Running here" not in text
+  assert "held by" not in text and "No worker" not in text and "Workers" not in text
 
 
 def test_cells_budgeted_in_steps_are_estimated_at_the_arms_seconds_a_step(tmp_path):

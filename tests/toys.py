@@ -105,3 +105,13 @@ def same_device_env() -> dict:
   if jax.default_backend() == "cpu":  # elsewhere the child picks the accelerator as this did
     env["JAX_PLATFORMS"] = "cpu"
   return env
+
+
+def need_submitit() -> None:
+  """Skips the test without submitit (the [cluster] extra), without importing it here: its
+  import reconfigures logging, closing pytest's handlers (sljax.experiment.submit imports it
+  so that it does not)."""
+  import importlib.util  # pylint: disable=import-outside-toplevel
+  import pytest  # pylint: disable=import-outside-toplevel
+  if importlib.util.find_spec("submitit") is None:
+    pytest.skip("submitit is not installed (pip install -e '.[cluster]')")

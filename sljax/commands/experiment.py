@@ -1,9 +1,12 @@
 """`sljax experiment run PLAN OUT` / `report OUT` / `status OUT`: the paper's experiments."""
 
 import argparse
+import signal
+from pathlib import Path
+
 
 from sljax.experiment import (calibrate as cal, plans, regime as reg, report as rep, runner,
-                              status as st)
+                              status as st, submit as subm, workers)
 
 
 def register(subparsers) -> None:
@@ -19,10 +22,8 @@ def register(subparsers) -> None:
   r = sub.add_parser("run", help="train and score every unfinished cell of a plan",
                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
   r.add_argument("plan", metavar="PLAN",
-                 help="table1, table2, table3, fig7 (v1: scored on the held-out split) or "
-                      "table1-v2, table2-v2, table3-v2, fig7-v2 (fixed test sets; "
-                      "docs/plan-v2.md), v3-pilot (stl's curves at small fractions) or v3 (the test "
-                      "grid in the pilot's regime; docs/plan-v3.md)")
+                 help=f"one of {', '.join(plans.PLANS)} (`sljax experiment plans` says what "
+                      "each one is)")
   r.add_argument("out", metavar="OUT", help="experiment folder (shared by plans that share cells)")
   r.add_argument("--scale", default="cpu",
                  help="smoke (minutes, for tests), cpu (a 2-core CPU, 64x64), cpu128 (128x128) or "
@@ -37,7 +38,13 @@ def register(subparsers) -> None:
                  help="table3: also score on this scene-format folder (Middlebury, imported "
                       "SCARED); repeatable")
   r.add_argument("--no-progress", action="store_true", help="no progress bar")
+  r.add_argument("--lease", type=float, default=workers.LEASE_S, metavar="SECONDS",
+                 help="a worker on another host whose heartbeat is this old counts as gone and "
+                      "its cell is taken over (every worker of a grid may run on its own host: "
+                      "start as many as you like on one OUT)")
+  r.add_argument("--log-path", default=None, help=argparse.SUPPRESS)  # set by submit's jobs
   r.set_defaults(func=run_plan)
+  _submit_parser(sub)
   rep = sub.add_parser("report", help="write OUT/report.md, report.json and figures",
                        description="Reports every plan run under OUT (cells not finished yet "
                                    "are listed as missing).")
@@ -91,12 +98,73 @@ def run_plan(args: argparse.Namespace) -> int:
   """Runs the plan and says how to report it."""
   seeds = args.seeds if args.seeds is not None else 1 if args.scale == "smoke" else 3
   plan = plans.build_plan(args.plan, args.scale, seeds, args.data, tuple(args.eval_data))
-  res = runner.run(plan, args.out, progress=not args.no_progress)
+  res = runner.run(plan, args.out, progress=not args.no_progress, lease=args.lease,
+                   log_path=args.log_path)
   left_out = (f"; {len(res['diverged'])} cell(s) left out as diverged (each diverged.json "
               "says why)" if res["diverged"] else "")
-  print(f"{args.plan}: trained {res['trained']} cell(s), scored {res['evaluated']} set(s) in "
-        f"{res['seconds'] / 60:.1f} min{left_out}; report with: sljax experiment report "
-        f"{args.out}")
+  done = (f"{args.plan}: trained {res['trained']} cell(s), scored {res['evaluated']} set(s) in "
+          f"{res['seconds'] / 60:.1f} min{left_out}")
+  if res["stopped"]:
+    print(f"{done}; stopped by {res['stopped']}: run the same command to go on")
+    return 128 + int(getattr(signal, res["stopped"]))
+  if res["left"]:
+    print(f"{done}; nothing left for this worker: " + "; ".join(
+        f"{cell} {who}" for cell, who in res["left"].items())
+          + f". Follow with: sljax experiment status {args.out}")
+    return 0
+  print(f"{done}; report with: sljax experiment report {args.out}")
+  return 0
+
+
+def _submit_parser(sub) -> None:
+  """The `submit` action's options."""
+  b = sub.add_parser(
+      "submit", help="N `run` workers on one OUT through submitit: a SLURM job array, or local",
+      description="Submits N workers of `sljax experiment run PLAN OUT` (the [cluster] extra: "
+                  "submitit): a SLURM job array (preempted or timed-out jobs checkpoint their "
+                  "cell and are requeued), or with --local N processes on this machine, one "
+                  "GPU each where it has several. The workers divide the cells; follow with "
+                  "`sljax experiment status OUT`, report with `sljax experiment report OUT` "
+                  "once every cell is done.",
+      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+  b.add_argument("plan", metavar="PLAN", help="a plan, as for `run`")
+  b.add_argument("out", metavar="OUT", help="experiment folder, on a file system every node "
+                                            "sees")
+  b.add_argument("--workers", type=int, required=True, help="how many workers (jobs)")
+  b.add_argument("--local", action="store_true", help="run the workers on this machine")
+  b.add_argument("--scale", default="cpu", help="as for `run`")
+  b.add_argument("--seeds", type=int, default=None, help="as for `run`")
+  b.add_argument("--data", default=None, help="as for `run`")
+  b.add_argument("--eval-data", action="append", default=[], metavar="DIR", help="as for `run`")
+  b.add_argument("--partition", default=None, help="SLURM partition")
+  b.add_argument("--gpus-per-worker", type=int, default=None,
+                 help="GPUs per worker (default 1; --local: 1 where the machine has GPUs)")
+  b.add_argument("--cpus-per-worker", type=int, default=None, help="CPUs per worker")
+  b.add_argument("--time", default="24:00:00",
+                 help="time limit of each job (sbatch's formats); a worker still training then "
+                      "is checkpointed and requeued")
+  b.add_argument("--account", default=None, help="SLURM account")
+  b.add_argument("--sbatch", action="append", default=[], metavar="NAME=VALUE",
+                 help="another sbatch option, e.g. qos=preemptible, constraint=h100; "
+                      "repeatable")
+  b.add_argument("--setup", action="append", default=[], metavar="LINE",
+                 help="a shell line each job runs first, e.g. 'module load cuda'; repeatable")
+  b.add_argument("--lease", type=float, default=workers.LEASE_S, metavar="SECONDS",
+                 help="as for `run`")
+  b.add_argument("--wait", action="store_true", help="wait for every worker to end")
+  b.set_defaults(func=submit_workers)
+
+
+def submit_workers(args: argparse.Namespace) -> int:
+  """Checks the options and the plan, records it under OUT and submits the workers."""
+  res = subm.Resources(args.workers, args.partition, args.gpus_per_worker, args.cpus_per_worker,
+                       subm.parse_minutes(args.time), args.account, subm.parse_sbatch(args.sbatch),
+                       tuple(args.setup))
+  seeds = args.seeds if args.seeds is not None else 1 if args.scale == "smoke" else 3
+  plan = plans.build_plan(args.plan, args.scale, seeds, args.data, tuple(args.eval_data))
+  from sljax import cli  # pylint: disable=import-outside-toplevel  (cli imports this module)
+  subm.submit_grid(plan, Path(args.out), res, local=args.local, wait=args.wait,
+                   lease=args.lease, entry=cli.main, log=lambda line: print(line, flush=True))
   return 0
 
 

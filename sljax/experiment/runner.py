@@ -1,7 +1,8 @@
 """The experiment runner: trains and scores every cell of a plan under OUT, resumably.
 
 OUT/plan.json            the plans run here and the spec of every cell (see Cell.spec)
-OUT/.sljax.lock          while a runner holds OUT (a second one is refused; sljax.files)
+OUT/claims/, workers/   which worker holds which cell: any number of runners (workers) share
+                         OUT, on one host or many (sljax.experiment.workers)
 OUT/cells/NAME/          the cell's training workdir (config.json, checkpoints/, *.jsonl)
 OUT/cells/NAME/train.log its training output
 OUT/cells/NAME/done.json written once training finished: final step (and best step, where the
@@ -42,6 +43,7 @@ from sljax.files import read_json_object
 from sljax.render.synthetic import SynthConfig, SyntheticSource
 from sljax.errors import SljaxError, require
 from sljax.evaluate import evaluate, json_safe
+from sljax.experiment import workers
 from sljax.experiment.plans import (FIXED, HELDOUT, TEST_SEED, Cell, EvalSet, Plan, build_plan,
                                     check_unique, describe)
 from sljax.models import checkpoint as ckpt
@@ -120,9 +122,11 @@ def register(out: Path, plan: Plan) -> dict[str, Any]:
   if previous is not None:  # more seeds or evaluation folders extend a plan; fewer keep it
     args["seeds"] = max(args["seeds"], previous["seeds"])
     args["eval_data"] = sorted(set(args["eval_data"]) | set(previous.get("eval_data", [])))
+  before = json.dumps(record, sort_keys=True)
   record["plans"][plan.name] = args
   record["cells"].update({c.name: c.spec() for c in plan.cells})
-  write_json(out / PLAN_FILE, record)
+  if json.dumps(record, sort_keys=True) != before:  # written once: the workers of a grid agree
+    write_json(out / PLAN_FILE, record)
   return record
 
 
@@ -222,12 +226,16 @@ class _CellBar:
   """The grid's bar as one cell's train() sees it: a step adds the cell's estimated seconds;
   the epoch lines go to the cell's log file."""
 
-  def __init__(self, bar, cell: Cell, weight: float, logfile):
+  def __init__(self, bar, cell: Cell, weight: float, logfile, step: int,
+               on_step: Callable[[int], None]):
     self.bar, self.cell, self.weight, self.logfile = bar, cell, weight, logfile
+    self.step, self.on_step = step, on_step
 
   def update(self, n: int) -> None:
-    """n training steps done."""
+    """n training steps done (on_step may stop the training here, between two steps)."""
     _advance(self.bar, n * self.weight)
+    self.step += n
+    self.on_step(self.step)
 
   def set_postfix(self, refresh: bool = False, **kw) -> None:
     """Shows the cell and its epoch/loss."""
@@ -332,8 +340,10 @@ def evaluate_cell(out: Path, cell: Cell, evalset: EvalSet) -> dict[str, Any]:
   return report
 
 
-def train_cell(out: Path, cell: Cell, bar, weight: float) -> dict[str, Any]:
-  """Trains (or resumes) one cell and writes done.json."""
+def train_cell(out: Path, cell: Cell, bar, weight: float,
+               on_step: Callable[[int], None] = lambda step: None) -> dict[str, Any]:
+  """Trains (or resumes) one cell and writes done.json; on_step(step) after each fetch of the
+  step metrics (it may raise to stop the training there)."""
   wd = cell_dir(out, cell.name)
   config = cell.config
   if cell.init_cell is not None:
@@ -343,7 +353,7 @@ def train_cell(out: Path, cell: Cell, bar, weight: float) -> dict[str, Any]:
   wd.mkdir(parents=True, exist_ok=True)
   t0 = time.perf_counter()
   with open(wd / LOG_FILE, "a", encoding="utf-8") as logfile:
-    cell_bar = _CellBar(bar, cell, weight, logfile)
+    cell_bar = _CellBar(bar, cell, weight, logfile, max(saved, default=0), on_step)
     _advance(bar, max(saved, default=0) * weight)  # a resumed cell's steps already done
     # resume=True also restarts a cell killed before its first checkpoint (nothing to keep).
     result = train(config, wd, resume=True, log=cell_bar.write, progress=cell_bar)
@@ -409,19 +419,71 @@ def pending(out: Path, plan: Plan,
 
 
 def run(plan: Plan, out: str | os.PathLike, *, progress: bool = True,
-        log: Callable[[str], None] = print) -> dict[str, Any]:
-  """Trains and scores every unfinished cell of the plan under OUT; returns {'trained',
-  'evaluated', 'seconds', 'diverged'} (diverged: the cells left out, with why)."""
+        log: Callable[[str], None] = print, lease: float = workers.LEASE_S,
+        poll: float | None = None, log_path: str | None = None) -> dict[str, Any]:
+  """Trains and scores the plan's unfinished cells under OUT as one worker among any number on
+  the same folder (sljax.experiment.workers): each cell claimed by one, a fine-tuning cell once
+  its base is done. Returns {'trained', 'evaluated', 'seconds', 'diverged' (the cells left out,
+  with why), 'left' (unfinished cells other workers hold, with who), 'stopped' (the signal
+  that stopped this worker, or None)}. lease: seconds without a heartbeat after which a worker
+  on another host counts as gone; poll: seconds between looks while waiting (lease/6, at most
+  10 s); log_path: this worker's log, for `experiment status`."""
   out = Path(out)
-  # One runner per folder: a second (the grid started again while it still runs) would train
-  # the same cells into the same folders.
-  with files.exclusive(out, f"sljax experiment run {plan.name}"):
-    return _run(plan, out, progress, log)
+  with workers.plan_lock(out):
+    register(out, plan)
+  with workers.Stop() as stop, workers.Worker(out, workers.identity(lease), log_path) as worker:
+    result = _run(plan, out, worker, stop, progress, log,
+                  min(10.0, lease / 6) if poll is None else poll)
+  if stop.signum is not None:
+    stop.hand_over()  # under submitit: its checkpoint() and the job's requeue
+  return result
 
 
-def _run(plan: Plan, out: Path, progress: bool, log: Callable[[str], None]) -> dict[str, Any]:
-  """run() once OUT is held."""
-  register(out, plan)
+def _base_done(out: Path, cell: Cell) -> bool:
+  """Whether a cell may start: it trains from scratch, or the cell it fine-tunes is trained."""
+  return cell.init_cell is None or (cell_dir(out, cell.init_cell) / DONE_FILE).exists()
+
+
+def _left_to_do(out: Path, cell: Cell) -> tuple[bool, list[EvalSet]] | None:
+  """(needs training, evaluation sets to score) of a cell as its files show it now; None when
+  it is finished or left out (diverged)."""
+  wd = cell_dir(out, cell.name)
+  evals = [e for e in cell.evals if not (wd / EVAL_DIR / f"{e.name}.json").exists()]
+  needs = not (wd / DONE_FILE).exists()
+  return None if (wd / DIVERGED_FILE).exists() or not (needs or evals) else (needs, evals)
+
+
+def _claim_next(out: Path, todo, worker: workers.Worker):
+  """(cell, needs training, evaluation sets) of the first unfinished cell this worker could
+  claim, read again once claimed (another worker may have just finished it); None if none."""
+  for cell, _, _ in todo:
+    # Read again just before claiming: another worker may have finished it since `pending`.
+    if not _base_done(out, cell) or _left_to_do(out, cell) is None:
+      continue
+    if not worker.claim(cell.name):
+      continue
+    left = _left_to_do(out, cell)
+    if left is None:
+      worker.release("finished by another worker")
+      continue
+    return (cell, *left)
+  return None
+
+
+def _why_wait(out: Path, todo, worker: workers.Worker) -> str | None:
+  """Why a worker with nothing to claim should wait: a fine-tuning cell whose base another
+  worker trains, or a holder that missed its heartbeats (the lease will tell whether it is
+  gone); None when nothing left can come to this worker."""
+  blocked = [c for c, _, _ in todo if not _base_done(out, c)]
+  if blocked:
+    return f"{blocked[0].name} waits for {blocked[0].init_cell}"
+  late = workers.late_holders(out, [c.name for c, _, _ in todo], worker.clock())
+  return f"the worker of {late[0]} missed its heartbeats" if late else None
+
+
+def _run(plan: Plan, out: Path, worker: workers.Worker, stop: workers.Stop, progress: bool,
+         log: Callable[[str], None], poll: float) -> dict[str, Any]:
+  """run() as a worker."""
   skipped = diverged(out, plan)
   todo = pending(out, plan, skipped)
   log(describe(plan) + f"; {len(plan.cells) - len(todo) - len(skipped)} cell(s) already "
@@ -434,46 +496,89 @@ def _run(plan: Plan, out: Path, progress: bool, log: Callable[[str], None]) -> d
   total = (sum(cell_steps(c) * weights[c.name] for c, needs, _ in todo if needs)
            + sum(eval_cost.values()))
   t0 = time.perf_counter()
-  trained = evaluated = 0
+  trained = evaluated = k = 0
+  left: dict[str, str] = {}
   bar = tqdm(total=total, disable=not progress or not todo, dynamic_ncols=True,
              bar_format="{l_bar}{bar}| {percentage:3.0f}% [{elapsed}<{remaining}] {postfix}",
              desc=f"{plan.name} ({len(todo)} cells)")
+
+  seen = []  # the fetches that saw the stop signal
+
+  def on_step(step: int) -> None:
+    """The cell's training reached step: its heartbeat shows it; a lost claim stops it here,
+    a signal at the next fetch (the checkpoint due after this one, at an epoch's end or a
+    validation, is saved first: the trainer saves after it fetches)."""
+    worker.progress(step)
+    if worker.lost:
+      raise workers.Stopped("lost")
+    if stop.signum is not None:
+      if seen:
+        stop.check()
+      seen.append(step)
+
   try:
-    for k, (cell, needs_training, evals) in enumerate(todo, 1):
-      t_cell = time.perf_counter()
-      if cell.init_cell in skipped:
-        skipped[cell.name] = _after_diverged(cell.init_cell)
-        bar.write(f"[{k}/{len(todo)}] {cell.name}: left out ({skipped[cell.name]})")
+    while stop.signum is None:
+      skipped.update(diverged(out, plan))  # other workers' cells may have diverged
+      now_todo = pending(out, plan, skipped)
+      claimed = _claim_next(out, now_todo, worker) if now_todo else None
+      if claimed is None:
+        waiting = _why_wait(out, now_todo, worker) if now_todo else None
+        if waiting is None:
+          left = workers.held_by(out, [c.name for c, _, _ in now_todo])
+          break
+        time.sleep(poll)
         continue
-      if needs_training:
+      cell, needs_training, evals = claimed
+      k += 1
+      t_cell, why = time.perf_counter(), "interrupted"
+      try:
+        if needs_training:
+          try:
+            done = train_cell(out, cell, bar, weights.get(cell.name, 0.0), on_step)
+          except TrainingDiverged as e:
+            # One diverged cell must not stop a grid of many; docs/plan-v4.md says how the
+            # report treats it.
+            path = cell_dir(out, cell.name) / DIVERGED_FILE
+            path.parent.mkdir(parents=True, exist_ok=True)
+            write_json(path, {"message": str(e), "machine": machine.cpu_description()})
+            skipped[cell.name] = str(e)
+            why = "diverged"
+            bar.write(f"[{k}/{len(todo)}] {cell.name}: diverged ({e}). Recorded in {path}; the "
+                      "run goes on without it and the cells fine-tuned from it (delete that "
+                      "file to train it again)")
+            continue
+          trained += 1
+        else:
+          done = read_json(cell_dir(out, cell.name) / DONE_FILE)
+        worker.progress(done["step"])
+        scores = []
+        for evalset in evals:
+          stop.check()
+          report = evaluate_cell(out, cell, evalset)
+          _advance(bar, eval_cost.get((cell.name, evalset.name), 0.0))
+          evaluated += 1
+          full = report["pooled"].get("full", {})
+          if full.get("mae") is not None:
+            scores.append(f"{evalset.name} MAE {full['mae']:.3f} px")
+        why = "finished"
+        bar.write(f"[{k}/{len(todo)}] {cell.name}: step {done['step']}"
+                  + (f"; {', '.join(scores)}" if scores else "")
+                  + f" ({(time.perf_counter() - t_cell) / 60:.1f} min)")
+      except Exception as e:
+        why = f"failed: {type(e).__name__}"  # the traceback or one line says more
+        raise
+      except workers.Stopped as e:
+        why = f"stopped by {e}" if str(e) != "lost" else why
+        bar.write(f"[{k}/{len(todo)}] {cell.name}: " + (
+            f"stopped by {e}; its checkpoint is kept and its claim released"
+            if str(e) != "lost" else "taken over by another worker (this one missed its "
+            "lease); going on with another cell"))
+      finally:
         try:
-          done = train_cell(out, cell, bar, weights[cell.name])
-        except TrainingDiverged as e:
-          # One diverged cell must not stop a grid of many; docs/plan-v4.md says how the
-          # report treats it.
-          path = cell_dir(out, cell.name) / DIVERGED_FILE
-          path.parent.mkdir(parents=True, exist_ok=True)
-          write_json(path, {"message": str(e), "machine": machine.cpu_description()})
-          skipped[cell.name] = str(e)
-          bar.write(f"[{k}/{len(todo)}] {cell.name}: diverged ({e}). Recorded in {path}; the "
-                    "run goes on without it and the cells fine-tuned from it (delete that file "
-                    "to train it again)")
-          continue
-        trained += 1
-      else:
-        done = read_json(cell_dir(out, cell.name) / DONE_FILE)
-      scores = []
-      for evalset in evals:
-        report = evaluate_cell(out, cell, evalset)
-        _advance(bar, eval_cost[cell.name, evalset.name])
-        evaluated += 1
-        full = report["pooled"].get("full", {})
-        if full.get("mae") is not None:
-          scores.append(f"{evalset.name} MAE {full['mae']:.3f} px")
-      bar.write(f"[{k}/{len(todo)}] {cell.name}: step {done['step']}"
-                + (f"; {', '.join(scores)}" if scores else "")
-                + f" ({(time.perf_counter() - t_cell) / 60:.1f} min)")
+          worker.release(why)
+        except OSError:  # a full disk: the claim is taken over once this worker has ended
+          pass
   finally:
     bar.close()
   return {"trained": trained, "evaluated": evaluated, "seconds": time.perf_counter() - t0,
-          "diverged": skipped}
+          "diverged": skipped, "left": left, "stopped": stop.name}

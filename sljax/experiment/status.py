@@ -1,18 +1,19 @@
 """Where a grid stands: which cells are finished, training or waiting, how long the finished
 ones took, and about how long the rest will take.
 
-Reads only what the runner writes (plan.json, each cell's done.json, eval/ and epochs.jsonl)
-and whether a runner holds the folder now (sljax.files.holder), so it can be run beside a grid
-that is training. Estimates come from finished cells of the same arm and factors, preferring
-those finished on this CPU kind (a mean over two CPUs times neither); a group with no finished
-cell has no estimate and is counted as such.
+Reads only what the workers write (plan.json, each cell's done.json, eval/ and epochs.jsonl,
+their claims and heartbeats: sljax.experiment.workers), so it can be run beside a grid that is
+training, from any host that sees the folder. Estimates come from finished cells of the same
+arm and factors, preferring those finished on this CPU kind (a mean over two CPUs times
+neither); a group with no finished cell has no estimate and is counted as such.
 """
 
 import dataclasses
 import json
 from pathlib import Path
 
-from sljax import files, machine
+from sljax import machine
+from sljax.experiment import workers
 from sljax.experiment.plans import Cell, Plan
 from sljax.experiment.runner import (DONE_FILE, EVAL_DIR, cell_dir, diverged, read_json,
                                      registered_plans)
@@ -122,16 +123,32 @@ def seconds_left(states: list[CellState], here: str) -> tuple[float, int]:
   return left, unknown
 
 
-def format_status(plan: Plan, states: list[CellState], here: str) -> str:
-  """The plan's lines: counts, cells in progress, a table per group, what is left."""
+def holder_text(held: tuple[dict, int | None, float]) -> str:
+  """Who holds a cell, since when, its last step and heartbeat."""
+  rec, step, age = held
+  return (f"held by {workers.describe(rec)} since {workers.when(rec.get('since'))}"
+          + (f", last step {step}" if step is not None else "")
+          + f", heartbeat {age:.0f} s ago"
+          + (" (late: its worker may be gone; the lease decides)"
+             if age > 2 * float(rec.get("lease", workers.LEASE_S)) / 3 else ""))
+
+
+def format_status(plan: Plan, states: list[CellState], here: str,
+                  held: dict[str, tuple[dict, int | None, float]] | None = None) -> str:
+  """The plan's lines: counts, cells in progress and who holds them (held: workers.holders),
+  a table per group, what is left."""
+  held = held or {}
   count = {k: sum(s.state == k for s in states)
            for k in (DONE, SCORING, TRAINING, WAITING, DIVERGED)}
   seeds = (f"seeds {plan.seeds[0]}-{plan.seeds[-1]}" if len(plan.seeds) > 1
            else f"seed {plan.seeds[0]}")
   lines = [f"{plan.name} (scale {plan.scale.name}, {seeds}): "
            + ", ".join(f"{n} {k}" for k, n in count.items() if n) + f" of {len(states)} cells"]
-  lines += [f"  training: {s.cell.name}, {s.where}"
-            for s in states if s.state == TRAINING]
+  doing = {TRAINING: "training", WAITING: "starting", SCORING: "scoring", DONE: "finishing"}
+  lines += [f"  {doing.get(s.state, 'holding')}: {s.cell.name}"
+            + (f", {s.where}" if s.state == TRAINING else "")
+            + (f"; {holder_text(held[s.cell.name])}" if s.cell.name in held else "")
+            for s in states if s.state == TRAINING or s.cell.name in held]
   lines += [f"  left out (diverged): {s.cell.name}" for s in states if s.state == DIVERGED]
   lines += ["", "| arm | factors | finished | seeds finished | minutes a cell on this CPU, "
             "mean (range) | elsewhere, range |", "| --- | --- | --- | --- | --- | --- |"]
@@ -166,15 +183,19 @@ def format_status(plan: Plan, states: list[CellState], here: str) -> str:
 
 
 def grid_status(out: str | Path, seeds: int | None = None) -> str:
-  """The status of every plan run under OUT (with `seeds` seeds where given)."""
+  """The status of every plan run under OUT (with `seeds` seeds where given), who holds which
+  cell, and the workers."""
   out, here = Path(out), machine.cpu_description()
-  states = [(plan, plan_status(out, plan)) for plan in registered_plans(out, seeds)]
-  text = "\n\n".join(format_status(plan, s, here) for plan, s in states)
-  running = files.holder(out)
-  if running:
-    return text + f"\n\nRunning here now: {running}."
-  if any(c.state in (TRAINING, WAITING) for _, s in states for c in s):
-    return text + ("\n\nNo `sljax experiment run` holds this folder now: run it again to go "
-                   "on (finished cells are kept; a cell in training continues from its last "
-                   "checkpoint).")
+  plans = registered_plans(out, seeds)
+  held = workers.holders(out, sorted({c.name for plan in plans for c in plan.cells}))
+  states = [(plan, plan_status(out, plan)) for plan in plans]
+  text = "\n\n".join(format_status(plan, s, here, held) for plan, s in states)
+  live = workers.live_workers(out)
+  if live:
+    text += "\n\nWorkers: " + "; ".join(live)
+  unfinished = any(c.state in (TRAINING, WAITING, SCORING) for _, s in states for c in s)
+  if unfinished and not held:
+    return text + ("\n\nNo worker holds a cell now: run `sljax experiment run` (or `submit`) "
+                   "again to go on (finished cells are kept; a cell in training continues from "
+                   "its last checkpoint).")
   return text

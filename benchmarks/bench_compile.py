@@ -5,8 +5,9 @@ Part `run` times the main job (`python train.py --strategy epr`, its preset) as 
 it, each run a fresh process: first from an empty SLJAX_CACHE_DIR (cold: a fresh machine's
 empty tuner and compile caches), then again from the cache that run filled (warm). Beside
 train.py's own figure it gives the seconds from the process's launch to the end of the first
-step (what a newcomer waits) and whether the step was loaded whole (sljax.executables). The figure is train.py's own "first
-step (...) N s" (from the first step call to its end); beside it, from `jax.monitoring`'s
+step (what a newcomer waits) and whether the step was loaded whole (sljax.executables). The
+figure is train.py's own "first step (...) N s" (from the first step call to its end); beside
+it, from `jax.monitoring`'s
 events during that call, the seconds spent tracing (jaxpr), lowering (StableHLO), in XLA's
 compile (its passes and code generation) and loading from the persistent cache, and the rest
 (the first batch, the step itself, dispatch). Programs compiled before the first step (the

@@ -15,11 +15,18 @@ do: code importing sljax and the test suite trace as before.
 
 An entry holds a header (its key and the payload's SHA-256), the pickled argument and output
 trees and XLA's serialised executable. A damaged or unloadable entry (a partial write, another
-XLA) is deleted and compiled again, with one line on stderr; it never runs. Entries sit in the
-compile cache's folder under jax's own file names, so jax's size limit of that folder
-(`sljax.cache.MAX_BYTES`, least recently used first) bounds both, and whatever turns the
-compile cache off (`SLJAX_COMPILE_CACHE=off`) turns this off too. Multi-process runs
-(`--distributed`) are not cached: an executable there spans the processes' devices.
+XLA) is deleted and compiled again, with one line on stderr; one that loads but fails in its
+first run is deleted and the run stops with one line (the next run compiles it). Only an
+executable XLA compiled in the call is kept: XLA:CPU (jaxlib 0.10.2) re-serialises one it
+loaded from jax's cache without some of its kernels, and such an entry loaded, then failed
+("NOT_FOUND: Function transpose_copy_fusion.21 not found"). So when jax's cache answers (after
+an edit of sljax that left the program as it was, say) the program is compiled afresh once,
+under a compiler option that jax's key sees and XLA ignores, and kept. Entries sit in the
+compile cache's folder under jax's own file names, bounded with it by jax's size limit (least
+recently used first), and whatever turns the compile cache off (`SLJAX_COMPILE_CACHE=off`)
+turns this off too. A folder it cannot read or write costs the cache, never the run.
+Multi-process runs (`--distributed`) are not cached: an executable there spans the processes'
+devices.
 """
 
 import concurrent.futures
@@ -38,17 +45,23 @@ import jax
 import jaxlib
 import numpy as np
 
-from sljax import files, machine
+from sljax import machine
+from sljax.errors import SljaxError
 
 ENV = "SLJAX_PROGRAM_CACHE"  # 0/off/false/no: never keep or load compiled programs
 MAGIC = b"sljax-executable 1\n"
 PREFIX = "sljax-program-"
 INDEXED = 4  # argument signatures remembered per program (batch shapes of one run)
-# jax settings that do not change a compiled program (where caches and logs go, checks of
-# the host's use): left out of the key, so that setting them does not miss the cache.
-_IGNORED_SETTINGS = ("compilation_cache", "persistent_cache", "log", "dump", "explain", "pprint",
-                     "traceback", "transfer_guard", "thread_guard", "cross_host", "timeout",
-                     "source_url", "captured_constants")
+# jax settings that do not change a compiled program (where caches, logs and dumps go, checks
+# of the host's use): left out of the key, so that setting them does not miss the cache.
+_IGNORED_SETTINGS = ("jax_compilation_cache", "jax_persistent_cache", "jax_log_compiles",
+                     "jax_logging_level", "jax_debug_log_modules", "jax_dump_ir",
+                     "jax_explain_cache_misses", "jax_pprint", "jax_traceback_filtering",
+                     "jax_tracer_error_num_traceback_frames", "jax_transfer_guard",
+                     "jax_thread_guard", "jax_source_url_schema", "jax_captured_constants")
+# A compile option jax's cache key includes and XLA ignores without a dump folder: a program
+# compiled under it misses jax's cache, so XLA compiles it afresh (`compile_and_keep`).
+FRESH_OPTION = {"xla_dump_large_constants": True}
 
 _state = {"folder": None}
 
@@ -67,10 +80,10 @@ def folder() -> Path | None:
 
 
 @functools.cache
-def source_digest() -> str:
-  """SHA-256 over sljax's Python files (their paths and bytes): an edited sljax never loads
-  a program compiled from the old code."""
-  root = Path(__file__).resolve().parent
+def source_digest(root: Path | None = None) -> str:
+  """SHA-256 over the Python files under root, sljax's by default (their paths and bytes):
+  an edited sljax never loads a program compiled from the old code."""
+  root = root or Path(__file__).resolve().parent
   h = hashlib.sha256()
   for path in sorted(root.rglob("*.py")):
     h.update(str(path.relative_to(root)).encode() + b"\0" + path.read_bytes() + b"\0")
@@ -93,8 +106,8 @@ def _cpu() -> str:
 
 def environment() -> dict[str, Any]:
   """Everything outside the caller's description that changes a compiled program."""
-  settings = {k: repr(v) for k, v in sorted(jax.config.values.items())
-              if not any(word in k for word in _IGNORED_SETTINGS)}
+  settings = {k: repr(getattr(jax.config, k, v)) for k, v in sorted(jax.config.values.items())
+              if not k.startswith(_IGNORED_SETTINGS)}
   env = {k: v for k, v in sorted(os.environ.items())
          if k in ("XLA_FLAGS", "LIBTPU_INIT_ARGS") or k.startswith("SLJAX_CONV")}
   devices = [f"{d.platform}:{d.device_kind}:{d.id}" for d in jax.devices()]
@@ -110,15 +123,10 @@ def signature(args: tuple) -> str:
 
 
 def _store(path: Path):
-  """jax's size-limited cache over the compile cache's folder (its locking and eviction)."""
+  """jax's cache over the compile cache's folder, with jax's own size limit of it (sljax's
+  folder: sljax.cache.MAX_BYTES; a folder of the user's: theirs, unbounded by default)."""
   from jax._src import lru_cache
-  from sljax.cache import MAX_BYTES
-  try:
-    import filelock  # noqa: F401  (jax's size limit needs it)
-    limit = MAX_BYTES
-  except ImportError:
-    limit = -1
-  return lru_cache.LRUCache(str(path), max_size=limit)
+  return lru_cache.LRUCache(str(path), max_size=jax.config.jax_compilation_cache_max_size)
 
 
 def pack(key: str, compiled) -> bytes:
@@ -175,7 +183,9 @@ def _remember(where: Path, name: str, description: Any, sig: str) -> None:
     old = json.loads(path.read_text(encoding="utf-8")) if path.exists() else []
     sigs = [sig] + [s for s in old if isinstance(s, str) and s != sig][:INDEXED - 1]
     if sigs != old:
-      files.write_text(path, json.dumps(sigs))
+      tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
+      tmp.write_text(json.dumps(sigs), encoding="utf-8")
+      os.replace(tmp, path)
   except (OSError, ValueError):
     pass
 
@@ -192,26 +202,33 @@ def remembered(name: str, description: Any) -> list[str]:
   return [s for s in sigs if isinstance(s, str)] if isinstance(sigs, list) else []
 
 
-def load(name: str, description: Any, sig: str, log: Callable[[str], None]):
-  """The kept program for these arguments, or None: none kept, or an entry that is not intact
-  (deleted, with one line)."""
+def load(name: str, key: str, log: Callable[[str], None]):
+  """The kept program under `key`, or None: none kept, a folder that cannot be read (one
+  line), or an entry that is not intact (deleted, one line)."""
   where = folder()
-  if where is None or jax.process_count() > 1:
+  try:
+    data = _store(where).get(key)
+  except Exception as e:  # noqa: BLE001  a read-only, full or busy folder: compile instead
+    log(f"sljax: compiled programs in {where} not readable ({type(e).__name__}: {e})")
     return None
-  key = entry_key(name, description, sig)
-  data = _store(where).get(key)
   if data is None:
     return None
   try:
-    compiled = unpack(key, data)
+    return unpack(key, data)
   except Exception as e:  # noqa: BLE001  any failure to load means: compile it again
     log(f"sljax: compiled {name} program {where / key}-cache unusable "
         f"({type(e).__name__}: {e}); compiling it again")
-    for suffix in ("-cache", "-atime"):
-      (where / f"{key}{suffix}").unlink(missing_ok=True)
+    forget(where, key)
     return None
-  _remember(where, name, description, sig)
-  return compiled
+
+
+def forget(where: Path, key: str) -> None:
+  """Deletes an entry (a folder that refuses only leaves it for the next run to find)."""
+  for suffix in ("-cache", "-atime"):
+    try:
+      (where / f"{key}{suffix}").unlink(missing_ok=True)
+    except OSError:
+      pass
 
 
 _COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"  # XLA asked (or jax's cache read)
@@ -233,38 +250,36 @@ def _listening() -> bool:
   return True
 
 
-def fresh_compile(jitted, args: tuple) -> tuple[Any, bool]:
-  """(the program compiled for `args`, whether XLA compiled it in this call). Not fresh: jax
-  took it from its persistent cache or from a compile earlier in this process. Only a fresh
-  executable may be kept: XLA:CPU (jaxlib 0.10.2) serialises an executable it loaded from
-  jax's cache without some of its kernels, and the entry then fails when it runs ("NOT_FOUND:
-  Function transpose_copy_fusion.21 not found"; tests/test_executables.py)."""
+def fresh_compile(lowered, options: dict[str, Any] | None = None) -> tuple[Any, bool]:
+  """(the lowered program compiled, whether XLA compiled it in this call: not when jax took
+  it from its persistent cache or from a compile earlier in this process)."""
   _listening()
   _events.seen = set()
   try:
-    compiled = jitted.lower(*args).compile()
+    compiled = lowered.compile(compiler_options=options)
     return compiled, _events.seen == {_COMPILE_EVENT}
   finally:
     _events.seen = None
 
 
-def compile_and_keep(jitted, name: str, description: Any, args: tuple,
+def compile_and_keep(jitted, name: str, key: str | None, args: tuple,
                      log: Callable[[str], None]) -> tuple[Any, str]:
-  """(the program compiled for `args` through jax's compile cache, 'compiled' or 'compiled,
-  not kept'), stored in the folder where it is on and XLA compiled it afresh (`fresh_compile`;
-  a program jax's cache gave is kept by the next run that compiles it)."""
-  compiled, fresh = fresh_compile(jitted, args)
-  where = folder()
-  if where is None or jax.process_count() > 1 or not fresh:
+  """(the program compiled for `args`, 'compiled' or 'compiled, not kept'), kept under `key`
+  (None: not kept) when XLA compiled it afresh, compiling it afresh when jax's cache gave it."""
+  lowered = jitted.lower(*args)
+  compiled, fresh = fresh_compile(lowered)
+  if key is None:
     return compiled, "compiled, not kept"
-  sig = signature(args)
-  key = entry_key(name, description, sig)
+  if not fresh:  # a cached executable re-serialises without some kernels (module docstring)
+    compiled, fresh = fresh_compile(lowered, FRESH_OPTION)
+    if not fresh:
+      return compiled, "compiled, not kept"
   try:
-    _store(where).put(key, pack(key, compiled))
+    _store(folder()).put(key, pack(key, compiled))
   except Exception as e:  # noqa: BLE001  a full disk or an unserialisable program: run anyway
     log(f"sljax: compiled {name} program not kept ({type(e).__name__}: {e})")
+    forget(folder(), key)  # a partial write
     return compiled, "compiled, not kept"
-  _remember(where, name, description, sig)
   return compiled, "compiled"
 
 
@@ -278,43 +293,64 @@ class Program:
 
   `prefetch` starts loading, on background threads, the programs kept for the signatures this
   program was last used with: XLA's load releases the GIL, so on a 2-core CPU it runs beside
-  the run's data checks and initialisation, and the first call waits only for what is left."""
+  the run's initialisation, and the first call waits only for what is left. Keys are always
+  computed on the calling thread (jax's settings can be thread-local)."""
 
   def __init__(self, jitted, name: str, description: Any,
                log: Callable[[str], None] = _stderr):
     self.jitted, self.name, self.description, self.log = jitted, name, description, log
     self._by_signature: dict[str, Any] = {}
-    self._loading: dict[str, concurrent.futures.Future] = {}
+    self._loading: dict[str, tuple[str, concurrent.futures.Future]] = {}
+    self._unproven: set[int] = set()  # loaded programs not yet run once
     self._last = None
     self.origin: str | None = None  # how the last new program came: loaded or compiled
 
-  def lower(self, *args, **kwargs):
-    """The jitted function's lowering (for inspection)."""
-    return self.jitted.lower(*args, **kwargs)
-
   def prefetch(self) -> "Program":
     """Starts loading the kept programs of the remembered signatures; returns self."""
+    if folder() is None or jax.process_count() > 1:
+      return self
     for sig in remembered(self.name, self.description):
       if sig not in self._by_signature and sig not in self._loading:
-        self._loading[sig] = _POOL.submit(load, self.name, self.description, sig, self.log)
+        key = entry_key(self.name, self.description, sig)
+        self._loading[sig] = (key, _POOL.submit(load, self.name, key, self.log))
     return self
 
   def _program(self, sig: str, args: tuple):
     """The program for this signature: prefetched, loaded, or compiled and kept."""
-    compiled, self.origin = None, "loaded"
+    where = folder()
+    key = None if where is None or jax.process_count() > 1 else entry_key(
+        self.name, self.description, sig)
+    compiled = None
     if sig in self._loading:
-      compiled = self._loading.pop(sig).result()
-    if compiled is None:
-      compiled = load(self.name, self.description, sig, self.log)
-    if compiled is None:
-      compiled, self.origin = compile_and_keep(self.jitted, self.name, self.description, args,
-                                               self.log)
-    return compiled
+      prefetched, future = self._loading.pop(sig)
+      compiled = future.result() if prefetched == key else None
+    if compiled is None and key is not None:
+      compiled = load(self.name, key, self.log)
+    if compiled is not None:
+      self.origin = "loaded"
+      self._unproven.add(id(compiled))
+    else:
+      compiled, self.origin = compile_and_keep(self.jitted, self.name, key, args, self.log)
+    if key is not None and self.origin != "compiled, not kept":
+      _remember(where, self.name, self.description, sig)
+    return compiled, key
+
+  def _first_run(self, compiled, key: str, args: tuple):
+    """A loaded program's first run, waited for: one that fails is deleted, with one line."""
+    try:
+      return jax.block_until_ready(compiled(*args))
+    except jax.errors.JaxRuntimeError as e:
+      forget(folder(), key)
+      raise SljaxError(f"the kept compiled {self.name} program {folder() / key}-cache failed "
+                       f"when it ran ({str(e).splitlines()[0][:200]}); it is deleted: run the "
+                       "command again") from None
+    finally:
+      self._unproven.discard(id(compiled))
 
   def __call__(self, *args):
     if folder() is None:
       return self.jitted(*args)
-    if self._last is not None:
+    if self._last is not None and id(self._last) not in self._unproven:
       try:
         return self._last(*args)
       except (TypeError, ValueError):
@@ -322,12 +358,15 @@ class Program:
         # executes, so a donated argument is intact); the signature decides below.
         pass
     sig = signature(args)
-    compiled = self._by_signature.get(sig)
-    if compiled is None:
-      compiled = self._by_signature[sig] = self._program(sig, args)
-    elif compiled is self._last:
-      return compiled(*args)  # the same signature failed: a genuine error, raised here
+    entry = self._by_signature.get(sig)
+    if entry is None:
+      entry = self._by_signature[sig] = self._program(sig, args)
+    elif entry[0] is self._last and id(self._last) not in self._unproven:
+      return self._last(*args)  # the same signature failed: a genuine error, raised here
+    compiled, key = entry
     self._last = compiled
+    if id(compiled) in self._unproven:
+      return self._first_run(compiled, key, args)
     return compiled(*args)
 
 

@@ -56,7 +56,7 @@ if ACCELERATORS:  # the suite runs in two processes (pyproject addopts); by defa
 os.environ.setdefault("SLJAX_TUNE", "0")
 # Whole compiled programs are kept only where a test turns it on (tests/test_executables.py):
 # a test that patches a traced function would otherwise be served another test's program.
-os.environ.setdefault("SLJAX_PROGRAM_CACHE", "off")
+os.environ["SLJAX_PROGRAM_CACHE"] = "off"  # even where a developer exported it on
 if os.environ.get("SLJAX_TEST_PRECISION", "highest") != "default":  # inherited by subprocesses
   os.environ["JAX_DEFAULT_MATMUL_PRECISION"] = "highest"
 if os.environ.get("SLJAX_TEST_XLA", "fast") != "default" and not ACCELERATORS:  # subprocesses too

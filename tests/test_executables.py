@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from sljax import cache, executables
+from sljax.errors import SljaxError
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -126,11 +127,20 @@ def test_the_key_changes_with_everything_that_changes_the_program(folder, monkey
   assert executables.entry_key("step", ("demo", 1), sig) == base
 
 
-def test_source_digest_covers_every_module():
-  digest = executables.source_digest()
-  assert len(digest) == 64
-  files = list(Path(executables.__file__).parent.rglob("*.py"))
-  assert len(files) > 100 and Path(executables.__file__) in files
+def test_source_digest_changes_with_any_file(tmp_path):
+  assert len(executables.source_digest()) == 64
+  for name in ("a.py", "sub/b.py", "notes.txt"):
+    (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
+    (tmp_path / name).write_text("x = 1\n")
+  base = executables.source_digest.__wrapped__(tmp_path)
+  (tmp_path / "sub/b.py").write_text("x = 2\n")
+  assert executables.source_digest.__wrapped__(tmp_path) != base
+  (tmp_path / "sub/b.py").write_text("x = 1\n")
+  assert executables.source_digest.__wrapped__(tmp_path) == base
+  (tmp_path / "notes.txt").write_text("not code")  # only Python files count
+  assert executables.source_digest.__wrapped__(tmp_path) == base
+  (tmp_path / "sub/b.py").rename(tmp_path / "b.py")  # a file moved is another program
+  assert executables.source_digest.__wrapped__(tmp_path) != base
 
 
 @pytest.mark.parametrize("damage", ["flip", "truncate", "other-key", "garbage"])
@@ -193,10 +203,72 @@ def test_entries_are_bounded_with_the_compile_cache(folder, monkeypatch):
   executables.Program(_jitted(), "step", "a")(*_args())
   (first,) = _entries(folder)
   assert first.with_name(first.name[:-len("-cache")] + "-atime").exists()
-  monkeypatch.setattr(cache, "MAX_BYTES", int(first.stat().st_size * 1.5))
-  jax.clear_caches()
-  executables.Program(_jitted(), "step", "b")(*_args())
+  limit = jax.config.jax_compilation_cache_max_size
+  jax.config.update("jax_compilation_cache_max_size", int(first.stat().st_size * 1.5))
+  try:
+    jax.clear_caches()
+    executables.Program(_jitted(), "step", "b")(*_args())
+  finally:
+    jax.config.update("jax_compilation_cache_max_size", limit)
   assert not first.exists() and len(_entries(folder)) == 1
+
+
+def test_a_folder_of_the_users_own_without_a_limit_keeps_programs(folder):
+  """jax's default is no limit, and then its entries have no access-time files: sljax's must
+  not ask for them (every keep failed with FileNotFoundError)."""
+  limit = jax.config.jax_compilation_cache_max_size
+  jax.config.update("jax_compilation_cache_max_size", -1)
+  try:
+    program = executables.Program(_jitted(), "step", "demo")
+    _run(program)
+    assert program.origin == "compiled" and len(_entries(folder)) == 1
+  finally:
+    jax.config.update("jax_compilation_cache_max_size", limit)
+
+
+def test_a_folder_that_refuses_costs_the_cache_not_the_run(folder, monkeypatch):
+  """A read-only, full or busy folder: one line, and the run goes on compiling."""
+  class Refusing:
+    def __init__(self, *a, **k):
+      pass
+
+    def get(self, key):
+      raise PermissionError(13, "Permission denied")
+
+    put = get
+  _run(executables.Program(_jitted(), "step", "demo"), calls=1)  # remembered, kept
+  monkeypatch.setattr(executables, "_store", Refusing)
+  jax.clear_caches()
+  lines = []
+  program = executables.Program(_jitted(), "step", "demo", log=lines.append).prefetch()
+  _equal(_run(program), _reference())
+  assert program.origin == "compiled, not kept"
+  assert any("not readable" in line for line in lines) and any(
+      "not kept" in line for line in lines)
+
+
+def test_an_entry_that_fails_in_its_first_run_is_deleted_with_one_line(folder, monkeypatch):
+  _run(executables.Program(_jitted(), "step", "demo"), calls=1)
+  (path,) = _entries(folder, "step")
+
+  def broken(*args):
+    raise jax.errors.JaxRuntimeError("NOT_FOUND: Function transpose_copy_fusion.21 not found")
+  monkeypatch.setattr(executables, "unpack", lambda key, data: broken)
+  program = executables.Program(_jitted(), "step", "demo")
+  with pytest.raises(SljaxError, match="failed when it ran .*NOT_FOUND.* it is deleted"):
+    program(*_args())
+  assert not path.exists()
+
+
+def test_a_prefetch_under_other_settings_is_not_served(folder):
+  """Keys are computed on the calling thread: a program prefetched under the process's
+  settings is not used by a call under a thread-local other one."""
+  _run(executables.Program(_jitted(), "step", "demo"), calls=1)
+  program = executables.Program(_jitted(), "step", "demo").prefetch()
+  jax.clear_caches()
+  with jax.default_matmul_precision("bfloat16"):
+    program(*_args())
+  assert program.origin == "compiled" and len(_entries(folder, "step")) == 2
 
 
 def _train(workdir: Path, env: dict, *more: str) -> subprocess.CompletedProcess:
@@ -231,33 +303,50 @@ def test_train_py_twice_loads_the_steps_and_trains_identically(tmp_path):
     assert part.returncode == 0, part.stderr[-2000:]
     assert "first step (loaded the compiled step)" in part.stderr
   assert _rows(tmp_path / "d") == _rows(tmp_path / "a")
-  # A damaged training step: one line, compiled again (here from jax's compile cache, so not
-  # kept: see the next test), the same numbers.
+  # A damaged training step: one line, compiled again (jax's cache has it: compiled afresh
+  # and kept, module docstring), the same numbers; the run after it loads it and runs.
   (step,) = (tmp_path / "xla").rglob("sljax-program-train-step-*-cache")
   step.write_bytes(step.read_bytes()[:1000])
   third = _train(tmp_path / "c", env)
   assert third.returncode == 0, third.stderr[-2000:]
   assert third.stderr.count("unusable") == 1 and "compiling it again" in third.stderr
   assert _rows(tmp_path / "c") == _rows(tmp_path / "a")
-  assert not list((tmp_path / "xla").rglob("sljax-program-train-step-*-cache"))
-  # And the run after it, which finds none kept, trains as well (it traces and loads jax's).
   fourth = _train(tmp_path / "e", env)
   assert fourth.returncode == 0, fourth.stderr[-2000:]
+  assert "first step (loaded the compiled step)" in fourth.stderr
   assert _rows(tmp_path / "e") == _rows(tmp_path / "a")
 
 
-def test_only_a_fresh_compile_is_kept(folder):
+def test_only_a_fresh_compile_is_kept(folder, monkeypatch):
   """XLA:CPU re-serialises an executable it did not compile in this call (jax's persistent
   cache, or an earlier compile in the process) without some kernels: such an entry loaded, then
-  failed when run. A program compiled from a cache is used and not kept."""
+  failed when run. A program a cache gave is compiled afresh under FRESH_OPTION and kept."""
   jitted = _jitted()
-  compiled, fresh = executables.fresh_compile(jitted, _args())
-  assert fresh
-  again, fresh = executables.fresh_compile(jitted, _args())  # jax's compile of this process
-  assert not fresh
+  lowered = jitted.lower(*_args())
+  assert executables.fresh_compile(lowered)[1]
+  assert not executables.fresh_compile(lowered)[1]  # jax's compile of this process
+  assert executables.fresh_compile(lowered, executables.FRESH_OPTION)[1]
+  jax.clear_caches()
+  executables.fresh_compile(jitted.lower(*_args()))  # as jax's cache would have it
+  seen = []
+  real = executables.fresh_compile
+  monkeypatch.setattr(executables, "fresh_compile",
+                      lambda lowered, options=None: seen.append(options) or real(lowered, options))
   program = executables.Program(jitted, "step", "demo")
   _equal(_run(program), _reference())
-  assert program.origin == "compiled, not kept" and not _entries(folder)
+  assert seen == [None, executables.FRESH_OPTION]  # the cached one, then afresh
+  assert program.origin == "compiled" and len(_entries(folder)) == 1
+  again = executables.Program(_jitted(), "step", "demo")
+  _equal(_run(again), _reference())
+  assert again.origin == "loaded"
+  # If even that came from a cache, nothing is kept.
+  for path in _entries(folder):
+    path.unlink()
+  monkeypatch.setattr(executables, "fresh_compile", lambda lowered, options=None: (
+      real(lowered, options)[0], False))
+  third = executables.Program(_jitted(), "step", "demo")
+  _equal(_run(third), _reference())
+  assert third.origin == "compiled, not kept" and not _entries(folder)
 
 
 def test_prefetch_loads_the_remembered_signatures_before_the_first_call(folder):

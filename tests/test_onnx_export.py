@@ -164,6 +164,22 @@ def test_a_refused_export_writes_nothing(tmp_path, variables, monkeypatch):
   assert (tmp_path / "m.onnx").read_bytes() == b"earlier"
 
 
+def test_drop_traced_shapes_removes_every_intermediate_annotation():
+  import onnx
+  from onnx import TensorProto, helper
+  x = helper.make_tensor_value_info("x", TensorProto.FLOAT, ["B", 64])
+  y = helper.make_tensor_value_info("y", TensorProto.FLOAT, ["B", 64])
+  traced_batch = helper.make_tensor_value_info("t", TensorProto.FLOAT, [1, 64])  # the trace's
+  graph = helper.make_graph([helper.make_node("Relu", ["x"], ["t"]),
+                             helper.make_node("Relu", ["t"], ["y"])], "g", [x], [y],
+                            value_info=[traced_batch])
+  model = helper.make_model(graph)
+  assert dx.drop_traced_shapes(model) == 1
+  assert len(model.graph.value_info) == 0
+  assert [i.name for i in model.graph.input] == ["x"] and [o.name for o in model.graph.output] == ["y"]
+  onnx.checker.check_model(model)
+
+
 def test_verdict_counts_unet_sl_shift_flips():
   ok = {"max_abs_disparity": 0.0, "max_abs_confidence": 0.0, "shift_flips": 1, "pixels": 1000}
   assert dx.verdict(ok) is None

@@ -326,20 +326,8 @@ def test_three_submitit_local_workers_train_each_cell_once_as_one_runner(smoke_o
   assert a == b
 
 
-_KILLED_ELSEWHERE = textwrap.dedent("""
-    import os, signal, sys
-    from sljax.experiment import plans, runner
-    from sljax.train import loop
-    fetch = loop.fetch_metrics
-    def fetch_then_die(ctx, pending, state):
-      state, last = fetch(ctx, pending, state)
-      if ctx.run.workdir.name == "unet-disp-objects-s0" and state.step >= 17:
-        ctx.manager.wait_until_finished()  # resume from the checkpoint of step 15
-        os.kill(os.getpid(), signal.SIGKILL)
-      return state, last
-    loop.fetch_metrics = fetch_then_die
-    runner.run(plans.build_plan("table1", "smoke", 1), sys.argv[1], progress=False, lease=2)
-""")
+# The killed runner above as a worker with a 2 s lease (its host is set by the caller).
+_KILLED_ELSEWHERE = _KILLED.replace("progress=False)", "progress=False, lease=2)")
 
 
 def test_a_killed_workers_cell_is_finished_by_another_after_the_lease(smoke_out, tmp_path,

@@ -17,6 +17,7 @@ PyTorch is imported only here (pip install "sljax[torch]").
 
   python benchmarks/bench_nets.py                 # everything
   python benchmarks/bench_nets.py --part micro    # layers only
+  python benchmarks/bench_nets.py --part micro --ynn off --grad-blocks 20   # another blocking
   python benchmarks/bench_nets.py --part models --models psmnet --reference ~/src/PSMNet
 """
 
@@ -292,7 +293,11 @@ def jax_time(name, batch, size, maxdisp, repeats, train, impl=None, kernels=tune
     out, _ = model.apply({**variables, "params": params}, l, r, train=True,
                          mutable=["batch_stats"])
     return jax_loss(out, g, maxdisp)
-  g = jax.jit(jax.grad(loss), compiler_options=options)
+
+  def grads(params, l, r, g):  # the gradient blocks training takes with these options
+    with c3.grad_blocks(tune.grad_block_values(kernels)):
+      return jax.grad(loss)(params, l, r, g)
+  g = jax.jit(grads, compiler_options=options)
   return best_time(lambda: jax.block_until_ready(g(variables["params"], left, right, gt)),
                    repeats)
 
@@ -310,8 +315,9 @@ MICRO = [  # (label, kind, D, H, W, cin, cout, stride) at 256x256, maxdisp 96 (1
 ]
 
 
-def micro(repeats, with_lax):
-  """Per-layer table: fast / lax / torch, forward and forward+backward (ms)."""
+def micro(repeats, with_lax, grad_blocks=None, options=None):
+  """Per-layer table: fast / lax / torch, forward and forward+backward (ms); grad_blocks: the
+  kernel gradients' blocks (None: the layers'), options: XLA's compiler options."""
   import torch
   import torch.nn.functional as F
   rows = []
@@ -326,8 +332,10 @@ def micro(repeats, with_lax):
       else:
         f = lambda x, k, impl=impl: c3.conv_transpose3d(
             x, k, (2, 2, 2), c3.transpose_padding((3, 3, 3), 1, 1), impl=impl)
-      fj = jax.jit(f)
-      gj = jax.jit(jax.grad(lambda x, k, f=f: jnp.sum(f(x, k) ** 2), argnums=(0, 1)))
+      def grads(x, k, f=f):
+        with c3.grad_blocks(grad_blocks):
+          return jax.grad(lambda x, k: jnp.sum(f(x, k) ** 2), argnums=(0, 1))(x, k)
+      fj, gj = jax.jit(f, compiler_options=options), jax.jit(grads, compiler_options=options)
       res[impl] = (best_time(lambda: jax.block_until_ready(fj(x, k)), repeats),
                    best_time(lambda: jax.block_until_ready(gj(x, k)), repeats))
     xt = torch.tensor(np.asarray(x).transpose(0, 4, 1, 2, 3).copy(), requires_grad=True)
@@ -358,7 +366,8 @@ def micro(repeats, with_lax):
                                           (1, r["torch"][0]), (3, r["torch"][1]))]
     print(f"| {label} | {g[0]:.0f} | {g[1]:.0f} | {g[2]:.0f} | {g[3]:.0f} | "
           f"{g[0] / peak:.0%} / {g[1] / peak:.0%} |")
-    out.append({"table": "micro", "layer": label, "fwd_s": r["fast"][0],
+    out.append({"table": "micro", "layer": label, "ynn": "off" if options else "on",
+                "grad_blocks": grad_blocks, "fwd_s": r["fast"][0],
                 "fwd_bwd_s": r["fast"][1], "torch_fwd_s": r["torch"][0],
                 "torch_fwd_bwd_s": r["torch"][1], "gflop": flops / 1e9,
                 "sljax_fwd_gflops": g[0], "sljax_fwd_bwd_gflops": g[1],
@@ -398,6 +407,11 @@ def main() -> None:
                   help="local checkout of JiaRenChang/PSMNet: compare psmnet with it")
   ap.add_argument("--with-lax", action="store_true",
                   help="also time the plain lax 3D convolution (slow: minutes)")
+  ap.add_argument("--ynn", choices=("on", "off"), default=None,
+                  help="micro: XLA's YNNPACK fusions (default: XLA's, i.e. on)")
+  ap.add_argument("--grad-blocks", type=int, default=None, metavar="LOG2",
+                  help="micro: kernel gradients in blocks of 2**LOG2 values (default: the "
+                       "layers' BLOCK_VALUES); the models take the table's (sljax.tune)")
   args = ap.parse_args()
   batch = args.batch or (2 if args.reference else 1)
   import torch
@@ -411,7 +425,9 @@ def main() -> None:
   if args.part in ("all", "micro"):
     print(f"\n3D convolution layers, {args.size}x{args.size} maxdisp {args.maxdisp} shapes: "
           "fwd ms, fwd+bwd ms (ratio to torch)")
-    records += micro(args.repeats, args.with_lax)
+    records += micro(args.repeats, args.with_lax,
+                     None if args.grad_blocks is None else 1 << args.grad_blocks,
+                     tune.YNN_OFF if args.ynn == "off" else None)
   if args.part in ("all", "models"):
     torch_, PSM, UNet = torch_models()
     torch_.manual_seed(0)

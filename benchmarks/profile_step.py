@@ -33,7 +33,7 @@ import jax
 
 from common import machine, record  # first: puts this checkout's sljax on the path
 from bench_nets import jax_loss, inputs
-from sljax import tune
+from sljax import kernels, tune
 from sljax.nets import build_model
 
 # Host-side spans, not XLA operations.
@@ -159,7 +159,10 @@ def main() -> None:
       out, _ = model.apply({**variables, "params": params}, l, r, train=True,
                            mutable=["batch_stats"])
       return jax_loss(out, g, args.maxdisp)
-    fn = jax.jit(jax.grad(loss), compiler_options=options)
+    def grads(params, l, r, g):  # with the kernel gradients' blocks training takes here
+      with kernels.grad_blocks(tune.grad_block_values(choice)):
+        return jax.grad(loss)(params, l, r, g)
+    fn = jax.jit(grads, compiler_options=options)
     call = (variables["params"], left, right, gt)
   jax.block_until_ready(fn(*call))  # compile and warm up
   if args.kernels:

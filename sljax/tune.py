@@ -51,6 +51,7 @@ import jaxlib
 import numpy as np
 
 from sljax import cache, files, machine
+from sljax.kernels import grad_blocks
 from sljax.nets import build_model
 from sljax.nets.model_config import init_variables
 
@@ -78,6 +79,17 @@ KNOWN = {
     "amd-epyc-f26-m2-avx512": ("off", "Zen 5, the main job's step and start-up, 2026-11-27"),
 }
 UNKNOWN = "off"
+
+# The kernel gradients' block size (sljax.kernels.grad_blocks) per CPU kind and --ynn value of
+# the training programs, measured idle; elsewhere each layer's BLOCK_VALUES (128 Ki values,
+# chosen with the fusions on). Without YNNPACK's fusions XLA hands the gradients' blocked
+# convolutions to another library, which wants larger blocks: on Zen 5, PSMNet's training step
+# at 256x256, batch 2 took 3.58-3.59 s in 1 Mi-value blocks against 4.73-4.92 s (fusions on:
+# 3.48-3.71 s), and the main job's step the same 0.74-0.77 s with 2 s less compile. Not yet
+# measured on Zen 3 or Zen 4 (benchmarks/bench_nets.py --part micro --grad-blocks).
+GRAD_BLOCKS = {
+    ("amd-epyc-f26-m2-avx512", False): (1 << 20, "Zen 5, bench_nets.py, 2026-11-28"),
+}
 
 KINDS = ("forward", "train")  # the program kinds a choice is made for
 NAMES = {(True, True): "on", (False, False): "off", (False, True): "forward-off",
@@ -204,6 +216,15 @@ def known_choice(key: str | None = None) -> tuple[KernelChoice, str]:
   return KernelChoice.from_name(UNKNOWN), "the default for CPU kinds not measured yet"
 
 
+def grad_block_values(kernels: "KernelChoice", key: str | None = None) -> int | None:
+  """The kernel gradients' block size for training programs compiled with `kernels` on this
+  CPU kind (`GRAD_BLOCKS`), or None: each layer's own. Off the CPU the fast kernels do not run."""
+  if jax.default_backend() != "cpu":
+    return None
+  entry = GRAD_BLOCKS.get((key or machine.cpu_key(), bool(kernels.train_ynn)))
+  return entry[0] if entry else None
+
+
 def choice(tune: bool | None = None, log: Callable[[str], None] = print) -> KernelChoice:
   """The kernel choice for this process, never measured here: XLA's defaults off the CPU or
   with tuning off; else this machine's `sljax tune` entry (a provisional one only while the
@@ -260,8 +281,14 @@ def workload(size: int = 128, maxdisp: int = 48, seed: int = 0):
 
 
 def _compiled(fns, args, kind: str, ynn: bool):
-  """One program kind compiled with YNNPACK fusions on or off."""
-  return jax.jit(fns[kind], compiler_options=None if ynn else dict(YNN_OFF)).lower(*args).compile()
+  """One program kind compiled with YNNPACK fusions on or off; training with the kernel
+  gradients' blocks that training takes with that choice here (`grad_block_values`)."""
+  blocks = grad_block_values(KernelChoice(train_ynn=ynn)) if kind == "train" else None
+
+  def program(*a):
+    with grad_blocks(blocks):
+      return fns[kind](*a)
+  return jax.jit(program, compiler_options=None if ynn else dict(YNN_OFF)).lower(*args).compile()
 
 
 def measure(repeats: int = 5, clock: Callable[[], float] = time.perf_counter,

@@ -284,3 +284,40 @@ def test_conv2d_module_equals_flax_conv():
   # As nn.Conv: bfloat16 parameters and input (what --precision bf16 passes) stay bfloat16.
   vb = jax.tree.map(lambda a: a.astype(jnp.bfloat16), v)
   assert ours.apply(vb, x.astype(jnp.bfloat16)).dtype == jnp.bfloat16
+
+
+def test_grad_blocks_set_the_kernel_gradients_blocks():
+  """grad_blocks gives the kernel gradients traced inside blocks of their own (one-plane blocks
+  run in loops, where the layer's default block has none) and leaves every value lax's; outside
+  it, and after it, the layer's block_values serve again."""
+  x, k = _data(21, (1, 6, 8, 8, 6), (3, 3, 3, 6, 4))
+  x2, k2 = _data(22, (2, 9, 7, 3), (3, 3, 3, 4))
+  cases = [
+      (lambda x, k: c3.conv3d(x, k, impl="fast"),
+       lambda x, k: c3.lax_conv3d(x, k, (1, 1, 1), ((1, 1),) * 3), x, k),
+      (lambda x, k: c3.conv3d(x, k, (2, 2, 2), impl="fast"),
+       lambda x, k: c3.lax_conv3d(x, k, (2, 2, 2), ((1, 1),) * 3), x, k),
+      (lambda x, k: c3.conv_transpose3d(x, k, impl="fast"),
+       lambda x, k: c3.lax_conv3d(x, k, (1, 1, 1), ((1, 2),) * 3, (2, 2, 2)), x, k),
+      (lambda x, k: c3.conv2d(x, k, impl="fast"),
+       lambda x, k: lax.conv_general_dilated(x, k, (1, 1), ((1, 1),) * 2,
+                                             dimension_numbers=("NHWC", "HWIO", "NHWC")), x2, k2),
+  ]
+  for fast, ref, x, k in cases:
+    assert _loops(fast, x, k) == 0
+    with c3.grad_blocks(1):
+      assert _loops(fast, x, k) > 0
+      _check_against(ref, fast, x, k, 23)
+    with c3.grad_blocks(None):
+      assert _loops(fast, x, k) == 0
+    assert _loops(fast, x, k) == 0
+  # The layer's blocks stay the forward's: one-plane forward blocks keep their loops while the
+  # kernel gradient runs in one block.
+  x, k = _data(21, (1, 6, 8, 8, 6), (3, 3, 3, 6, 4))
+  one_plane = lambda x, k: c3.conv3d(x, k, impl="fast", block_values=1)
+  loops = _loops(one_plane, x, k)
+  with c3.grad_blocks(c3.BLOCK_VALUES):
+    assert 0 < _loops(one_plane, x, k) < loops
+  with pytest.raises(RuntimeError), c3.grad_blocks(1):
+    raise RuntimeError
+  assert c3.grad_block_values(5) == 5

@@ -195,3 +195,32 @@ def test_sharded_step_equals_single_device():
   r = subprocess.run([sys.executable, "-c", _SHARDED], env=env, cwd=ROOT, capture_output=True,
                      text=True, timeout=600)
   assert r.returncode == 0 and "SHARDED_OK" in r.stdout, r.stdout + r.stderr[-3000:]
+
+
+def test_grad_block_values_reach_the_kernel_gradients(twin, mesh):
+  """The step traces its gradients inside grad_blocks(grad_block_values): one-plane kernel
+  gradients put loops into the program that the layers' own blocks do not have, and the
+  gradients stay the same to float rounding (only the sums' order changes; plain SGD, so the
+  update is the gradient: Adam's first step would magnify rounding in near-zero components)."""
+  import optax
+  model, variables = twin
+  tx = optax.sgd(1.0)
+  config = ModelConfig("psmnet-mtl", 3, MAXDISP, T)
+  batch = stp.put_batch({k: v for k, v in _batch().items() if k != "sl_right"}, mesh)
+  w = jnp.asarray(wt.step_weights("epr", [(0.8, 9.0), (0.5, 8.0)]))
+  runs = []
+  for values in (None, 1):
+    step = stp.make_train_step(model, config, disp_loss="l2", tx=tx, mesh=mesh,
+                               compiler_options=FAST, grad_block_values=values)
+    state = _fresh(variables, tx, mesh)
+    before = jax.device_get(state.params)  # the step donates the state
+    loops = step.lower(state, batch, w).as_text().count("stablehlo.while")
+    state, m = step(state, batch, w)
+    grads = jax.tree.map(lambda a, b: a - b, before, jax.device_get(state.params))
+    runs.append((loops, jax.device_get(m), grads))
+  (loops, m0, g0), (more, m1, g1) = runs
+  assert more > loops
+  for key in ("loss", "loss_sl", "loss_disp", "grad_norm"):
+    np.testing.assert_allclose(m1[key], m0[key], rtol=1e-5)
+  for a, b in zip(jax.tree.leaves(g1), jax.tree.leaves(g0)):
+    np.testing.assert_allclose(a, b, rtol=1e-3, atol=1e-5 * max(np.abs(b).max(), 1e-6))

@@ -18,7 +18,8 @@ Why. XLA:CPU's 3D convolution is slow (tens of GFLOP/s on 2 cores, and its strid
 transposed gradients take seconds at PSMNet's sizes), while its 2D convolution is close to
 PyTorch's conv3d; its kernel gradients and select-and-scatter are slow as well. So:
 * `fold_conv3d` (fold.py): a 3D conv is a sum over depth taps of 2D convs with depth folded
-  into the batch, over blocks of output planes (`block_values`, default `BLOCK_VALUES`).
+  into the batch, over blocks of output planes (`block_values`, default `BLOCK_VALUES`; a
+  program may give the kernel gradients blocks of their own with `grad_blocks`).
 * `phase_conv_transpose3d` (phase.py): a stride-s transposed conv is s^3 output phases
   sharing one folded conv, so the zeros of the dilated input are never multiplied.
 * `conv2d` (conv2d.py): XLA's 2D conv with its kernel gradient summed over row blocks.
@@ -45,7 +46,7 @@ the parameters of flax's modules, so checkpoints and converted weights load into
 
 from sljax.kernels.args import (PaddingLike, explicit_padding, ntuple, pairs, resolve_padding,
                                 transpose_padding)
-from sljax.kernels.blocks import BLOCK_VALUES
+from sljax.kernels.blocks import BLOCK_VALUES, grad_block_values, grad_blocks
 from sljax.kernels.conv2d import conv2d
 from sljax.kernels.conv3d import (conv3d, conv_transpose3d, fold_conv3d, gpu_conv_transpose3d,
                                   lax_conv3d, phase_conv_transpose3d)
@@ -59,6 +60,6 @@ from sljax.kernels.vjp import vjp_saving_inputs
 __all__ = ["BLOCK_VALUES", "ENV_IMPL", "IMPLS", "XLA_IMPLS", "Conv2D", "Conv3D", "ConvBase",
            "ConvTranspose3D", "PaddingLike", "ResolvesConvImpl", "auto_impl", "conv2d", "conv3d",
            "conv_impl", "conv_transpose3d", "explicit_padding", "fold_conv3d",
-           "gpu_conv_transpose3d", "lax_conv3d", "max_pool_2x2", "ntuple", "pairs",
-           "phase_conv_transpose3d", "phase_regression", "resolve_padding", "tap_products_conv3d",
+           "gpu_conv_transpose3d", "grad_block_values", "grad_blocks", "lax_conv3d",
+           "max_pool_2x2", "ntuple", "pairs", "phase_conv_transpose3d", "phase_regression", "resolve_padding", "tap_products_conv3d",
            "transpose_padding", "vjp_saving_inputs"]

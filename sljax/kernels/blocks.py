@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+import contextlib
+import contextvars
+from collections.abc import Callable, Iterator, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -17,6 +19,32 @@ DIMS_2D = ("NHWC", "HWIO", "NHWC")
 # is the smallest block; blocks run in a loop, so the program stays small. The default of
 # every `block_values` argument.
 BLOCK_VALUES = 1 << 17
+
+# The blocks of the kernel gradients (fold_kernel_grad, conv2d's), where a program sets them:
+# None takes the layer's `block_values`. Which size is fastest depends on the library XLA
+# hands the convolutions to, i.e. on the compiler choice (sljax.tune.grad_block_values): with
+# YNNPACK's fusions off, Zen 5 ran PSMNet's kernel gradients 2-3x faster in 1 Mi-value blocks
+# than in 128 Ki ones, while YNNPACK's were slower in them. Blocking never changes a value
+# beyond float rounding (the sums' order), so this only selects the speed of a trace.
+_GRAD_BLOCKS: contextvars.ContextVar[int | None] = contextvars.ContextVar("grad_blocks",
+                                                                         default=None)
+
+
+@contextlib.contextmanager
+def grad_blocks(values: int | None) -> Iterator[None]:
+  """Kernel gradients traced inside take blocks of `values` input values (None: each layer's)."""
+  token = _GRAD_BLOCKS.set(None if values is None else int(values))
+  try:
+    yield
+  finally:
+    _GRAD_BLOCKS.reset(token)
+
+
+def grad_block_values(block_values: int) -> int:
+  """The block size of a kernel gradient traced now: the enclosing `grad_blocks`, else the
+  layer's own `block_values`."""
+  values = _GRAD_BLOCKS.get()
+  return block_values if values is None else values
 
 
 def plain_conv2d(x: jax.Array, kernel: jax.Array, strides: Sequence[int], padding,

@@ -10,7 +10,7 @@ from jax import lax
 
 from sljax.kernels.args import explicit_padding, ntuple
 from sljax.kernels.blocks import (BLOCK_VALUES, block_shape, blocked, conv2d_kernel_grad,
-                                  plain_conv2d)
+                                  grad_block_values, plain_conv2d)
 from sljax.kernels.impl import XLA_IMPLS, conv_impl
 from sljax.kernels.vjp import vjp_saving_inputs
 
@@ -29,6 +29,7 @@ def _blocked_bwd(strides, padding, dilation, block_values, inputs, dy):
   zero = jnp.zeros((), x.dtype)
   xp = lax.pad(x, zero, ((0, 0, 0), (*padding[0], 0), (*padding[1], 0), (0, 0, 0)))
   row_values = xp.shape[2] * xp.shape[3]
+  block_values = grad_block_values(block_values)
   _, rows = block_shape(n, ho, row_values, block_values)
   hb = -(-ho // rows) * rows
   need = sh * (hb - 1) + (kh - 1) * dh + 1

@@ -22,7 +22,7 @@ import numpy as np
 from jax import lax
 
 from sljax.kernels.args import explicit_padding, ntuple, pairs
-from sljax.kernels.blocks import BLOCK_VALUES
+from sljax.kernels.blocks import BLOCK_VALUES, grad_block_values
 from sljax.kernels.fold import (fold_forward, fold_kernel_grad, input_grad_padding,
                                 tap_products_conv3d)
 from sljax.kernels.impl import XLA_IMPLS, conv_impl
@@ -54,7 +54,8 @@ def _fold_bwd(strides, padding, block_values, inputs, dy):
     dx = _fold(dy, _flipped(kernel), strides, pads, block_values)
   else:
     dx = _phase(dy, _flipped(kernel), strides, pads, block_values)
-  return dx, fold_kernel_grad(x, dy, kernel.shape, strides, padding, block_values)
+  return dx, fold_kernel_grad(x, dy, kernel.shape, strides, padding,
+                              grad_block_values(block_values))
 
 
 _fold = vjp_saving_inputs(fold_forward, _fold_bwd, nondiff_argnums=(2, 3, 4))
@@ -79,7 +80,7 @@ def _phase_bwd(strides, padding, block_values, inputs, dy):
   w = _flipped(kernel)
   pads = adjoint_padding(kernel.shape, strides, padding, x.shape, dy.shape)
   dx = _fold(dy, w, strides, pads, block_values)
-  dw = fold_kernel_grad(dy, x, w.shape, strides, pads, block_values)
+  dw = fold_kernel_grad(dy, x, w.shape, strides, pads, grad_block_values(block_values))
   return dx, _flipped(dw)
 
 

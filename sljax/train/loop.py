@@ -75,8 +75,9 @@ def compiled_steps(model_config: ModelConfig, disp_loss: str, lr: float,
   # Where a command line turned it on, a later run loads the compiled steps instead of
   # tracing, lowering and compiling them (sljax.executables); each description holds what
   # changes its program beyond the arguments' shapes.
+  grad_block_values = tune.grad_block_values(choice)
   train = (model_config, disp_loss, lr, lr_drop_step, choice.compiler_options("train"),
-           repr(mesh))
+           grad_block_values, repr(mesh))
   tx = st.make_optimizer(lr, lr_drop_step)
   # One program for the optimiser's zeros: run op by op it dispatched (and compiled) a
   # zeros_like per parameter leaf, about 1.5 s of a warm start on a 2-core CPU.
@@ -85,7 +86,8 @@ def compiled_steps(model_config: ModelConfig, disp_loss: str, lr: float,
   return (model, tx,
           executables.Program(stp.make_train_step(
               model, model_config, disp_loss=disp_loss, tx=tx, mesh=mesh,
-              compiler_options=choice.compiler_options("train")), "train-step", train).prefetch(),
+              compiler_options=choice.compiler_options("train"),
+              grad_block_values=grad_block_values), "train-step", train).prefetch(),
           executables.Program(stp.make_eval_step(
               model, model_config, mesh=mesh, compiler_options=choice.compiler_options("forward")),
               "eval-step", (model_config, choice.compiler_options("forward"), repr(mesh))))

@@ -18,6 +18,7 @@ import optax
 from jax.flatten_util import ravel_pytree
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
+from sljax.kernels import grad_blocks
 from sljax.losses.disparity import disparity_loss, masked_mae
 from sljax.losses.sl import sl_loss
 from sljax.losses.weighting import UNCERTAINTY_KEY, combined_loss
@@ -76,7 +77,8 @@ def apply_model(model: nn.Module, params: dict[str, Any], batch_stats: dict[str,
 
 def make_train_step(model: nn.Module, config: ModelConfig, *, disp_loss: str,
                     tx: optax.GradientTransformation, mesh: Mesh,
-                    compiler_options: dict[str, Any] | None = None
+                    compiler_options: dict[str, Any] | None = None,
+                    grad_block_values: int | None = None
                     ) -> Callable[..., tuple[TrainState, dict[str, jax.Array]]]:
   """jit(step)(state, batch, weights) -> (new state, metrics); the state is donated.
 
@@ -84,7 +86,9 @@ def make_train_step(model: nn.Module, config: ModelConfig, *, disp_loss: str,
   config gives the tasks, disparity range and computation dtype. weights =
   weighting.step_weights(strategy, history). Metrics: loss (total), loss_sl, loss_disp,
   w_sl / w_disp (effective weights), sigma_sl / sigma_disp, grad_norm and the training batch's
-  MAE for disparity networks.
+  MAE for disparity networks. grad_block_values: the CPU kernels' gradient blocks
+  (sljax.kernels.grad_blocks; sljax.tune.grad_block_values gives the one for the compiler
+  options), None: each layer's.
   """
   dtype, maxdisp = config.dtype, config.maxdisp
 
@@ -103,7 +107,8 @@ def make_train_step(model: nn.Module, config: ModelConfig, *, disp_loss: str,
 
   def step(state: TrainState, batch: dict[str, jax.Array], weights: jax.Array):
     grad_fn = jax.value_and_grad(loss_fn, has_aux=True)
-    (total, (aux, new_stats)), grads = grad_fn(state.params, state.batch_stats, batch, weights)
+    with grad_blocks(grad_block_values):  # while traced: the gradients' kernels are traced here
+      (total, (aux, new_stats)), grads = grad_fn(state.params, state.batch_stats, batch, weights)
     updates, opt_state = tx.update(grads, state.opt_state, state.params)
     params = apply_updates(state.params, updates)
     metrics = dict(aux, loss=total, grad_norm=flat_norm(grads))

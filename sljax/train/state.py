@@ -9,7 +9,6 @@ import jax
 import jax.numpy as jnp
 import optax
 from flax import struct
-from jax.flatten_util import ravel_pytree
 
 from sljax.losses.weighting import UNCERTAINTY_KEY, init_uncertainty
 
@@ -28,42 +27,17 @@ LR_DROP = 0.1  # the step decay's factor (the PSMNet reference's fine-tuning: 1e
 def make_optimizer(lr: float, drop_step: int | None = None) -> optax.GradientTransformation:
   """Adam (betas 0.9/0.999) with a fixed learning rate (paper: 1e-4), or one that drops to
   LR_DROP * lr from step drop_step on (a function of the step count in the optimiser state,
-  so a resumed run follows it exactly)."""
+  so a resumed run follows it exactly).
+
+  optax's own update, leaf by leaf. Issue 42 ran it on the raveled parameters (fewer operations
+  to trace), but unraveling a flat vector into the twin's 339 leaves is 339 slices that XLA:CPU
+  compiles one by one: the update and its application compiled in 8.6 s against 1.5 s leaf
+  by leaf and ran in 51 ms against 9 ms, and the training step compiled 6-7 s faster with
+  steps as fast (Zen 5, 2026-11-28; docs/benchmarks.md, "The first run").
+  """
   if drop_step is not None:
     lr = optax.piecewise_constant_schedule(lr, {int(drop_step): LR_DROP})
-  return flat_update(optax.adam(lr, b1=0.9, b2=0.999))
-
-
-def flat_update(tx: optax.GradientTransformation) -> optax.GradientTransformation:
-  """tx with its update computed on one flat vector of all parameters; same state tree.
-
-  An elementwise optimiser (Adam) applied leaf by leaf puts a dozen operations per parameter
-  leaf into the training step: with PSMNet-MTL's hundreds of leaves 15% of the program that is
-  traced, lowered and compiled before the first step, and as many small kernels at run time
-  (issue 42). On the concatenated leaves it is a few operations, element for element the same
-  arithmetic, so the values are equal. The state keeps tx's own tree (checkpoints unchanged):
-  every parameter-shaped subtree of it is raveled for the update and unraveled after. Leaves
-  of mixed dtypes (which raveling would cast) take tx's own leaf-by-leaf update.
-  """
-
-  def update(grads, state, params=None):
-    leaves = jax.tree.leaves(grads)
-    if params is None or len({x.dtype for x in leaves}) != 1:
-      return tx.update(grads, state, params)
-    treedef = jax.tree.structure(grads)
-    flat_g, unravel = ravel_pytree(grads)
-
-    def param_shaped(x):
-      return jax.tree.structure(x) == treedef
-
-    flat_state = jax.tree.map(lambda x: ravel_pytree(x)[0] if param_shaped(x) else x, state,
-                              is_leaf=param_shaped)
-    flat_updates, new_flat = tx.update(flat_g, flat_state, ravel_pytree(params)[0])
-    new_state = jax.tree.map(lambda old, new: unravel(new) if param_shaped(old) else new, state,
-                             new_flat, is_leaf=param_shaped)
-    return unravel(flat_updates), new_state
-
-  return optax.GradientTransformation(tx.init, update)
+  return optax.adam(lr, b1=0.9, b2=0.999)
 
 
 def net_params(params: dict[str, Any]) -> dict[str, Any]:

@@ -110,7 +110,7 @@ def make_train_step(model: nn.Module, config: ModelConfig, *, disp_loss: str,
     with grad_blocks(grad_block_values):  # while traced: the gradients' kernels are traced here
       (total, (aux, new_stats)), grads = grad_fn(state.params, state.batch_stats, batch, weights)
     updates, opt_state = tx.update(grads, state.opt_state, state.params)
-    params = apply_updates(state.params, updates)
+    params = optax.apply_updates(state.params, updates)
     metrics = dict(aux, loss=total, grad_norm=flat_norm(grads))
     return TrainState(step=state.step + 1, params=params, batch_stats=new_stats,
                       opt_state=opt_state), metrics
@@ -118,15 +118,6 @@ def make_train_step(model: nn.Module, config: ModelConfig, *, disp_loss: str,
   repl, data = shardings(mesh)
   return jax.jit(step, in_shardings=(repl, data, repl), out_shardings=(repl, repl),
                  donate_argnums=(0,), compiler_options=compiler_options)
-
-
-def apply_updates(params: Any, updates: Any) -> Any:
-  """optax.apply_updates on the raveled trees: one addition, not one per leaf (issue 42: the
-  program's size before the first step); leaves of mixed dtypes take optax's own."""
-  if len({x.dtype for x in jax.tree.leaves(params) + jax.tree.leaves(updates)}) != 1:
-    return optax.apply_updates(params, updates)
-  flat, unravel = ravel_pytree(params)
-  return unravel(flat + ravel_pytree(updates)[0])
 
 
 def flat_norm(tree: Any) -> jax.Array:

@@ -286,3 +286,34 @@ def test_regress_upsampled_equals_the_composition(d4, maxdisp, align_corners):
   np.testing.assert_allclose(np.asarray(jax.jit(fast)(cost)), np.asarray(jax.jit(ref)(cost)),
                              rtol=1e-5, atol=1e-5)
   np.testing.assert_allclose(np.asarray(got_grad), np.asarray(want_grad), rtol=1e-4, atol=1e-5)
+
+
+@pytest.mark.parametrize("shape", [(6, 5, 7, 4), (4, 3, 5, 6, 3)])
+def test_grouped_batch_norm_equals_one_call_per_group(shape):
+  """BatchNorm(groups=2) on a stacked batch equals two calls of the plain layer, one per half,
+  in order (the reference's left then right): outputs, running mean and (unbiased) running
+  variance in training; the plain layer in evaluation; and parameters the same."""
+  from sljax.nets.layers import batch_norm
+  x = jnp.asarray(np.random.default_rng(0).normal(2.0, 3.0, shape), jnp.float32)
+  x = x.at[shape[0] // 2:].mul(0.5)  # the two groups' statistics differ
+  plain, grouped = batch_norm(), batch_norm(groups=2)
+  v = plain.init(jax.random.PRNGKey(0), x[:1], use_running_average=False)
+  v = {"params": {"scale": v["params"]["scale"] + 0.3, "bias": v["params"]["bias"] - 0.2},
+       "batch_stats": {"mean": jnp.full(shape[-1], 0.5), "var": jnp.full(shape[-1], 2.0)}}
+  assert jax.tree.structure(grouped.init(jax.random.PRNGKey(0), x, use_running_average=False)
+                            ) == jax.tree.structure(v)
+  half = shape[0] // 2
+  stats, outs = v["batch_stats"], []
+  for part in (x[:half], x[half:]):
+    y, upd = plain.apply({**v, "batch_stats": stats}, part, use_running_average=False,
+                         mutable=["batch_stats"])
+    outs.append(y)
+    stats = upd["batch_stats"]
+  y, upd = grouped.apply(v, x, use_running_average=False, mutable=["batch_stats"])
+  np.testing.assert_allclose(y, jnp.concatenate(outs), rtol=1e-5, atol=1e-5)
+  for k in ("mean", "var"):
+    np.testing.assert_allclose(upd["batch_stats"][k], stats[k], rtol=1e-5, atol=1e-6)
+  np.testing.assert_allclose(grouped.apply(v, x, use_running_average=True),
+                             plain.apply(v, x, use_running_average=True), rtol=0, atol=0)
+  with pytest.raises(ValueError, match="groups=2"):
+    grouped.apply(v, x[:3], use_running_average=False, mutable=["batch_stats"])

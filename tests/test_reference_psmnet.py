@@ -87,8 +87,9 @@ def _values_per_channel(model, *args):
   def record(next_fun, call_args, kwargs, context):
     if isinstance(context.module, nn.BatchNorm) and context.method_name == "__call__":
       x = call_args[0]
+      # A layer of the feature extractor sees both views as one batch of `groups` groups.
       seen[reference_key(tuple(context.module.path) + ("mean",)).rsplit(".", 1)[0]] = (
-          x.size // x.shape[-1])
+          x.size // x.shape[-1] // getattr(context.module, "groups", 1))
     return next_fun(*call_args, **kwargs)
 
   with nn.intercept_methods(record):
@@ -113,8 +114,8 @@ def test_train_mode_outputs_and_batch_statistics_match_the_reference(fixture, va
                              fixture["train/running_mean"], rtol=0, atol=STATS_ATOL)
   # PyTorch averages the unbiased batch variance (x n / (n - 1)) into running_var. Where n is
   # small the biased one (flax's own BatchNorm) is far off: the SPP branches' 1x1 maps at
-  # batch 2 have n = 2, a factor 2. The feature extractor runs twice (left, right), so its
-  # layers update twice, as in the reference.
+  # batch 2 have n = 2, a factor 2. The feature extractor runs on both views at once with
+  # statistics per view, so its layers update twice (left, right), as in the reference.
   n_by_layer = _values_per_channel(model, *args)
   assert len(n_by_layer) == sum(k.endswith("running_var") for k in rw.reference_shapes())
   assert 2 in set(n_by_layer.values())

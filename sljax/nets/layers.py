@@ -11,6 +11,7 @@ import functools
 from collections.abc import Sequence
 
 import flax.linen as nn
+from flax.linen import normalization
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -30,13 +31,22 @@ conv_transpose_init = nn.initializers.variance_scaling(1.0 / 3.0, "fan_out", "un
 
 
 class BatchNorm(nn.BatchNorm):
-  """flax's BatchNorm (same variables) whose running variance takes PyTorch's unbiased update."""
+  """flax's BatchNorm (same variables) whose running variance takes PyTorch's unbiased update.
+
+  groups > 1: in training the batch is that many consecutive groups (a stereo pair's views run
+  as one batch), each normalised with its own statistics and averaged into the running ones in
+  order, exactly as that many calls of the layer, one per group, would.
+  """
+
+  groups: int = 1
 
   @nn.compact
   def __call__(self, x: jax.Array, use_running_average: bool | None = None) -> jax.Array:
     """Normalises as flax does; in training, rescales the running-variance update by n/(n-1)."""
     train = not nn.merge_param("use_running_average", self.use_running_average,
                                use_running_average)
+    if train and self.groups > 1:
+      return self._grouped(x)
     updating = train and not self.is_initializing()
     old = self.get_variable("batch_stats", "var") if updating else None
     y = super().__call__(x, use_running_average=not train)
@@ -45,14 +55,49 @@ class BatchNorm(nn.BatchNorm):
       # difference matters where n is small: the SPP branches' pooled maps have n = batch.
       n = x.size // x.shape[-1]
       new = self.get_variable("batch_stats", "var")
-      self.put_variable("batch_stats", "var",
-                        new + (new - self.momentum * old) / max(n - 1, 1))
+      self.put_variable("batch_stats", "var", unbiased_update(new, old, self.momentum, n))
     return y
 
+  def _grouped(self, x: jax.Array) -> jax.Array:
+    """Training with `groups` groups of the batch: flax's statistics and normalisation per
+    group (the same functions), the running averages updated once per group in order."""
+    g = self.groups
+    if x.shape[0] % g or self.axis not in (-1, x.ndim - 1) or self.axis_name is not None:
+      raise ValueError(f"BatchNorm groups={g} needs a batch divisible by it and features last, "
+                       f"got shape {x.shape}")
+    xs = x.reshape((g, x.shape[0] // g) + x.shape[1:])
+    axes = tuple(range(1, xs.ndim - 1))
+    ra_mean = self.variable("batch_stats", "mean", lambda s: jnp.zeros(s, jnp.float32),
+                            (x.shape[-1],))
+    ra_var = self.variable("batch_stats", "var", lambda s: jnp.ones(s, jnp.float32),
+                           (x.shape[-1],))
+    mean, var = normalization._compute_stats(  # [g, C]
+        xs, axes, dtype=self.dtype, use_fast_variance=self.use_fast_variance,
+        force_float32_reductions=self.force_float32_reductions)
+    if not self.is_initializing():
+      n = xs[0].size // x.shape[-1]
+      for i in range(g):
+        old = ra_var.value
+        ra_mean.value = self.momentum * ra_mean.value + (1 - self.momentum) * mean[i]
+        new = self.momentum * old + (1 - self.momentum) * var[i]
+        ra_var.value = unbiased_update(new, old, self.momentum, n)
+    y = normalization._normalize(
+        self, xs, mean, var, axes, (xs.ndim - 1,), self.dtype, self.param_dtype, self.epsilon,
+        self.use_bias, self.use_scale, self.bias_init, self.scale_init,
+        self.force_float32_reductions)
+    return y.reshape(x.shape)
 
-def batch_norm(name: str | None = None) -> BatchNorm:
-  """A BatchNorm with PyTorch's momentum, epsilon and running-variance update."""
-  return BatchNorm(momentum=BN_MOMENTUM, epsilon=BN_EPSILON, name=name)
+
+def unbiased_update(new: jax.Array, old: jax.Array, momentum: float, n: int) -> jax.Array:
+  """flax's running variance m * old + (1 - m) * biased turned into PyTorch's, which averages
+  in the unbiased batch variance biased * n / (n - 1)."""
+  return new + (new - momentum * old) / max(n - 1, 1)
+
+
+def batch_norm(name: str | None = None, groups: int = 1) -> BatchNorm:
+  """A BatchNorm with PyTorch's momentum, epsilon and running-variance update (groups: see
+  BatchNorm)."""
+  return BatchNorm(momentum=BN_MOMENTUM, epsilon=BN_EPSILON, groups=groups, name=name)
 
 
 class ConvBN2D(ResolvesConvImpl, nn.Module):
@@ -64,6 +109,7 @@ class ConvBN2D(ResolvesConvImpl, nn.Module):
   padding: int = 1
   dilation: int = 1
   conv_impl: str | None = None  # an IMPLS name (sljax.kernels.impl); None: $SLJAX_CONV3D
+  groups: int = 1  # BatchNorm's batch groups in training (the views of a pair in one batch)
 
   @nn.compact
   def __call__(self, x: jax.Array, train: bool) -> jax.Array:
@@ -73,7 +119,7 @@ class ConvBN2D(ResolvesConvImpl, nn.Module):
                strides=(self.strides, self.strides), padding=((p, p), (p, p)),
                kernel_dilation=(self.dilation, self.dilation), use_bias=False,
                kernel_init=conv_init, impl=self.conv_impl, name="conv")(x)
-    return batch_norm("bn")(x, use_running_average=not train)
+    return batch_norm("bn", self.groups)(x, use_running_average=not train)
 
 
 class ConvBN3D(ResolvesConvImpl, nn.Module):

@@ -210,8 +210,8 @@ def part_pieces(args) -> list[dict]:
   img = jnp.zeros((b, h, w, 3), jnp.float32)
   feat = jnp.zeros((b, h // 4, w // 4, 32), jnp.float32)
   cost = jnp.zeros((b, d // 4, h // 4, w // 4, 64), jnp.float32)
-  pieces = [("feature extraction (one view; the step runs it twice)",
-             FeatureExtraction(False, impl), (img,)),
+  pieces = [("feature extraction (both views in one batch, as the training step runs it)",
+             FeatureExtraction(False, impl, views=2), (jnp.concatenate([img, img]),)),
             ("cost volume (gather)", None, (feat, feat)),
             ("disparity path: dres0-4 + classifiers + regression", DisparityPath(), (cost,)),
             ("SL path: second stacked hourglass + head", SLPath(8, False, impl), (cost, h, w))]

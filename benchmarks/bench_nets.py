@@ -295,7 +295,7 @@ def jax_time(name, batch, size, maxdisp, repeats, train, impl=None, kernels=tune
     return jax_loss(out, g, maxdisp)
 
   def grads(params, l, r, g):  # the gradient blocks training takes with these options
-    with c3.grad_blocks(tune.grad_block_values(kernels)):
+    with c3.grad_blocks(tune.grad_blocks_for(kernels)):
       return jax.grad(loss)(params, l, r, g)
   g = jax.jit(grads, compiler_options=options)
   return best_time(lambda: jax.block_until_ready(g(variables["params"], left, right, gt)),

@@ -160,7 +160,7 @@ def main() -> None:
                            mutable=["batch_stats"])
       return jax_loss(out, g, args.maxdisp)
     def grads(params, l, r, g):  # with the kernel gradients' blocks training takes here
-      with kernels.grad_blocks(tune.grad_block_values(choice)):
+      with kernels.grad_blocks(tune.grad_blocks_for(choice)):
         return jax.grad(loss)(params, l, r, g)
     fn = jax.jit(grads, compiler_options=options)
     call = (variables["params"], left, right, gt)

@@ -60,8 +60,9 @@ YNN_OFF = {"xla_cpu_experimental_ynn_fusion_type": ""}
 MARGIN = 0.05  # a setting replaces XLA's default only when it is this much faster
 RETRIES = 3  # fresh batches of rounds for a kind whose rounds disagreed
 # The decision rule's version: choices cached under another rule are measured again (3: the
-# load beside the measurement is recorded; older entries may have been measured on a busy machine).
-RULE = 3
+# load beside the measurement is recorded; older entries may have been measured on a busy machine;
+# 4: the training probe runs with the kernel-gradient blocks of GRAD_BLOCKS).
+RULE = 4
 BUSY = 0.1  # other processes' share of the CPUs above which a measurement is provisional
 
 
@@ -216,7 +217,7 @@ def known_choice(key: str | None = None) -> tuple[KernelChoice, str]:
   return KernelChoice.from_name(UNKNOWN), "the default for CPU kinds not measured yet"
 
 
-def grad_block_values(kernels: "KernelChoice", key: str | None = None) -> int | None:
+def grad_blocks_for(kernels: "KernelChoice", key: str | None = None) -> int | None:
   """The kernel gradients' block size for training programs compiled with `kernels` on this
   CPU kind (`GRAD_BLOCKS`), or None: each layer's own. Off the CPU the fast kernels do not run."""
   if jax.default_backend() != "cpu":
@@ -282,8 +283,8 @@ def workload(size: int = 128, maxdisp: int = 48, seed: int = 0):
 
 def _compiled(fns, args, kind: str, ynn: bool):
   """One program kind compiled with YNNPACK fusions on or off; training with the kernel
-  gradients' blocks that training takes with that choice here (`grad_block_values`)."""
-  blocks = grad_block_values(KernelChoice(train_ynn=ynn)) if kind == "train" else None
+  gradients' blocks that training takes with that choice here (`grad_blocks_for`)."""
+  blocks = grad_blocks_for(KernelChoice(train_ynn=ynn)) if kind == "train" else None
 
   def program(*a):
     with grad_blocks(blocks):

@@ -372,16 +372,16 @@ def test_cli_tune_says_the_load_beside_it(cache_dir, capsys, monkeypatch):
   assert "other processes using 62% of the CPUs meanwhile" in out and "provisional" in out
 
 
-def test_grad_block_values_come_from_the_table(monkeypatch):
+def test_grad_blocks_for_come_from_the_table(monkeypatch):
   """The kernel gradients' blocks follow the CPU kind and the training programs' fusions; a
   kind or a choice not in the table keeps each layer's blocks (None)."""
   (key, train_ynn), (values, _) = next(iter(tune.GRAD_BLOCKS.items()))
   listed = tune.KernelChoice(forward_ynn=True, train_ynn=train_ynn)
   other = tune.KernelChoice(forward_ynn=True, train_ynn=not train_ynn)
-  assert tune.grad_block_values(listed, key) == values
-  assert tune.grad_block_values(other, key) is None
-  assert tune.grad_block_values(listed, "some-cpu-never-measured") is None
+  assert tune.grad_blocks_for(listed, key) == values
+  assert tune.grad_blocks_for(other, key) is None
+  assert tune.grad_blocks_for(listed, "some-cpu-never-measured") is None
   monkeypatch.setattr(tune.machine, "cpu_key", lambda: key)
-  assert tune.grad_block_values(listed) == values
+  assert tune.grad_blocks_for(listed) == values
   monkeypatch.setattr(tune.jax, "default_backend", lambda: "gpu")
-  assert tune.grad_block_values(listed) is None
+  assert tune.grad_blocks_for(listed) is None

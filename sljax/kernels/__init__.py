@@ -61,5 +61,5 @@ __all__ = ["BLOCK_VALUES", "ENV_IMPL", "IMPLS", "XLA_IMPLS", "Conv2D", "Conv3D",
            "ConvTranspose3D", "PaddingLike", "ResolvesConvImpl", "auto_impl", "conv2d", "conv3d",
            "conv_impl", "conv_transpose3d", "explicit_padding", "fold_conv3d",
            "gpu_conv_transpose3d", "grad_block_values", "grad_blocks", "lax_conv3d",
-           "max_pool_2x2", "ntuple", "pairs", "phase_conv_transpose3d", "phase_regression", "resolve_padding", "tap_products_conv3d",
-           "transpose_padding", "vjp_saving_inputs"]
+           "max_pool_2x2", "ntuple", "pairs", "phase_conv_transpose3d", "phase_regression",
+           "resolve_padding", "tap_products_conv3d", "transpose_padding", "vjp_saving_inputs"]

@@ -67,9 +67,10 @@ class BatchNorm(nn.BatchNorm):
                        f"got shape {x.shape}")
     xs = x.reshape((g, x.shape[0] // g) + x.shape[1:])
     axes = tuple(range(1, xs.ndim - 1))
-    ra_mean = self.variable("batch_stats", "mean", lambda s: jnp.zeros(s, jnp.float32),
+    stats_dtype = jnp.float32 if self.force_float32_reductions else self.param_dtype  # flax's
+    ra_mean = self.variable("batch_stats", "mean", lambda s: jnp.zeros(s, stats_dtype),
                             (x.shape[-1],))
-    ra_var = self.variable("batch_stats", "var", lambda s: jnp.ones(s, jnp.float32),
+    ra_var = self.variable("batch_stats", "var", lambda s: jnp.ones(s, stats_dtype),
                            (x.shape[-1],))
     mean, var = normalization._compute_stats(  # [g, C]
         xs, axes, dtype=self.dtype, use_fast_variance=self.use_fast_variance,

@@ -75,7 +75,7 @@ def compiled_steps(model_config: ModelConfig, disp_loss: str, lr: float,
   # Where a command line turned it on, a later run loads the compiled steps instead of
   # tracing, lowering and compiling them (sljax.executables); each description holds what
   # changes its program beyond the arguments' shapes.
-  grad_block_values = tune.grad_block_values(choice)
+  grad_block_values = tune.grad_blocks_for(choice)
   train = (model_config, disp_loss, lr, lr_drop_step, choice.compiler_options("train"),
            grad_block_values, repr(mesh))
   tx = st.make_optimizer(lr, lr_drop_step)

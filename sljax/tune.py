@@ -1,8 +1,9 @@
 """Compiler choices per CPU kind: a table of the kinds measured, and `sljax tune` to measure.
 
 What is chosen. XLA:CPU can hand convolutions and their neighbours to YNNPACK fusions or
-compile them itself; which is faster depends on the CPU (AVX-512 or not, cache sizes), on the
-XLA version and on the program: on an AVX-512 Zen 5 turning the fusions off made PSMNet's
+compile them itself ("off" keeps YNNPACK for reductions only, where XLA's own are ~10x
+slower); which is faster depends on the CPU (AVX-512 or not, cache sizes), on the XLA version
+and on the program: on an AVX-512 Zen 5 turning the fusions off made PSMNet's
 forward 1.2x faster and its training step 5-30% slower, on an AVX2 Zen 3 the forward was
 slower without them. So the choice is made per program kind: forward-only programs
 (inference, validation, evaluation) and training steps. Both settings compute the same
@@ -56,13 +57,20 @@ from sljax.nets import build_model
 from sljax.nets.model_config import init_variables
 
 ENV_TUNE = "SLJAX_TUNE"
-YNN_OFF = {"xla_cpu_experimental_ynn_fusion_type": ""}
+# "off" keeps one kind of YNNPACK fusion: reductions. Without it XLA:CPU rewrites each large
+# reduction (BatchNorm's statistics and their gradients) into a reduce-window of its own
+# loop emitter, 9-14x slower than YNNPACK's (a [2, 24, 64, 64, C] -> [C] sum: 2.4 ms against
+# 0.27 ms at C = 32 on Zen 5); PSMNet's training step took 3.26-3.55 s with against 3.53-3.81 s
+# without (5 alternating rounds), and the main job's step compiled 1 s faster. Convolutions,
+# dots and elementwise fusions stay XLA's (with elementwise fusions too the step took 5 s).
+YNN_OFF = {"xla_cpu_experimental_ynn_fusion_type": "LIBRARY_FUSION_TYPE_REDUCE"}
 MARGIN = 0.05  # a setting replaces XLA's default only when it is this much faster
 RETRIES = 3  # fresh batches of rounds for a kind whose rounds disagreed
 # The decision rule's version: choices cached under another rule are measured again (3: the
 # load beside the measurement is recorded; older entries may have been measured on a busy machine;
-# 4: the training probe runs with the kernel-gradient blocks of GRAD_BLOCKS).
-RULE = 4
+# 4: the training probe runs with the kernel-gradient blocks of GRAD_BLOCKS; 5: "off" keeps
+# YNNPACK's reductions).
+RULE = 5
 BUSY = 0.1  # other processes' share of the CPUs above which a measurement is provisional
 
 

@@ -31,6 +31,35 @@ def test_names_round_trip():
   assert tune.KernelChoice(False, True).compiler_options("train") is None
 
 
+@pytest.mark.skipif(jax.default_backend() != "cpu", reason="XLA:CPU's fusions")
+def test_off_keeps_ynnpack_for_reductions_only():
+  """'off' hands BatchNorm-like statistics to YNNPACK (XLA's own reduce-window is ~10x slower)
+  and keeps the convolution XLA's; both compute what float64 NumPy does."""
+  rng = np.random.default_rng(0)
+  x = rng.standard_normal((2, 6, 40, 40, 32)).astype(np.float32)
+  k = rng.standard_normal((3, 3, 32, 32)).astype(np.float32) / 16
+
+  def program(x, k):
+    y = jax.lax.conv_general_dilated(x.reshape(12, 40, 40, 32), k, (1, 1), "SAME",
+                                     dimension_numbers=("NHWC", "HWIO", "NHWC"))
+    return y.sum(axis=(0, 1, 2)), (y * y).sum(axis=(0, 1, 2))
+
+  options = tune.KernelChoice.from_name("off").compiler_options("train")
+  compiled = jax.jit(program, compiler_options=options).lower(x, k).compile()
+  text = compiled.as_text()
+  ynn = [line for line in text.splitlines() if "__ynn_fusion" in line and " fusion(" in line]
+  assert ynn and all("reduce" in line for line in ynn)  # the sums, not the convolution
+  assert "reduce-window" not in text
+  assert any("convolution(" in line for line in text.splitlines())
+  y = np.zeros((12, 40, 40, 32))
+  xp = np.pad(x.reshape(12, 40, 40, 32).astype(np.float64), ((0, 0), (1, 1), (1, 1), (0, 0)))
+  for i, j in np.ndindex(3, 3):
+    y += np.einsum("bhwc,co->bhwo", xp[:, i:i + 40, j:j + 40], k[i, j].astype(np.float64))
+  s1, s2 = compiled(x, k)
+  np.testing.assert_allclose(s1, y.sum(axis=(0, 1, 2)), rtol=1e-4, atol=1e-3)
+  np.testing.assert_allclose(s2, (y * y).sum(axis=(0, 1, 2)), rtol=1e-4)
+
+
 def test_default_kept_unless_clearly_faster():
   best, table = tune.measure(timings=fake({("forward", False): 0.97, ("train", False): 0.96}))
   assert best == tune.DEFAULT  # 3-4% is within the margin

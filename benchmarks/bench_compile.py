@@ -251,7 +251,6 @@ def part_pieces(args) -> list[dict]:
 
 def count_eqns(jaxpr) -> int:
   """Equations of a jaxpr and of every jaxpr inside it (loops, custom VJPs, calls)."""
-  import jax.extend as jex  # noqa: F401  (jax.core's types)
   n = 0
   for eqn in jaxpr.eqns:
     n += 1

@@ -303,7 +303,6 @@ def test_inference_runs_its_forward_with_the_choice(monkeypatch):
   kw = {"in_channels": 1, "depth": 2, "base_width": 4}
   from sljax.nets import build_model
   model = build_model("unet-disp", **kw)
-  x = np.zeros((1, 16, 16, 1), np.float32)
   variables = init_variables(model, 0, 16, 16, 1)
   pred = inference.make_predictor("unet-disp", kw, variables, mode="pad",
                                   kernels=tune.KernelChoice(forward_ynn=False))

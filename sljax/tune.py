@@ -292,12 +292,13 @@ def workload(size: int = 128, maxdisp: int = 48, seed: int = 0):
 def _compiled(fns, args, kind: str, ynn: bool):
   """One program kind compiled with YNNPACK fusions on or off; training with the kernel
   gradients' blocks that training takes with that choice here (`grad_blocks_for`)."""
-  blocks = grad_blocks_for(KernelChoice(train_ynn=ynn)) if kind == "train" else None
+  kernels = KernelChoice(forward_ynn=ynn, train_ynn=ynn)
+  blocks = grad_blocks_for(kernels) if kind == "train" else None
 
   def program(*a):
     with grad_blocks(blocks):
       return fns[kind](*a)
-  return jax.jit(program, compiler_options=None if ynn else dict(YNN_OFF)).lower(*args).compile()
+  return jax.jit(program, compiler_options=kernels.compiler_options(kind)).lower(*args).compile()
 
 
 def measure(repeats: int = 5, clock: Callable[[], float] = time.perf_counter,

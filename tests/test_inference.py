@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from sljax import inference
+from sljax import inference, tune
 from sljax.data.dataset import resize_image
 from sljax.errors import SljaxError
 from sljax.nets import psmnet
@@ -179,6 +179,38 @@ def test_compiled_once_per_shape_and_shared_between_predictors():
   left, right = _pair(17, 19)
   r(np.stack([left, left])[..., None], np.stack([right, right])[..., None])  # batch 2: new shape
   assert r.traces == 3
+
+
+def test_a_command_keeps_the_programs_whole_and_the_next_one_loads_them(tmp_path, monkeypatch):
+  """With compiled programs kept on disk (command lines), a new process (a fresh Programs)
+  loads the forward program instead of tracing it, with the same outputs; another model
+  (its fields) or other compiler options is another program."""
+  from sljax import executables
+  from sljax.inference import programs
+  variables = {"params": {"bias": jnp.array([0.25], jnp.float32)}}
+  pair = _pair(21, 33, seed=7)
+  expected = _predictor("toy", variables, mode="pad")(*pair)  # the plain jitted program
+  monkeypatch.setenv(executables.ENV, "on")
+  jax.clear_caches()
+  where = executables.enable(tmp_path / "xla")
+  try:
+    entries = lambda: sorted(p.name for p in where.glob("sljax-program-inference-forward-*-cache"))
+    for process in range(2):
+      monkeypatch.setattr(programs, "PROGRAMS", programs.Programs())
+      out = _predictor("toy", variables, mode="pad")(*pair)
+      for k in expected:
+        np.testing.assert_array_equal(out[k], expected[k])
+      model = ModelConfig.of("toy", in_channels=1).build()
+      assert programs.PROGRAMS.traces(model) == (1 if process == 0 else 0)  # loaded, not traced
+      assert len(entries()) == 1
+    off = _predictor("toy", variables, mode="pad", kernels=tune.KernelChoice(forward_ynn=False))
+    np.testing.assert_allclose(off(*pair)["disparity"], expected["disparity"], rtol=1e-6)
+    assert len(entries()) == 2 and programs.PROGRAMS.traces(model) == 1
+    rgb = {"params": {"bias": jnp.array([0.25] * 3, jnp.float32)}}
+    _predictor("toy", rgb, 3, mode="pad")(*_pair(21, 33, seed=7, c=3))
+    assert len(entries()) == 3
+  finally:
+    executables.enable(None)
 
 
 def test_bad_inputs(pad_predictor):

@@ -84,7 +84,9 @@ KNOWN = {
     "amd-epyc-f25-m17-avx2": ("off", "Zen 4 showing AVX2 only, `sljax tune` idle, 2026-11-27"),
     # `sljax tune`'s probe (128x128, batch 1) kept the fusions in training (off/on 1.03-1.10),
     # but at the main job's preset the step without them was 5% faster (0.79-0.83 s against
-    # 0.84-0.93 s) and loaded from the cache in 3.0 s against 9.6-10.0 s.
+    # 0.84-0.93 s) and loaded from the cache in 3.0 s against 9.6-10.0 s. Since RULE 5 (the
+    # reductions kept) the probe chooses off for both as well (training off/on 0.81-0.86,
+    # forward 0.67-0.80, idle, 2026-11-28): a measured entry no longer disagrees with this one.
     "amd-epyc-f26-m2-avx512": ("off", "Zen 5, the main job's step and start-up, 2026-11-27"),
 }
 UNKNOWN = "off"

@@ -56,6 +56,8 @@ CONV_CASES = [
     ((1, 5, 7, 9, 3), (3, 3, 3, 3, 2), (2, 2, 2), ((1, 1),) * 3),     # odd sizes
     ((1, 5, 6, 7, 2), (3, 2, 3, 2, 3), (2, 1, 2), ((0, 2), (1, 0), (2, 1))),
     ((1, 5, 6, 7, 2), (3, 3, 3, 2, 3), (2, 2, 2), "SAME"),
+    # depth-stride-1 layers are computed by pairs of planes (fold.pair_forward): an odd count
+    ((2, 5, 7, 6, 3), (3, 3, 3, 3, 2), (1, 2, 1), ((2, 0), (0, 2), (1, 1))),
 ]
 
 
@@ -188,7 +190,7 @@ BLOCKINGS = [1, 2, 3, 10 ** 9]
 
 
 @pytest.mark.parametrize("planes", BLOCKINGS)
-@pytest.mark.parametrize("x_shape,k_shape,strides,padding", CONV_CASES[:4])
+@pytest.mark.parametrize("x_shape,k_shape,strides,padding", CONV_CASES[:4] + CONV_CASES[-1:])
 def test_blocked_folded_conv_equals_lax(planes, x_shape, k_shape, strides,
                                         padding):
   """Every block shape (loops over batch items and plane chunks) gives lax's conv and grads."""

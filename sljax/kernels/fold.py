@@ -3,6 +3,9 @@
 y[:, z] = sum_a conv2d(x_padded[:, s*z + a], kernel[a]): a kd x kh x kw conv is the sum over
 its kd depth taps of 2D convs of the depth-shifted input with depth folded into the batch
 (exact; strides and any padding), computed over blocks of output planes (`block_values`).
+A depth kernel of three taps at depth stride 1 (PSMNet's stride-1 layers, and their input
+gradients) runs by pairs of output planes instead: Winograd's F(2, 3) in depth, four 2D
+convolutions per two planes instead of six (`pair_forward`).
 `sljax.kernels.conv3d` makes these a differentiable function.
 """
 
@@ -68,7 +71,17 @@ def tap_planes(x: jax.Array, n0, z0, nb: int, tz: int, kd: int, sd: int,
 
 def fold_forward(x: jax.Array, kernel: jax.Array, strides: tuple[int, int, int],
                  padding: tuple[tuple[int, int], ...], block_values: int) -> jax.Array:
-  """The folded 3D convolution of NDHWC x with a DHWIO kernel (explicit padding pairs)."""
+  """The folded 3D convolution of NDHWC x with a DHWIO kernel (explicit padding pairs): by
+  pairs of output planes where the depth kernel has three taps and stride 1, else by taps."""
+  x, padding = pad_depth(x, padding)
+  if kernel.shape[0] == 3 and strides[0] == 1 and x.shape[1] >= 4:
+    return pair_forward(x, kernel, strides[1:], padding[1:], block_values)
+  return tap_forward(x, kernel, strides, padding, block_values)
+
+
+def tap_forward(x: jax.Array, kernel: jax.Array, strides: tuple[int, int, int],
+                padding: tuple[tuple[int, int], ...], block_values: int) -> jax.Array:
+  """The folded conv as the sum over depth taps of 2D convs of the shifted planes."""
   x, padding = pad_depth(x, padding)
   n, depth = x.shape[:2]
   kd, sd, lo = kernel.shape[0], strides[0], padding[0][0]
@@ -93,6 +106,48 @@ def fold_forward(x: jax.Array, kernel: jax.Array, strides: tuple[int, int, int],
                                     (n0, first + z0, 0, 0, 0))
 
   return blocked(n, count, int(np.prod(x.shape[2:])), block_values, body, out)
+
+
+def pair_kernels(kernel: jax.Array) -> jax.Array:
+  """The four 2D kernels of Winograd's F(2, 3) over depth, from a depth-3 DHWIO kernel."""
+  g0, g1, g2 = kernel[0], kernel[1], kernel[2]
+  return jnp.stack([g0, (g0 + g1 + g2) * 0.5, (g0 - g1 + g2) * 0.5, g2])
+
+
+def pair_forward(x: jax.Array, kernel: jax.Array, strides_hw: Sequence[int], padding_hw,
+                 block_values: int) -> jax.Array:
+  """The folded conv of a depth-3, depth-stride-1 kernel over x padded in depth, by pairs of
+  output planes: Winograd's F(2, 3) in depth, four 2D convolutions per pair instead of six.
+
+  Output planes 2p and 2p + 1 read input planes d0..d3 = 2p .. 2p + 3:
+  y0 = m1 + m2 + m3, y1 = m2 - m3 - m4 with m1 = conv(d0 - d2, g0), m2 = conv(d1 + d2,
+  (g0 + g1 + g2) / 2), m3 = conv(d2 - d1, (g0 - g1 + g2) / 2), m4 = conv(d1 - d3, g2), exact
+  up to float rounding (the sums' order). An odd plane count takes one zero plane more and
+  drops the extra output.
+  """
+  n, depth = x.shape[:2]
+  do = depth - 2
+  if do % 2:
+    x = lax.pad(x, jnp.zeros((), x.dtype), ((0, 0, 0), (0, 1, 0), (0, 0, 0), (0, 0, 0), (0, 0, 0)))
+  pairs = (do + 1) // 2
+  g = pair_kernels(kernel)
+  out_hw = [(x.shape[2 + i] + sum(padding_hw[i]) - kernel.shape[1 + i]) // strides_hw[i] + 1
+            for i in range(2)]
+  out = jnp.zeros((n, 2 * pairs, *out_hw, kernel.shape[4]), x.dtype)
+
+  def body(n0, p0, nb, tp, out):
+    xin = lax.dynamic_slice(x, (n0, 2 * p0, 0, 0, 0), (nb, 2 * tp + 2) + x.shape[2:])
+    d = [lax.slice_in_dim(xin, j, j + 2 * tp - 1, 2, axis=1).reshape((nb * tp,) + x.shape[2:])
+         for j in range(4)]
+    m = [plain_conv2d(t, g[i], strides_hw, padding_hw)
+         for i, t in enumerate((d[0] - d[2], d[1] + d[2], d[2] - d[1], d[1] - d[3]))]
+    y = jnp.stack([m[0] + m[1] + m[2], m[1] - m[2] - m[3]], axis=1)
+    return lax.dynamic_update_slice(out, y.reshape((nb, 2 * tp) + y.shape[2:]),
+                                    (n0, 2 * p0, 0, 0, 0))
+
+  out = blocked(n, pairs, int(np.prod(x.shape[2:])), block_values, body, out)  # a pair as a plane
+  return out[:, :do] if do % 2 else out
+
 
 
 def fold_kernel_grad(x: jax.Array, dy: jax.Array, kernel_shape: Sequence[int],

@@ -19,7 +19,9 @@ transposed gradients take seconds at PSMNet's sizes), while its 2D convolution i
 PyTorch's conv3d; its kernel gradients and select-and-scatter are slow as well. So:
 * `fold_conv3d` (fold.py): a 3D conv is a sum over depth taps of 2D convs with depth folded
   into the batch, over blocks of output planes (`block_values`, default `BLOCK_VALUES`; a
-  program may give the kernel gradients blocks of their own with `grad_blocks`).
+  program may give the kernel gradients blocks of their own with `grad_blocks`). Three depth
+  taps at depth stride 1 (and so the input gradient of such a layer) run by pairs of output
+  planes, Winograd's F(2, 3) in depth: four 2D convs per two planes instead of six.
 * `phase_conv_transpose3d` (phase.py): a stride-s transposed conv is s^3 output phases
   sharing one folded conv, so the zeros of the dilated input are never multiplied.
 * `conv2d` (conv2d.py): XLA's 2D conv with its kernel gradient summed over row blocks.

@@ -357,7 +357,7 @@ def test_a_diverged_grid_cell_is_left_out_and_the_grid_goes_on(tmp_path, monkeyp
   blows_up = {by[("stl", "pretrain", 300)].name, by[("epr", "finetune", 302)].name}
   trained = []
 
-  def fake_train(out, cell, bar, weight, on_step=None):  # pylint: disable=unused-argument
+  def fake_train(out, cell, bar, weight, on_step=None, stop=None):  # pylint: disable=unused-argument
     trained.append(cell.name)
     if cell.name in blows_up:  # one validation before the loss went NaN
       wd = runner.cell_dir(out, cell.name)

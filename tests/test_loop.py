@@ -151,6 +151,28 @@ def test_exact_resume_after_kill_mid_epoch_and_during_a_save(strategy, tiny, tmp
     _assert_same_run(tmp_path / "full", wd)
 
 
+def test_a_stop_saves_its_step_and_the_resumed_run_is_the_uninterrupted_one(tiny, tmp_path):
+  """train(stop=...) asked after every step: when it says yes mid-epoch, between two
+  checkpoints and with metrics still unfetched, the run saves that step and returns stopped;
+  resumed, it ends bit-identical to the uninterrupted run (no step trained twice)."""
+  cfg = _config("epr", save_every=4)  # 6 steps per epoch, a fetch every 3: saves at 4, 6, 8, 12
+  quiet = dict(log=lambda line: None, progress=False)
+  full = loop.train(cfg, tmp_path / "full", **quiet)
+  asked = []
+
+  def stop():
+    asked.append(True)
+    return len(asked) == 10
+  part = loop.train(cfg, tmp_path / "part", stop=stop, **quiet)
+  assert part.stopped and part.step == 10 and len(asked) == 10
+  assert _final(tmp_path / "part")[0] == 10
+  rows = (tmp_path / "part" / loop.METRICS_FILE).read_text().splitlines()
+  assert json.loads(rows[-1])["step"] == 10
+  done = loop.train(cfg, tmp_path / "part", resume=True, stop=lambda: False, **quiet)
+  assert not done.stopped and done.step == full.step
+  _assert_same_run(tmp_path / "full", tmp_path / "part")
+
+
 def test_loading_overlaps_the_steps(tiny, monkeypatch, tmp_path):
   """With a source that takes S seconds per batch and a step that takes T, an epoch takes
   about max(S, T) per step, not S + T: batches are built while the step runs."""
@@ -397,7 +419,7 @@ def test_ctrl_c_stops_after_the_step_and_resumes_exactly(tmp_path, monkeypatch):
   assert "KeyboardInterrupt" not in proc.stderr  # nothing dropped, no traceback
   rows = (wd / loop.METRICS_FILE).read_text().splitlines()
   assert 9 <= json.loads(rows[-1])["step"] < 24  # it stopped after the step it was in
-  assert 8 <= _final(wd)[0] < 24
+  assert _final(wd)[0] == json.loads(rows[-1])["step"]  # ... and saved that step
 
   from sljax.train import cli  # pylint: disable=import-outside-toplevel
   handler = signal.getsignal(signal.SIGINT)

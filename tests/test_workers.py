@@ -149,7 +149,7 @@ def test_a_foreign_claim_file_is_one_line(tmp_path, me):
 
 def _fake_cells(out, started, lock):
   """train_cell and evaluate_cell stand-ins that record when each cell trained."""
-  def train_cell(out_, cell, bar, weight, on_step=lambda s: None):
+  def train_cell(out_, cell, bar, weight, on_step=lambda s: None, stop=None):
     with lock:
       started.append((cell.name, "start", time.monotonic()))
     if cell.init_cell is not None:
@@ -301,11 +301,11 @@ def _stopping_run(out, monkeypatch, sig):
   events, lock = [], threading.Lock()
   train_cell, evaluate_cell = _fake_cells(out, events, lock)
 
-  def train_then_signal(out_, cell, bar, weight, on_step=lambda s: None):
+  def train_then_signal(out_, cell, bar, weight, on_step=lambda s: None, stop=None):
     on_step(3)
     os.kill(os.getpid(), sig)  # the handler only sets a flag
-    on_step(4)  # a fetch that may come before a checkpoint: go on to it
-    on_step(5)  # the next one stops
+    on_step(4)  # the trainer finishes its step, saves it and returns stopped (train_cell's end)
+    stop.check()
     raise AssertionError("not stopped")
   monkeypatch.setattr(runner, "train_cell", train_then_signal)
   monkeypatch.setattr(runner, "evaluate_cell", evaluate_cell)
@@ -317,7 +317,7 @@ def test_sigterm_releases_the_claim_and_the_command_says_so(tmp_path, monkeypatc
   res = _stopping_run(out, monkeypatch, signal.SIGTERM)
   assert res["stopped"] == "SIGTERM" and res["trained"] == 0
   top = workers.top(out, "unet-sl-objects-s0")
-  assert top.record["why"] == "stopped by SIGTERM" and top.record["step"] == 5
+  assert top.record["why"] == "stopped by SIGTERM" and top.record["step"] == 4
   assert not any(workers.top(out, c).number >= 0 for c in ("unet-disp-objects-s0",))
   assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL  # put back
   assert not list((out / workers.WORKERS_DIR).iterdir())
@@ -391,7 +391,7 @@ def test_ctrl_c_releases_the_claim_too(tmp_path, monkeypatch):
   out = tmp_path / "out"
   plan = plans.build_plan("table1", "smoke", 1)
 
-  def interrupted(out_, cell, bar, weight, on_step=lambda s: None):
+  def interrupted(out_, cell, bar, weight, on_step=lambda s: None, stop=None):
     on_step(3)
     raise KeyboardInterrupt  # what the trainer raises after a Ctrl-C, at a step
   monkeypatch.setattr(runner, "train_cell", interrupted)
@@ -412,7 +412,7 @@ def test_a_worker_that_lost_its_cell_stops_training_it_and_goes_on(tmp_path, mon
   train_cell, evaluate_cell = _fake_cells(out, events, lock)
   taken = "unet-sl-tissue-ft-s0"
 
-  def train_or_lose(out_, cell, bar, weight, on_step=lambda s: None):
+  def train_or_lose(out_, cell, bar, weight, on_step=lambda s: None, stop=None):
     if cell.name != taken:
       return train_cell(out_, cell, bar, weight, on_step)
     _claim_as(out_, cell.name, "elsewhere")  # the take-over

@@ -341,9 +341,11 @@ def evaluate_cell(out: Path, cell: Cell, evalset: EvalSet) -> dict[str, Any]:
 
 
 def train_cell(out: Path, cell: Cell, bar, weight: float,
-               on_step: Callable[[int], None] = lambda step: None) -> dict[str, Any]:
+               on_step: Callable[[int], None] = lambda step: None,
+               stop: workers.Stop | None = None) -> dict[str, Any]:
   """Trains (or resumes) one cell and writes done.json; on_step(step) after each fetch of the
-  step metrics (it may raise to stop the training there)."""
+  step metrics (it may raise to stop the training there). A signal `stop` caught ends the
+  training after its step with a checkpoint there, and raises workers.Stopped."""
   wd = cell_dir(out, cell.name)
   config = cell.config
   if cell.init_cell is not None:
@@ -356,7 +358,10 @@ def train_cell(out: Path, cell: Cell, bar, weight: float,
     cell_bar = _CellBar(bar, cell, weight, logfile, max(saved, default=0), on_step)
     _advance(bar, max(saved, default=0) * weight)  # a resumed cell's steps already done
     # resume=True also restarts a cell killed before its first checkpoint (nothing to keep).
-    result = train(config, wd, resume=True, log=cell_bar.write, progress=cell_bar)
+    result = train(config, wd, resume=True, log=cell_bar.write, progress=cell_bar,
+                   stop=None if stop is None else lambda: stop.signum is not None)
+  if result.stopped:
+    stop.check()
   # A finished cell needs its final checkpoint only, and its best when the plan scores it.
   best = best_step(ckpt_dir) if any(e.checkpoint == "best" for e in cell.evals) else None
   for path in ckpt_dir.iterdir():
@@ -502,19 +507,12 @@ def _run(plan: Plan, out: Path, worker: workers.Worker, stop: workers.Stop, prog
              bar_format="{l_bar}{bar}| {percentage:3.0f}% [{elapsed}<{remaining}] {postfix}",
              desc=f"{plan.name} ({len(todo)} cells)")
 
-  seen = []  # the fetches that saw the stop signal
-
   def on_step(step: int) -> None:
-    """The cell's training reached step: its heartbeat shows it; a lost claim stops it here,
-    a signal at the next fetch (the checkpoint due after this one, at an epoch's end or a
-    validation, is saved first: the trainer saves after it fetches)."""
+    """The cell's training reached step: its heartbeat shows it; a lost claim stops it here
+    (a signal stops it after its step, with a checkpoint there: `train_cell`'s stop)."""
     worker.progress(step)
     if worker.lost:
       raise workers.Stopped("lost")
-    if stop.signum is not None:
-      if seen:
-        stop.check()
-      seen.append(step)
 
   try:
     while stop.signum is None:
@@ -534,7 +532,7 @@ def _run(plan: Plan, out: Path, worker: workers.Worker, stop: workers.Stop, prog
       try:
         if needs_training:
           try:
-            done = train_cell(out, cell, bar, weights.get(cell.name, 0.0), on_step)
+            done = train_cell(out, cell, bar, weights.get(cell.name, 0.0), on_step, stop=stop)
           except TrainingDiverged as e:
             # One diverged cell must not stop a grid of many; docs/plan-v4.md says how the
             # report treats it.

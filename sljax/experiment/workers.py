@@ -486,8 +486,8 @@ class Stop:
   def _handle(self, signum, frame) -> None:  # pylint: disable=unused-argument
     """Only a flag: an exception raised here could land inside jax and be lost."""
     self.signum = signum
-    os.write(2, f"\n{signal.Signals(signum).name}: stopping after this step; the cell's claim "
-                "is released and its checkpoint kept\n".encode())
+    os.write(2, f"\n{signal.Signals(signum).name}: stopping after this step, with a checkpoint "
+                "at it; the cell's claim is released\n".encode())
 
   @property
   def name(self) -> str | None:

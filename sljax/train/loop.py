@@ -167,9 +167,11 @@ def fresh_start_note(workdir: Path) -> str | None:
 
 @dataclasses.dataclass(frozen=True)
 class RunResult:
-  """What a finished (or stopped) run reports: its workdir and final LoopState."""
+  """What a finished (or stopped) run reports: its workdir, final LoopState and whether `stop`
+  ended it early."""
   workdir: Path
   loop: LoopState
+  stopped: bool = False
   step = property(lambda self: self.loop.step, doc="Global steps done.")
   epochs_done = property(lambda self: len(self.loop.history), doc="Finished epochs.")
   best_val = property(lambda self: self.loop.best_val, doc="Best validation MAE (px) so far.")
@@ -182,11 +184,14 @@ class RunResult:
 def train(config: TrainConfig, workdir: str | os.PathLike | None = None, *, resume: bool = False,
           overwrite: bool = False, stop_after: int | None = None, preset_note: str = "",
           profile_dir: str | None = None, log: Callable[[str], None] = functools.partial(
-              print, flush=True), progress: bool | Any | None = None) -> RunResult:
+              print, flush=True), progress: bool | Any | None = None,
+          stop: Callable[[], bool] | None = None) -> RunResult:
   """Runs (or resumes) training; every bad input raises SljaxError before any compilation.
 
-  stop_after: stop once the global step reaches this value (as an interruption would; the last
-  checkpoint is the one saved at or before it), for tests and for splitting long runs.
+  stop_after: stop once the global step reaches this value (the last checkpoint is the one
+  saved at or before it, as after a crash), for tests and for splitting long runs.
+  stop: asked after every step (a worker's stop signal); when it says True, the run saves a
+  checkpoint at that step, as a Ctrl-C does, and returns with `stopped` set.
   progress: None (a bar on the main process), True/False, or a bar to drive: an object with
   tqdm's update(steps), set_postfix(**kw) and write(line), e.g. the experiment runner's.
   """
@@ -195,12 +200,13 @@ def train(config: TrainConfig, workdir: str | os.PathLike | None = None, *, resu
   # would interleave the logs and checkpoints of both.
   with held(workdir, f"sljax train ({config.net})"):
     return _train(config, workdir, resume, overwrite, stop_after, preset_note, profile_dir, log,
-                  progress)
+                  progress, stop)
 
 
 def _train(config: TrainConfig, workdir: Path, resume: bool, overwrite: bool,
            stop_after: int | None, preset_note: str, profile_dir: str | None,
-           log: Callable[[str], None], progress: bool | Any | None) -> RunResult:
+           log: Callable[[str], None], progress: bool | Any | None,
+           stop: Callable[[], bool] | None) -> RunResult:
   """train() once its workdir is held."""
   config = with_absolute_paths(config)  # config.json names the folders from anywhere
   check_profile_dir(profile_dir)
@@ -287,8 +293,17 @@ def _train(config: TrainConfig, workdir: Path, resume: bool, overwrite: bool,
           write_validation(rec, loop, val)
           loop = loop.validated(val.get("val_mae"))
           save(rec, state, loop, val.get("val_mae", val.get("val_sl")))
-        if interrupt.asked:  # after the step's own writes, as an interruption between steps
-          raise KeyboardInterrupt
+        asked = stop is not None and not final and stop()
+        if interrupt.asked or asked:  # after the step's own writes, between two steps
+          if not (saved_anyway or checkpoint):  # keep this step: nothing is trained twice
+            if pending:
+              loop, last = fetch_metrics(rec, pending, loop)
+              pending = []
+            save(rec, state, loop)
+          if interrupt.asked:
+            raise KeyboardInterrupt
+          bar.write(f"stopping at step {loop.step} as asked; its checkpoint is saved")
+          return RunResult(workdir, loop, stopped=True)
       if loop.step < run.total_steps:
         bar.write(f"stopping at step {loop.step} as asked (--stop-after)")
       return RunResult(workdir, loop)

@@ -20,7 +20,7 @@ from sljax.data.scene import Scene
 from sljax.nets import ModelConfig
 from sljax.models import checkpoint as ckpt
 from sljax.train import loop
-from sljax.train.config import TrainConfig, config_from_json
+from sljax.train.config import TrainConfig
 
 import toys
 

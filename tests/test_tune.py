@@ -60,6 +60,35 @@ def test_off_keeps_ynnpack_for_reductions_only():
   np.testing.assert_allclose(s2, (y * y).sum(axis=(0, 1, 2)), rtol=1e-4)
 
 
+@pytest.mark.skipif(jax.default_backend() != "cpu", reason="XLA:CPU's fusions")
+def test_the_measured_programs_take_the_choice_they_time(monkeypatch):
+  """`sljax tune` times what runs: each program compiled with that setting's options (off:
+  YNNPACK for the reductions only), the training one traced with that setting's kernel-gradient
+  blocks (tune.grad_blocks_for), the forward one with the layers' own; and it runs."""
+  from sljax import kernels
+  seen, jit = {}, jax.jit
+  monkeypatch.setattr(tune, "grad_blocks_for", lambda k: 1000 + k.train_ynn)
+
+  def spy(fn, **kw):
+    seen["options"] = kw.get("compiler_options")
+    return jit(fn, **kw)
+  monkeypatch.setattr(jax, "jit", spy)
+  x = np.random.default_rng(1).standard_normal((8, 64)).astype(np.float32)
+
+  def traced(kind):
+    def program(a):
+      seen[kind] = kernels.grad_block_values(7)
+      return (a * a).sum(axis=0)
+    return program
+  fns = {kind: traced(kind) for kind in tune.KINDS}
+  for kind in tune.KINDS:
+    for ynn in (True, False):
+      compiled = tune._compiled(fns, (x,), kind, ynn)  # pylint: disable=protected-access
+      assert seen["options"] == (None if ynn else tune.YNN_OFF), (kind, ynn)
+      assert seen[kind] == (1000 + ynn if kind == "train" else 7), (kind, ynn, seen)
+      np.testing.assert_allclose(compiled(x), (x.astype(np.float64) ** 2).sum(0), rtol=1e-5)
+
+
 def test_default_kept_unless_clearly_faster():
   best, table = tune.measure(timings=fake({("forward", False): 0.97, ("train", False): 0.96}))
   assert best == tune.DEFAULT  # 3-4% is within the margin

@@ -206,8 +206,10 @@ def test_a_command_keeps_the_programs_whole_and_the_next_one_loads_them(tmp_path
     off = _predictor("toy", variables, mode="pad", kernels=tune.KernelChoice(forward_ynn=False))
     np.testing.assert_allclose(off(*pair)["disparity"], expected["disparity"], rtol=1e-6)
     assert len(entries()) == 2 and programs.PROGRAMS.traces(model) == 1
-    rgb = {"params": {"bias": jnp.array([0.25] * 3, jnp.float32)}}
-    _predictor("toy", rgb, 3, mode="pad")(*_pair(21, 33, seed=7, c=3))
+    # Another field of the model, with the same variables and inputs: another program.
+    other = inference.Predictor(ModelConfig.of("toy", in_channels=1, conv_impl="lax"), variables,
+                                inference.PredictOptions(mode="pad"))
+    np.testing.assert_array_equal(other(*pair)["disparity"], expected["disparity"])
     assert len(entries()) == 3
   finally:
     executables.enable(None)

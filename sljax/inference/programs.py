@@ -1,8 +1,8 @@
 """The compiled inference programs of a process, and the twin's two-program split.
 
 Every predictor runs its network through `PROGRAMS`, one explicit cache per process: a jitted
-function per program kind and XLA:CPU YNNPACK choice, with the model a static argument, so jax
-keeps one compilation per equal model (flax modules compare by their fields) and input shape.
+function per program kind, XLA:CPU YNNPACK choice and equal model (flax modules compare by
+their fields), so jax keeps one compilation per model and input shape.
 Both resolution modes, or several checkpoints of one configuration, share it (in resize mode
 the input is always the training size). Where a command line keeps compiled programs on disk
 (`sljax.executables`: `sljax predict`, `evaluate`, ...), each program is kept whole, keyed by
@@ -55,11 +55,6 @@ def sl_outputs(model, variables, left, right) -> dict[str, jax.Array]:
 KINDS = {"forward": outputs, "sl": sl_outputs}
 
 
-def _options(ynn: bool) -> dict[str, str] | None:
-  """The compiler options of a forward program with YNNPACK's fusions on or off."""
-  return tune.KernelChoice(forward_ynn=bool(ynn)).compiler_options("forward")
-
-
 class Programs:
   """The jitted inference programs of this process, shared by every predictor.
 
@@ -70,8 +65,7 @@ class Programs:
   """
 
   def __init__(self):
-    self._jitted: dict[tuple[str, bool], Any] = {}
-    self._kept: dict[tuple[str, bool, Any], executables.Program] = {}
+    self._programs: dict[tuple[str, bool, Any], executables.Program] = {}
     self._traces: collections.Counter = collections.Counter()
     self._shapes: collections.OrderedDict = collections.OrderedDict()
 
@@ -81,31 +75,20 @@ class Programs:
 
   def run(self, kind: str, ynn: bool, model, variables, left, right) -> dict[str, jax.Array]:
     """The compiled program of `kind` applied to prepared inputs."""
-    if executables.folder() is not None:
-      return self._program(kind, bool(ynn), model)(variables, left, right)
-    key = (kind, bool(ynn))
-    if key not in self._jitted:
-      self._jitted[key] = jax.jit(self._counted(kind), static_argnums=0,
-                                  compiler_options=_options(ynn))
-    return self._jitted[key](model, variables, left, right)
-
-  def _counted(self, kind: str):
-    """KINDS[kind], counting its traces."""
-    def counted(model, variables, left, right, fn=KINDS[kind]):
-      self._traces[model] += 1  # runs only while tracing: counts compilations
-      return fn(model, variables, left, right)
-    return counted
+    return self._program(kind, bool(ynn), model)(variables, left, right)
 
   def _program(self, kind: str, ynn: bool, model) -> executables.Program:
-    """The program of `kind` for `model` kept on disk (one per equal model)."""
+    """The program of `kind` for `model` (one per equal model): jitted, and kept on disk
+    where a command line keeps compiled programs."""
     key = (kind, ynn, model)
-    if key not in self._kept:
-      counted = self._counted(kind)
-      jitted = jax.jit(lambda variables, left, right: counted(model, variables, left, right),
-                       compiler_options=_options(ynn))
-      self._kept[key] = executables.Program(jitted, f"inference-{kind}",
-                                            (repr(model), _options(ynn)))
-    return self._kept[key]
+    if key not in self._programs:
+      def counted(variables, left, right, fn=KINDS[kind]):
+        self._traces[model] += 1  # runs only while tracing: counts compilations
+        return fn(model, variables, left, right)
+      options = tune.KernelChoice(forward_ynn=ynn).compiler_options("forward")
+      self._programs[key] = executables.Program(jax.jit(counted, compiler_options=options),
+                                                f"inference-{kind}", (repr(model), options))
+    return self._programs[key]
 
   def variable_shapes(self, model, channels: int, h: int, w: int) -> dict[str, Any]:
     """The variables' shapes (ShapeDtypeStructs) of `model` on 1 x h x w x channels inputs."""

@@ -139,8 +139,9 @@ def pack(key: str, compiled) -> bytes:
   return MAGIC + header + b"\n" + body
 
 
-def unpack(key: str, data: bytes):
-  """The compiled program of an entry; ValueError when it is not an intact entry for `key`."""
+def unpack(key: str, data: bytes, device: jax.Device | None = None):
+  """The compiled program of an entry, loaded for `device` (None: the default backend's
+  devices); ValueError when it is not an intact entry for `key`."""
   from jax.experimental import serialize_executable
   if not data.startswith(MAGIC):
     raise ValueError("not an sljax executable")
@@ -154,7 +155,10 @@ def unpack(key: str, data: bytes):
     raise ValueError("damaged (checksum differs)")
   n = int.from_bytes(body[:8], "little")
   in_tree, out_tree = pickle.loads(body[8:8 + n])
-  return serialize_executable.deserialize_and_load(body[8 + n:], in_tree, out_tree)
+  if device is None:
+    return serialize_executable.deserialize_and_load(body[8 + n:], in_tree, out_tree)
+  return serialize_executable.deserialize_and_load(body[8 + n:], in_tree, out_tree,
+                                                 device.client, [device])
 
 
 def _digest(obj: Any) -> str:
@@ -202,7 +206,7 @@ def remembered(name: str, description: Any) -> list[str]:
   return [s for s in sigs if isinstance(s, str)] if isinstance(sigs, list) else []
 
 
-def load(name: str, key: str, log: Callable[[str], None]):
+def load(name: str, key: str, log: Callable[[str], None], device: jax.Device | None = None):
   """The kept program under `key`, or None: none kept, a folder that cannot be read (one
   line), or an entry that is not intact (deleted, one line)."""
   where = folder()
@@ -214,7 +218,7 @@ def load(name: str, key: str, log: Callable[[str], None]):
   if data is None:
     return None
   try:
-    return unpack(key, data)
+    return unpack(key, data, device)
   except Exception as e:  # noqa: BLE001  any failure to load means: compile it again
     log(f"sljax: compiled {name} program {where / key}-cache unusable "
         f"({type(e).__name__}: {e}); compiling it again")
@@ -294,11 +298,15 @@ class Program:
   `prefetch` starts loading, on background threads, the programs kept for the signatures this
   program was last used with: XLA's load releases the GIL, so on a 2-core CPU it runs beside
   the run's initialisation, and the first call waits only for what is left. Keys are always
-  computed on the calling thread (jax's settings can be thread-local)."""
+  computed on the calling thread (jax's settings can be thread-local). `device` names the one
+  device a program runs on when that is not the default backend's (the caller places its
+  arguments there): it is part of the key, and kept programs load for it."""
 
   def __init__(self, jitted, name: str, description: Any,
-               log: Callable[[str], None] = _stderr):
-    self.jitted, self.name, self.description, self.log = jitted, name, description, log
+               log: Callable[[str], None] = _stderr, device: jax.Device | None = None):
+    self.jitted, self.name, self.log, self.device = jitted, name, log, device
+    self.description = (description if device is None
+                        else (description, f"{device.platform}:{device.id}"))
     self._by_signature: dict[str, Any] = {}
     self._loading: dict[str, tuple[str, concurrent.futures.Future]] = {}
     self._unproven: set[int] = set()  # loaded programs not yet run once
@@ -312,7 +320,8 @@ class Program:
     for sig in remembered(self.name, self.description):
       if sig not in self._by_signature and sig not in self._loading:
         key = entry_key(self.name, self.description, sig)
-        self._loading[sig] = (key, _POOL.submit(load, self.name, key, self.log))
+        self._loading[sig] = (key, _POOL.submit(load, self.name, key, self.log,
+                                                  self.device))
     return self
 
   def _program(self, sig: str, args: tuple):
@@ -325,7 +334,7 @@ class Program:
       prefetched, future = self._loading.pop(sig)
       compiled = future.result() if prefetched == key else None
     if compiled is None and key is not None:
-      compiled = load(self.name, key, self.log)
+      compiled = load(self.name, key, self.log, self.device)
     if compiled is not None:
       self.origin = "loaded"
       self._unproven.add(id(compiled))

@@ -253,7 +253,7 @@ def test_an_entry_that_fails_in_its_first_run_is_deleted_with_one_line(folder, m
 
   def broken(*args):
     raise jax.errors.JaxRuntimeError("NOT_FOUND: Function transpose_copy_fusion.21 not found")
-  monkeypatch.setattr(executables, "unpack", lambda key, data: broken)
+  monkeypatch.setattr(executables, "unpack", lambda key, data, device=None: broken)
   program = executables.Program(_jitted(), "step", "demo")
   with pytest.raises(SljaxError, match="failed when it ran .*NOT_FOUND.* it is deleted"):
     program(*_args())

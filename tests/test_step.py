@@ -197,6 +197,52 @@ def test_sharded_step_equals_single_device():
   assert r.returncode == 0 and "SHARDED_OK" in r.stdout, r.stdout + r.stderr[-3000:]
 
 
+_HOST_INIT = textwrap.dedent("""
+    import tempfile
+    from pathlib import Path
+    import jax, numpy as np
+    from sljax import executables
+    from sljax.nets import build_model
+    from sljax.nets import model_config as mc
+    assert jax.device_count() == 2, jax.devices()
+    model = build_model("unet-disp", in_channels=3, depth=2, base_width=8)
+    plain = jax.device_get(mc.init_variables(model, 3, 32, 32, 3))
+    ran_on = []
+    real = executables.Program.__call__
+    def spy(self, *args):
+      ran_on.append((str(self.device), sorted(d.id for a in args for d in a.devices())))
+      return real(self, *args)
+    executables.Program.__call__ = spy
+    executables.enable(Path(tempfile.mkdtemp()))
+    origins = []
+    for _ in range(2):  # compiled and kept, then loaded by a fresh program
+      mc._init_fn.cache_clear()
+      with jax.default_device(jax.devices()[1]):
+        v = mc.init_variables(model, 3, 32, 32, 3)
+      origins.append(mc._init_fn(model, 32, 32, 3, jax.devices()[0]).origin)
+      leaves = jax.tree.leaves(v)
+      assert all(a.devices() == {jax.devices()[1]} for a in leaves), leaves[0].devices()
+      assert jax.tree.structure(v) == jax.tree.structure(plain)
+      for a, b in zip(leaves, jax.tree.leaves(plain)):
+        np.testing.assert_array_equal(np.asarray(a), b)
+    assert ran_on == [("cpu:0", [0])] * 2 and origins == ["compiled", "loaded"], (ran_on, origins)
+    print("HOST_INIT_OK")
+""")
+
+
+def test_initial_values_come_from_the_host_cpu_and_land_on_the_default_device():
+  """Where the default device is not the host's CPU (a GPU; here a second CPU device stands in
+  for it), the init program runs on the host (a GPU compiles its hundreds of small random-value
+  fusions kernel by kernel), the variables arrive on the default device bit for bit as a plain
+  init gives them, and a kept init program loads for the host in the next process."""
+  flags = f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=2"
+  env = dict(os.environ, XLA_FLAGS=flags.strip(), JAX_PLATFORMS="cpu", PYTHONPATH=str(ROOT),
+             SLJAX_PROGRAM_CACHE="on")
+  r = subprocess.run([sys.executable, "-c", _HOST_INIT], env=env, cwd=ROOT, capture_output=True,
+                     text=True, timeout=600)
+  assert r.returncode == 0 and "HOST_INIT_OK" in r.stdout, r.stdout + r.stderr[-3000:]
+
+
 def test_grad_block_values_reach_the_kernel_gradients(twin, mesh):
   """The step traces its gradients inside grad_blocks(grad_block_values): one-plane kernel
   gradients put loops into the program that the layers' own blocks do not have, and the

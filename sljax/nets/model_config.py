@@ -127,16 +127,44 @@ INIT_COMPILER_OPTIONS = {"xla_backend_optimization_level": 0,
                          "xla_llvm_disable_expensive_passes": True}
 
 
+def _host_device() -> jax.Device | None:
+  """The host's CPU device, or None where jax runs without its CPU backend (JAX_PLATFORMS)."""
+  try:
+    return jax.local_devices(backend="cpu")[0]
+  except RuntimeError:
+    return None
+
+
+def _default_device() -> jax.Device:
+  """Where uncommitted arrays go: jax's default device setting, else the first device."""
+  chosen = jax.config.jax_default_device
+  if isinstance(chosen, str):  # a platform name
+    return jax.devices(chosen)[0]
+  return chosen or jax.devices()[0]
+
+
 @functools.lru_cache(maxsize=8)
-def _init_fn(model: nn.Module, height: int, width: int, channels: int):
+def _init_fn(model: nn.Module, height: int, width: int, channels: int,
+             device: jax.Device | None):
   x = jnp.zeros((1, height, width, channels), jnp.float32)
   return executables.Program(jax.jit(lambda key: model.init(key, x, x, train=False),
                                      compiler_options=INIT_COMPILER_OPTIONS),
-                             "init", (repr(model), height, width, channels)).prefetch()
+                             "init", (repr(model), height, width, channels),
+                             device=device).prefetch()
 
 
 def init_variables(model: nn.Module, seed: int, height: int, width: int,
                    channels: int) -> dict[str, Any]:
   """Model variables from a batch-1 dummy input, deterministic in seed (compiled once per
-  model and shape in a process)."""
-  return dict(_init_fn(model, height, width, channels)(jax.random.PRNGKey(seed)))
+  model and shape in a process), computed on the host's CPU and placed on the default device."""
+  # The forward is dead code in init (XLA drops it); what is left is the random values of
+  # every parameter, about 1500 small fusions for the twin, which XLA:GPU compiles kernel by
+  # kernel: about 33 s of the paper preset's start on an H200, 7.8 s on its host's CPU
+  # (docs/benchmarks.md, "NVIDIA H200").
+  host = _host_device()
+  if host is None or host == _default_device():
+    return dict(_init_fn(model, height, width, channels, None)(jax.random.PRNGKey(seed)))
+  with jax.default_device(host):
+    variables = _init_fn(model, height, width, channels, host)(jax.random.PRNGKey(seed))
+    variables = jax.device_get(variables)
+  return dict(jax.tree.map(jnp.asarray, variables))  # uncommitted, on the default device

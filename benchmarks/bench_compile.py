@@ -123,11 +123,17 @@ def run_once(train_args: list[str], cache_dir: Path, workdir: Path, env_extra: d
   return data
 
 
+def program_name(fun: str) -> str:
+  """A jitted function's name as the trace, lowering and compile events all give it."""
+  return fun[4:-1] if fun.startswith("jit(") and fun.endswith(")") else fun
+
+
 def phases(data: dict) -> dict:
   """Seconds of each phase inside the first step call, and the programs compiled before it."""
   start, end = data["first_start"], data["first_end"]
   inside = collections.Counter()
   before = collections.Counter()
+  before_by_program = collections.Counter()
   hits = misses = 0
   for r in data["records"]:
     began = r["end"] - r["s"]
@@ -139,6 +145,8 @@ def phases(data: dict) -> dict:
       inside[r["event"]] += r["s"]
     elif r["end"] <= start:
       before[r["event"]] += r["s"]
+      if r["event"] in ("trace", "lower", "compile"):
+        before_by_program[program_name(r["fun"])] += r["s"]
   first = end - start
   xla = inside["compile"] - inside["cache_load"]
   other = first - inside["trace"] - inside["lower"] - inside["compile"]
@@ -148,6 +156,7 @@ def phases(data: dict) -> dict:
           "before": before["trace"] + before["lower"] + before["compile"],
           "to_first_end": data["launch_to_first_end"], "wall": data["wall"],
           "origin": data.get("origin", "-"),
+          "before_top": [[f, round(s, 2)] for f, s in before_by_program.most_common(4)],
           "later_step": min(data["later"]) if data.get("later") else None}
 
 
@@ -164,6 +173,9 @@ def part_run(args) -> list[dict]:
         rows.append(dict(kind=kind, **phases(data)))
         args.where = data["where"]
         print(format_run_row(rows[-1]), flush=True)
+  for r in rows:  # which programs the start compiles before the step
+    print(f"programs before the first step ({r['kind']}): "
+          + (", ".join(f"{f} {s:.1f} s" for f, s in r["before_top"]) or "none"), flush=True)
   return rows
 
 

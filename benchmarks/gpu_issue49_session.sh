@@ -14,7 +14,8 @@
 #      Targets: <= 0.45x the reference in TF32, <= 0.3x in bf16.
 #   3. fullres: full-resolution inference, PSMNet in pad mode, batch 1, maxdisp 192, at
 #      1920x1080, against the reference's forward in its own process (bench_fullres.py).
-#   4. kernels: which convolutions run in cuDNN's `indexed` kernels and which bring
+#   4. kernels: which convolutions run in cutlass `analytic` kernels (24% of the TF32 step on an
+#      H200, 2026-11-28, layer unknown) and cuDNN's `indexed` ones, and which bring
 #      `nchwToNhwc` conversions, each with its layer (profile_step.py --kernels).
 #
 # The reference side needs a local checkout of JiaRenChang/PSMNet (sljax neither ships nor
@@ -35,7 +36,7 @@ first="--part run --later-steps 3"
 step="--shapes paper --precisions fp32,bf16 --impls gpu --twin none --steps 10 --warmup 3"
 step="$step --profile-top 8"
 fullres="--size 1080x1920 --maxdisp 192 --models psmnet --repeats 2"
-kernels="--size 256 --maxdisp 96 --batch 12 --kernels indexed,nchwToNhwc"
+kernels="--size 256 --maxdisp 96 --batch 12 --kernels analytic,indexed,nchwToNhwc"
 first_limit=230; step_need=150; fullres_need=60; kernels_need=80
 if [ -n "$dry" ]; then
   first_args="--strategy epr --preset quick --size 32x32 --maxdisp 16 --batch-size 2"
@@ -43,7 +44,7 @@ if [ -n "$dry" ]; then
   step="--shapes 256x256x16x2 --precisions fp32,bf16 --impls gpu --twin none --steps 2"
   step="$step --warmup 1 --profile-top 3"
   fullres="--size 256x256 --maxdisp 16 --models psmnet --repeats 1"
-  kernels="--size 64 --maxdisp 16 --batch 1 --kernels indexed,nchwToNhwc"
+  kernels="--size 64 --maxdisp 16 --batch 1 --kernels analytic,indexed,nchwToNhwc"
   first_limit=400; step_need=10; fullres_need=10; kernels_need=10
 fi
 

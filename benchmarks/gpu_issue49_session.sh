@@ -17,6 +17,12 @@
 #   4. kernels: which convolutions run in cutlass `analytic` kernels (24% of the TF32 step on an
 #      H200, 2026-11-28, layer unknown) and cuDNN's `indexed` ones, and which bring
 #      `nchwToNhwc` conversions, each with its layer (profile_step.py --kernels).
+#   5. autotune: part 1 again (cold and warm) with XLA:GPU's convolution autotuning off
+#      (XLA_FLAGS=--xla_gpu_autotune_level=0): how much of the cold compile it is, and what the
+#      later steps pay for cuDNN's heuristic choice instead.
+#
+# PARTS (default: first,step,fullres,kernels,autotune) chooses the parts, in that order; each
+# runs only if the deadline leaves it about the time it needs.
 #
 # The reference side needs a local checkout of JiaRenChang/PSMNet (sljax neither ships nor
 # fetches it) at .ref/PSMNet (or REFERENCE=DIR). Logs come back under $OUT (session.log
@@ -30,6 +36,7 @@ cd "$(dirname "$0")/.."
 dry=${1:-}
 session=gpu_issue49_session deadline_s=530
 source benchmarks/gpu_common.sh
+parts=",${PARTS:-first,step,fullres,kernels,autotune},"
 
 first_args="--strategy epr --preset paper"
 first="--part run --later-steps 3"
@@ -37,7 +44,7 @@ step="--shapes paper --precisions fp32,bf16 --impls gpu --twin none --steps 10 -
 step="$step --profile-top 8"
 fullres="--size 1080x1920 --maxdisp 192 --models psmnet --repeats 2"
 kernels="--size 256 --maxdisp 96 --batch 12 --kernels analytic,indexed,nchwToNhwc"
-first_limit=230; step_need=150; fullres_need=60; kernels_need=80
+first_limit=230; step_need=150; fullres_need=60; kernels_need=80; autotune_need=120
 if [ -n "$dry" ]; then
   first_args="--strategy epr --preset quick --size 32x32 --maxdisp 16 --batch-size 2"
   first="--part run --later-steps 1"
@@ -45,39 +52,49 @@ if [ -n "$dry" ]; then
   step="$step --warmup 1 --profile-top 3"
   fullres="--size 256x256 --maxdisp 16 --models psmnet --repeats 1"
   kernels="--size 64 --maxdisp 16 --batch 1 --kernels analytic,indexed,nchwToNhwc"
-  first_limit=400; step_need=10; fullres_need=10; kernels_need=10
+  first_limit=400; step_need=10; fullres_need=10; kernels_need=10; autotune_need=10
 fi
+# part NAME NEED: whether to run part NAME now (chosen in PARTS, NEED seconds left), else why not
+part() {
+  case "$parts" in *",$1,"*) ;; *) return 1 ;; esac
+  [ "$(left)" -ge "$2" ] && return 0
+  log "$1: skipped, $(left) s left, it needs about $2"; return 1
+}
+first_rows() { grep -E "^\||^First|^programs before|runs on|recorded" "$1" | tee -a "$OUT/session.log"; }
 
 header
 
-log "1. bench_compile.py $first --train-args '$first_args' (within $first_limit s)"
-timeout "$first_limit" $PY benchmarks/bench_compile.py $first --train-args "$first_args" \
-  > "$OUT/first_step.log" 2>&1
-ran; grep -E "^\||^First|^programs before|runs on|recorded" "$OUT/first_step.log" | tee -a "$OUT/session.log"
+if part first 1; then
+  log "1. bench_compile.py $first --train-args '$first_args' (within $first_limit s)"
+  timeout "$first_limit" $PY benchmarks/bench_compile.py $first --train-args "$first_args" \
+    > "$OUT/first_step.log" 2>&1
+  ran; first_rows "$OUT/first_step.log"
+fi
 
-if [ "$(left)" -ge "$step_need" ]; then
+if part step "$step_need"; then
   log "2. bench_gpu.py --part step $step (deadline $(( $(left) - 40 )) s)"
   timeout "$(left)" $PY benchmarks/bench_gpu.py --part step $step \
     --deadline $(( $(left) - 40 )) $refarg > "$OUT/step.log" 2>&1
   ran; grep -E "^\||runs? on|recorded" "$OUT/step.log" | tee -a "$OUT/session.log"
-else
-  log "2. skipped: $(left) s left, the step needs about $step_need"
 fi
 
-if [ "$(left)" -ge "$fullres_need" ]; then
+if part fullres "$fullres_need"; then
   log "3. bench_fullres.py $fullres $refarg (deadline $(left) s)"
   timeout "$(left)" $PY benchmarks/bench_fullres.py $fullres $refarg > "$OUT/fullres.log" 2>&1
   ran; cat "$OUT/fullres.log" | tee -a "$OUT/session.log"
-else
-  log "3. skipped: $(left) s left, full-resolution inference needs about $fullres_need"
 fi
 
-if [ "$(left)" -ge "$kernels_need" ]; then
+if part kernels "$kernels_need"; then
   log "4. profile_step.py $kernels (deadline $(left) s)"
   timeout "$(left)" $PY benchmarks/profile_step.py $kernels > "$OUT/kernels.log" 2>&1
   ran; grep -E "^\||device kernels|recorded|no device" "$OUT/kernels.log" |
     tee -a "$OUT/session.log"
-else
-  log "4. skipped: $(left) s left, the kernel profile needs about $kernels_need"
+fi
+
+if part autotune "$autotune_need"; then
+  log "5. XLA_FLAGS=--xla_gpu_autotune_level=0 bench_compile.py $first (deadline $(left) s)"
+  XLA_FLAGS="${XLA_FLAGS:-} --xla_gpu_autotune_level=0" timeout "$(left)" \
+    $PY benchmarks/bench_compile.py $first --train-args "$first_args" > "$OUT/autotune.log" 2>&1
+  ran; first_rows "$OUT/autotune.log"
 fi
 footer

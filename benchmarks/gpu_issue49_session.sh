@@ -17,11 +17,15 @@
 #   4. kernels: which convolutions run in cutlass `analytic` kernels (24% of the TF32 step on an
 #      H200, 2026-11-28, layer unknown) and cuDNN's `indexed` ones, and which bring
 #      `nchwToNhwc` conversions, each with its layer (profile_step.py --kernels).
-#   5. autotune: part 1 again (cold and warm) with XLA:GPU's convolution autotuning off
+#   5. nhwc: part 2's TF32 step, sljax alone, with XLA_FLAGS=--xla_gpu_force_conv_nhwc=true: XLA
+#      lays float32 convolutions out NCHW (dim_labels bf012 on the H200), so cuDNN converts
+#      each 3D convolution's operands (`nchwToNhwc`) and its forwards run outside the `indexed`
+#      kernels; in bf16 they run NHWC. Compare with part 2's sljax TF32 row of the same call.
+#   6. autotune: part 1 again (cold and warm) with XLA:GPU's convolution autotuning off
 #      (XLA_FLAGS=--xla_gpu_autotune_level=0): how much of the cold compile it is, and what the
 #      later steps pay for cuDNN's heuristic choice instead.
 #
-# PARTS (default: first,step,fullres,kernels,autotune) chooses the parts, in that order; each
+# PARTS (default: first,step,fullres,kernels,nhwc,autotune) chooses the parts, in that order; each
 # runs only if the deadline leaves it about the time it needs.
 #
 # The reference side needs a local checkout of JiaRenChang/PSMNet (sljax neither ships nor
@@ -36,7 +40,7 @@ cd "$(dirname "$0")/.."
 dry=${1:-}
 session=gpu_issue49_session deadline_s=530
 source benchmarks/gpu_common.sh
-parts=",${PARTS:-first,step,fullres,kernels,autotune},"
+parts=",${PARTS:-first,step,fullres,kernels,nhwc,autotune},"
 
 first_args="--strategy epr --preset paper"
 first="--part run --later-steps 3"
@@ -44,7 +48,8 @@ step="--shapes paper --precisions fp32,bf16 --impls gpu --twin none --steps 10 -
 step="$step --profile-top 8"
 fullres="--size 1080x1920 --maxdisp 192 --models psmnet --repeats 2"
 kernels="--size 256 --maxdisp 96 --batch 12 --kernels analytic,indexed,nchwToNhwc"
-first_limit=230; step_need=150; fullres_need=60; kernels_need=80; autotune_need=120
+nhwc="--shapes paper --precisions fp32 --impls gpu --twin none --steps 10 --warmup 3 --profile-top 8"
+first_limit=230; step_need=150; fullres_need=60; kernels_need=80; nhwc_need=110; autotune_need=120
 if [ -n "$dry" ]; then
   first_args="--strategy epr --preset quick --size 32x32 --maxdisp 16 --batch-size 2"
   first="--part run --later-steps 1"
@@ -52,7 +57,8 @@ if [ -n "$dry" ]; then
   step="$step --warmup 1 --profile-top 3"
   fullres="--size 256x256 --maxdisp 16 --models psmnet --repeats 1"
   kernels="--size 64 --maxdisp 16 --batch 1 --kernels analytic,indexed,nchwToNhwc"
-  first_limit=400; step_need=10; fullres_need=10; kernels_need=10; autotune_need=10
+  nhwc="--shapes 256x256x16x2 --precisions fp32 --impls gpu --twin none --steps 2 --warmup 1"
+  first_limit=400; step_need=10; fullres_need=10; kernels_need=10; nhwc_need=10; autotune_need=10
 fi
 # part NAME NEED: whether to run part NAME now (chosen in PARTS, NEED seconds left), else why not
 part() {
@@ -91,8 +97,16 @@ if part kernels "$kernels_need"; then
     tee -a "$OUT/session.log"
 fi
 
+if part nhwc "$nhwc_need"; then
+  log "5. XLA_FLAGS=--xla_gpu_force_conv_nhwc=true bench_gpu.py --part step $nhwc (deadline $(left) s)"
+  XLA_FLAGS="${XLA_FLAGS:-} --xla_gpu_force_conv_nhwc=true" timeout "$(left)" \
+    $PY benchmarks/bench_gpu.py --part step $nhwc --deadline $(( $(left) - 20 )) \
+    > "$OUT/nhwc.log" 2>&1
+  ran; grep -E "^\||runs? on|recorded" "$OUT/nhwc.log" | tee -a "$OUT/session.log"
+fi
+
 if part autotune "$autotune_need"; then
-  log "5. XLA_FLAGS=--xla_gpu_autotune_level=0 bench_compile.py $first (deadline $(left) s)"
+  log "6. XLA_FLAGS=--xla_gpu_autotune_level=0 bench_compile.py $first (deadline $(left) s)"
   XLA_FLAGS="${XLA_FLAGS:-} --xla_gpu_autotune_level=0" timeout "$(left)" \
     $PY benchmarks/bench_compile.py $first --train-args "$first_args" > "$OUT/autotune.log" 2>&1
   ran; first_rows "$OUT/autotune.log"

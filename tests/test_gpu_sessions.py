@@ -14,16 +14,19 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _session(tmp_path, script, *args, deadline=None, reference=False):
-    """Run one session script with a stub Python; (exit code, session.log, stub calls, stderr)."""
+def _session(tmp_path, script, *args, deadline=None, reference=False, **env_extra):
+    """Run one session script with a stub Python; (exit code, session.log, stub calls, stderr).
+    The stub also notes each call's XLA_FLAGS in flags.txt beside it."""
     tmp_path.mkdir(parents=True, exist_ok=True)
     stub = tmp_path / "python"
     calls = tmp_path / "calls.txt"
-    stub.write_text(f'#!/bin/sh\necho "$*" >> {calls}\necho "| stub |"\n')
+    stub.write_text(f'#!/bin/sh\necho "$*" >> {calls}\necho "${{XLA_FLAGS:-}}" >> '
+                    f'{tmp_path / "flags.txt"}\necho "| stub |"\n')
     stub.chmod(0o755)
     out = tmp_path / "out"
-    env = {k: v for k, v in os.environ.items() if k not in ("DEADLINE", "REFERENCE", "OUT")}
-    env.update(OUT=str(out), PYTHON=str(stub))
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("DEADLINE", "REFERENCE", "OUT", "PARTS", "XLA_FLAGS")}
+    env.update(OUT=str(out), PYTHON=str(stub), **env_extra)
     if deadline is not None:
         env["DEADLINE"] = str(deadline)
     if reference:
@@ -65,6 +68,38 @@ def test_issue42_session_skips_what_the_deadline_leaves_no_time_for(tmp_path):
     assert _benchmarks(calls) == ["benchmarks/bench_compile.py"]
     assert "2. skipped: 1 s left" in log and "3. skipped: 1 s left" in log
     assert "reference: none (no " in log
+
+
+def test_issue49_session_runs_its_parts_in_order_each_with_its_flags(tmp_path):
+    rc, log, calls, err = _session(tmp_path, "gpu_issue49_session.sh", "dry", deadline=900,
+                                   reference=True)
+    assert rc == 0, err
+    assert _benchmarks(calls) == ["benchmarks/bench_compile.py", "benchmarks/bench_gpu.py",
+                                  "benchmarks/bench_fullres.py", "benchmarks/profile_step.py",
+                                  "benchmarks/bench_gpu.py", "benchmarks/bench_compile.py"]
+    work = [c for c in calls if c.startswith("benchmarks/")]
+    flags = [f for c, f in zip(calls, (tmp_path / "flags.txt").read_text().splitlines())
+             if c.startswith("benchmarks/")]
+    step, nhwc = work[1], work[4]
+    assert "--precisions fp32,bf16" in step and f"--reference {tmp_path / 'PSMNet'}" in step
+    assert "--precisions fp32 " in nhwc and "--reference" not in nhwc  # sljax alone
+    assert "--kernels analytic,indexed,nchwToNhwc" in work[3]
+    assert [f.split() for f in flags] == [[], [], [], [], ["--xla_gpu_force_conv_nhwc=true"],
+                                          ["--xla_gpu_autotune_level=0"]]
+    assert log.count("exit code 0") == 6 and log.rstrip().endswith("done")
+
+
+def test_issue49_session_runs_the_parts_asked_for_while_time_is_left(tmp_path):
+    rc, log, calls, err = _session(tmp_path, "gpu_issue49_session.sh", "dry",
+                                   PARTS="kernels,autotune")
+    assert rc == 0, err
+    assert _benchmarks(calls) == ["benchmarks/profile_step.py", "benchmarks/bench_compile.py"]
+    rc, log, calls, err = _session(tmp_path / "late", "gpu_issue49_session.sh", "dry",
+                                   deadline=1)
+    assert rc == 0, err
+    assert _benchmarks(calls) == ["benchmarks/bench_compile.py"]  # the first step always runs
+    for name in ("step", "fullres", "kernels", "nhwc", "autotune"):
+        assert f"{name}: skipped, 1 s left" in log
 
 
 def test_convT_session_passes_its_deadline_on_and_skips_the_crop_without_time(tmp_path):

@@ -21,6 +21,7 @@ import jax.numpy as jnp
 from sljax import executables
 from sljax.errors import SljaxError
 from sljax.kernels.impl import conv_impl as resolve_conv_impl
+from sljax.nets.draws import batched_draws
 from sljax.nets.registry import NetSpec, check_maxdisp, model_kwargs_for, spec
 
 # Computation dtypes of --precision; parameters, optimiser state and losses stay float32.
@@ -147,8 +148,12 @@ def _default_device() -> jax.Device:
 def _init_fn(model: nn.Module, height: int, width: int, channels: int,
              device: jax.Device | None):
   x = jnp.zeros((1, height, width, channels), jnp.float32)
-  return executables.Program(jax.jit(lambda key: model.init(key, x, x, train=False),
-                                     compiler_options=INIT_COMPILER_OPTIONS),
+
+  @batched_draws
+  def init(key):
+    return model.init(key, x, x, train=False)
+
+  return executables.Program(jax.jit(init, compiler_options=INIT_COMPILER_OPTIONS),
                              "init", (repr(model), height, width, channels),
                              device=device).prefetch()
 
@@ -157,10 +162,10 @@ def init_variables(model: nn.Module, seed: int, height: int, width: int,
                    channels: int) -> dict[str, Any]:
   """Model variables from a batch-1 dummy input, deterministic in seed (compiled once per
   model and shape in a process), computed on the host's CPU and placed on the default device."""
-  # The forward is dead code in init (XLA drops it); what is left is the random values of
-  # every parameter, about 1500 small fusions for the twin, which XLA:GPU compiles kernel by
-  # kernel: about 33 s of the paper preset's start on an H200, 7.8 s on its host's CPU
-  # (docs/benchmarks.md, "NVIDIA H200").
+  # The forward is dead code in init; what is left is the random values of every parameter,
+  # about 1500 small fusions for the twin, which XLA:GPU compiles kernel by kernel: about 33 s
+  # of the paper preset's start on an H200, 7.8 s on its host's CPU (docs/benchmarks.md,
+  # "NVIDIA H200"). Drawn once per shape (`batched_draws`) XLA:CPU compiles it in half the time.
   host = _host_device()
   if host is None or host == _default_device():
     return dict(_init_fn(model, height, width, channels, None)(jax.random.PRNGKey(seed)))

@@ -371,6 +371,39 @@ def test_the_bar_says_it_is_compiling_then_how_long_the_first_step_took(monkeypa
   assert all("epoch" in kw for kw in postfix[2:]) and len(postfix) > 3  # then the loss lines
 
 
+def test_the_bars_rate_and_time_left_leave_out_the_first_steps_compile(monkeypatch, tmp_path):
+  import io
+  from tqdm import tqdm
+  model, tx, step, evaluate = toys.tiny_steps(
+      ModelConfig("psmnet", in_channels=3, maxdisp=16), "l2", 3e-2, None, loop.stp.make_mesh())
+  rates = []
+
+  class Bar(tqdm):  # records the rate it shows after each update
+    def update(self, n=1):
+      super().update(n)
+      rates.append((self.n, self.format_dict["rate"], self.format_dict["elapsed"]))
+
+  bar = Bar(total=5, file=io.StringIO(), mininterval=0, miniters=1)
+  clock = [bar.start_t]
+  bar._time = lambda: clock[0]
+  bar.last_print_t = clock[0]
+
+  calls = []
+
+  def timed(state, batch, weights):  # the bar's clock: 100 s to compile, then 1 s a step
+    clock[0] += 1 if calls else 100
+    calls.append(1)
+    return step(state, batch, weights)
+
+  monkeypatch.setattr(loop, "compiled_steps", lambda *a: (model, tx, timed, evaluate))
+  monkeypatch.setattr(loop, "open_source", lambda config: MemorySource(12, 0.0))
+  loop.train(_config("stl", epochs=1, max_val=2), tmp_path / "run", log=lambda line: None,
+             progress=bar)
+  assert [n for n, _, _ in rates] == [3, 5]  # log_every 3, 5 steps in the epoch
+  assert [rate for _, rate, _ in rates] == [pytest.approx(1.0)] * 2  # steps 2-3, then 4-5
+  assert rates[-1][2] == pytest.approx(104)  # elapsed stays the wall clock's
+
+
 # A child process that runs train.py's main on TinyTwin/MemorySource and sends itself SIGINT
 # once step N is fetched, from inside a garbage-collector callback of the main thread: where
 # a KeyboardInterrupt is dropped ("Exception ignored in ... KeyboardInterrupt"), as it was when

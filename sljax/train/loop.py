@@ -45,8 +45,8 @@ from sljax.train.interrupt import deferred_interrupt
 from sljax.train.feed import (LOADER_THREADS, PREFETCH, RowCache, batch_parts, check_source,
                               open_source, prefetch, row_caches, train_batches)
 from sljax.train.profiler import StepProfiler, check_profile_dir
-from sljax.train.record import (Recorder, TrainingDiverged, fetch_metrics, save, write_epoch,
-                                write_validation)
+from sljax.train.record import (Recorder, TrainingDiverged, fetch_metrics, rate_after_first_step,
+                                save, write_epoch, write_validation)
 from sljax.train.setup import Setup, merge_init, model_config, resolve_ynn, setup
 from sljax.train.state import LoopState
 from sljax.train.validate import validate_split
@@ -262,6 +262,7 @@ def _train(config: TrainConfig, workdir: Path, resume: bool, overwrite: bool,
         if step == first:
           bar.set_postfix(status=f"first step ({first_step_origin(train_step)}) "
                                  f"{time.perf_counter() - t_first:.0f} s", refresh=True)
+          rate_after_first_step(bar)
         profiler.after(step, state)
         pending.append((step, metrics))
         final = step == run.total_steps

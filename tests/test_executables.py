@@ -349,6 +349,43 @@ def test_only_a_fresh_compile_is_kept(folder, monkeypatch):
   assert third.origin == "compiled, not kept" and not _entries(folder)
 
 
+_ONE_COPY = """
+import sys
+from pathlib import Path
+import jax, jax.numpy as jnp
+where = Path(sys.argv[1])
+jax.config.update("jax_compilation_cache_dir", str(where))
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+from sljax import executables
+executables.enable(where)
+def kept(x):
+  return jnp.tanh(x) @ x
+def plain(x):
+  return jnp.sin(x) @ x
+x = jnp.ones((3, 3))
+names = lambda: sorted(p.name.split("-")[0] for p in where.glob("*-cache"))
+program = executables.Program(jax.jit(kept), "kept", "demo")
+program(x)
+print(program.origin, names())
+jax.jit(plain)(x)  # not kept: jax's cache as before
+print(names())
+"""
+
+
+def test_a_kept_program_is_not_also_written_to_jaxs_cache(tmp_path):
+  """One copy per program: jax's entry would never serve a kept program (one from jax's cache
+  is compiled afresh) and would double its bytes in the bounded folder."""
+  env = dict(os.environ, **{executables.ENV: "on"})
+  env.pop("JAX_COMPILATION_CACHE_DIR", None)
+  out = subprocess.run([sys.executable, "-c", _ONE_COPY, str(tmp_path / "xla")], env=env,
+                       capture_output=True, text=True, cwd=ROOT, timeout=300)
+  assert out.returncode == 0, out.stderr
+  kept, plain = out.stdout.strip().splitlines()
+  assert kept.startswith("compiled [") and "'sljax'" in kept  # sljax's entry
+  assert "jit_kept" not in kept  # and not jax's
+  assert "jit_plain" in plain  # a program that is not kept still goes to jax's cache
+
+
 def test_prefetch_loads_the_remembered_signatures_before_the_first_call(folder):
   first = executables.Program(_jitted(), "step", "demo")
   _run(first, rows=4)

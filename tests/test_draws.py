@@ -39,6 +39,9 @@ def _toy(key):
   out["same"] = [jax.random.bits(key, (3,)), jax.random.bits(key, (3,))]
   out["c"] = jax.random.normal(jax.random.fold_in(jax.random.fold_in(key, 1), 2), (4, 5))
   out["ones"] = jnp.ones(2) * 2
+  # a custom-JVP function and a loop over a draw (bound as jax's evaluator binds them)
+  out["relu"] = jax.nn.relu(jax.random.normal(jax.random.fold_in(key, 20), (4, 5)))
+  out["loop"] = jax.lax.fori_loop(0, 3, lambda i, v: v * 0.5 + i, out["b0"])
   return out
 
 
@@ -50,7 +53,7 @@ def test_equal_draws_are_one_vmapped_draw_with_each_keys_values():
   assert not np.array_equal(plain["a0"], plain["a1"])  # distinct keys, distinct values
   # a0-a2 and c: one draw of (4, 5) per depth (c's key is folded twice, so it is drawn a level
   # deeper); b0, b1 one of (7,); the two draws of one key one of (3,)
-  assert sorted(_draws(jax.make_jaxpr(_toy)(key))) == sorted([(4, 5)] * 4 + [(7,)] * 2
+  assert sorted(_draws(jax.make_jaxpr(_toy)(key))) == sorted([(4, 5)] * 5 + [(7,)] * 2
                                                               + [(3,)] * 2)
   assert sorted(_draws(jax.make_jaxpr(batched_draws(_toy))(key))) == [(3,), (4, 5), (4, 5),
                                                                       (7,)]

@@ -110,6 +110,16 @@ def _same(inputs: list[Any]) -> bool:
   return all(a is first for a in inputs)
 
 
+def _bind(eqn: _Eqn, args: list[Any]) -> list[Any]:
+  """The equation applied to `args`, as jax's own jaxpr evaluator binds it."""
+  params = eqn.primitive.get_bind_params(eqn.params)
+  subfuns = ()
+  if isinstance(params, tuple):  # jax before 0.7: (subfuns, params)
+    subfuns, params = params
+  out = eqn.primitive.bind(*subfuns, *args, **params)
+  return out if eqn.primitive.multiple_results else [out]
+
+
 class _Env:
   def __init__(self):
     self.values: dict[int, Any] = {}
@@ -133,9 +143,8 @@ class _Env:
     return jnp.stack([self.read(a) for a in inputs])
 
   def bind(self, eqn: _Eqn) -> None:
-    outs = eqn.primitive.bind(*[self.read(a) for a in eqn.invars], **eqn.params)
-    self.values.update(zip(map(id, eqn.outvars), outs if eqn.primitive.multiple_results
-                           else [outs]))
+    outs = _bind(eqn, [self.read(a) for a in eqn.invars])
+    self.values.update(zip(map(id, eqn.outvars), outs))
 
   def bind_batched(self, group: list[_Eqn]) -> None:
     """Equal equations as one: shared inputs passed once, the others stacked and vmapped."""
@@ -152,8 +161,7 @@ class _Env:
 
     def one(*xs):
       args = {**shared, **dict(zip(varying, xs))}
-      out = first.primitive.bind(*[args[p] for p in range(len(columns))], **first.params)
-      return out if first.primitive.multiple_results else [out]
+      return _bind(first, [args[p] for p in range(len(columns))])
 
     outs = jax.vmap(one)(*[self.stacked(columns[p]) for p in varying])
     for i, eqn in enumerate(group):

@@ -39,6 +39,7 @@ def _toy(key):
   out["same"] = [jax.random.bits(key, (3,)), jax.random.bits(key, (3,))]
   out["c"] = jax.random.normal(jax.random.fold_in(jax.random.fold_in(key, 1), 2), (4, 5))
   out["ones"] = jnp.ones(2) * 2
+  out["ints"] = [jnp.arange(4) * 2, jnp.arange(4) * 3]  # integer equations on stacked literals
   # a custom-JVP function and a loop over a draw (bound as jax's evaluator binds them)
   out["relu"] = jax.nn.relu(jax.random.normal(jax.random.fold_in(key, 20), (4, 5)))
   out["loop"] = jax.lax.fori_loop(0, 3, lambda i, v: v * 0.5 + i, out["b0"])

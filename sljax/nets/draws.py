@@ -133,7 +133,7 @@ class _Env:
   def stacked(self, inputs: list[Any]):
     """The inputs as one array along a new first axis, reusing a batch already in order."""
     if all(isinstance(a, jcore.Literal) for a in inputs):
-      return jnp.asarray(np.stack([np.asarray(a.val) for a in inputs]))
+      return jnp.asarray(np.stack([np.asarray(a.val, a.aval.dtype) for a in inputs]))
     lanes = [self.values.get(id(a)) for a in inputs]
     first = lanes[0]
     if (isinstance(first, _Lane) and first.batch.shape[0] == len(inputs)

@@ -98,8 +98,9 @@ DERIVED_LINES = ("XLA Modules", "XLA Ops", "Async XLA Ops", "Steps", "TensorFlow
 def device_kernel_times(events: list[dict], by_op: bool = False
                         ) -> tuple[collections.Counter, dict[str, str]]:
   """Microseconds per kernel name on the accelerators' stream lines of a trace (an empty
-  Counter on a CPU-only trace), and the XLA operation of each kernel where the trace names it;
-  by_op: per (kernel name, XLA operation) instead (one kernel can serve several operations)."""
+  Counter on a CPU-only trace), and the XLA operations each kernel ran for where the trace
+  names them (Counters of microseconds); by_op: per (kernel name, XLA operation) instead (one
+  kernel can serve several operations)."""
   procs, threads = {}, {}
   for e in events:
     if e.get("ph") == "M" and e.get("name") in ("process_name", "thread_name"):
@@ -116,8 +117,16 @@ def device_kernel_times(events: list[dict], by_op: bool = False
       op = (e.get("args") or {}).get("hlo_op")
       kernels[(e["name"], str(op or "")) if by_op else e["name"]] += e["dur"]
       if op:
-        ops.setdefault(e["name"], str(op))
+        ops.setdefault(e["name"], collections.Counter())[str(op)] += e["dur"]
   return kernels, ops
+
+
+def op_label(ops: collections.Counter | None) -> str:
+  """The XLA operation a kernel spent most time in, and how many others it ran for."""
+  if not ops:
+    return ""
+  (first, _), rest = ops.most_common(1)[0], len(ops) - 1
+  return first + (f" (+{rest} more)" if rest else "")
 
 
 def kernel_rows(events: list[dict], calls: int, top: int) -> list[dict]:
@@ -129,7 +138,7 @@ def kernel_rows(events: list[dict], calls: int, top: int) -> list[dict]:
     kernels, ops, where = by_kind(exclusive_times(events)), {}, "host"
   total = sum(kernels.values()) or 1.0
   return [{"kernel": name, "ms_per_call": us / 1e3 / calls, "share": us / total,
-           "hlo_op": ops.get(name, ""), "where": where}
+           "hlo_op": op_label(ops.get(name)), "where": where}
           for name, us in kernels.most_common(top)]
 
 

@@ -50,8 +50,9 @@ class _Lane:
 
 
 def _inline(jaxpr, invars: Sequence[Any]) -> tuple[list[_Eqn], list[Any]]:
-  """The equations of `jaxpr` with its jit calls inlined, over fresh variables."""
-  env = dict(zip(jaxpr.invars, invars))
+  """The equations of `jaxpr` with its jit calls inlined, over fresh variables (`invars`
+  stand for its constants', then its inputs' variables)."""
+  env = dict(zip(list(jaxpr.constvars) + list(jaxpr.invars), invars))
   sub = lambda a: a if isinstance(a, jcore.Literal) else env[a]
   eqns = []
   for eqn in jaxpr.eqns:
@@ -195,15 +196,9 @@ def batched_draws(fn: Callable[..., Any]) -> Callable[..., Any]:
     closed, shapes = jax.make_jaxpr(fn, return_shape=True)(*args)
     jaxpr = closed.jaxpr
     invars = [_Var(v.aval) for v in list(jaxpr.constvars) + list(jaxpr.invars)]
-    eqns, outvars = _inline(_Frame(jaxpr), invars)
+    eqns, outvars = _inline(jaxpr, invars)
     flat = list(closed.consts) + jax.tree.leaves(args)
-    return jax.tree.unflatten(jax.tree.structure(shapes), _evaluate(_live(eqns, outvars), invars, outvars, flat))
+    values = _evaluate(_live(eqns, outvars), invars, outvars, flat)
+    return jax.tree.unflatten(jax.tree.structure(shapes), values)
   return run
 
-
-class _Frame:
-  """A jaxpr with its constants as leading inputs, as `_inline` reads one."""
-
-  def __init__(self, jaxpr):
-    self.invars = list(jaxpr.constvars) + list(jaxpr.invars)
-    self.eqns, self.outvars = jaxpr.eqns, jaxpr.outvars

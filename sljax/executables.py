@@ -320,17 +320,21 @@ class Program:
     self._loading: dict[str, tuple[str, concurrent.futures.Future]] = {}
     self._unproven: set[int] = set()  # loaded programs not yet run once
     self._last = None
+    # Loader threads call a program side by side (the renderer's stages): one of them finds,
+    # loads or compiles each signature's program, and runs a loaded one first, the others wait.
+    self._lock = threading.Lock()
     self.origin: str | None = None  # how the last new program came: loaded or compiled
 
   def prefetch(self) -> "Program":
     """Starts loading the kept programs of the remembered signatures; returns self."""
     if folder() is None or jax.process_count() > 1:
       return self
-    for sig in remembered(self.name, self.description):
-      if sig not in self._by_signature and sig not in self._loading:
-        key = entry_key(self.name, self.description, sig)
-        self._loading[sig] = (key, _POOL.submit(load, self.name, key, self.log,
-                                                  self.device))
+    with self._lock:
+      for sig in remembered(self.name, self.description):
+        if sig not in self._by_signature and sig not in self._loading:
+          key = entry_key(self.name, self.description, sig)
+          self._loading[sig] = (key, _POOL.submit(load, self.name, key, self.log,
+                                                    self.device))
     return self
 
   def _program(self, sig: str, args: tuple):
@@ -376,15 +380,16 @@ class Program:
         # executes, so a donated argument is intact); the signature decides below.
         pass
     sig = signature(args)
-    entry = self._by_signature.get(sig)
-    if entry is None:
-      entry = self._by_signature[sig] = self._program(sig, args)
-    elif entry[0] is self._last and id(self._last) not in self._unproven:
-      return self._last(*args)  # the same signature failed: a genuine error, raised here
-    compiled, key = entry
-    self._last = compiled
-    if id(compiled) in self._unproven:
-      return self._first_run(compiled, key, args)
+    with self._lock:
+      entry = self._by_signature.get(sig)
+      if entry is None:
+        entry = self._by_signature[sig] = self._program(sig, args)
+      elif entry[0] is self._last and id(self._last) not in self._unproven:
+        return self._last(*args)  # the same signature failed: a genuine error, raised here
+      compiled, key = entry
+      self._last = compiled
+      if id(compiled) in self._unproven:
+        return self._first_run(compiled, key, args)
     return compiled(*args)
 
 

@@ -386,6 +386,31 @@ def test_a_kept_program_is_not_also_written_to_jaxs_cache(tmp_path):
   assert "jit_plain" in plain  # a program that is not kept still goes to jax's cache
 
 
+def test_threads_calling_a_new_program_at_once_compile_it_once(folder, monkeypatch):
+  """The data loader's threads call the renderer's programs side by side: one of them
+  compiles (or loads) each signature's program, the others wait for it."""
+  import threading
+  compiles = []
+  real = executables.compile_and_keep
+  monkeypatch.setattr(executables, "compile_and_keep", lambda *a: compiles.append(1) or real(*a))
+  program = executables.Program(jax.jit(lambda x: jnp.tanh(x) @ x.T), "side-by-side", "demo")
+  x = jnp.asarray(np.random.default_rng(0).normal(size=(64, 64)), jnp.float32)
+  start, results = threading.Barrier(4), []
+
+  def call():
+    start.wait()
+    results.append(np.asarray(program(x)))
+
+  threads = [threading.Thread(target=call) for _ in range(4)]
+  for t in threads:
+    t.start()
+  for t in threads:
+    t.join()
+  assert len(compiles) == 1 and len(results) == 4
+  for r in results:
+    np.testing.assert_array_equal(r, np.asarray(jnp.tanh(x) @ x.T))
+
+
 def test_prefetch_loads_the_remembered_signatures_before_the_first_call(folder):
   first = executables.Program(_jitted(), "step", "demo")
   _run(first, rows=4)

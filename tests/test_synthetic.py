@@ -378,3 +378,33 @@ def test_projector_pose_defaults_match_the_paper(objects):
     lit = np.isfinite(s.proj_col0)
     assert lit.mean() > 0.3
     np.testing.assert_allclose(s.proj_col0[lit], col[lit], atol=2e-3 * width_p)
+
+
+def test_a_command_keeps_the_renderers_programs_and_the_next_one_loads_them(tmp_path,
+                                                                            monkeypatch):
+  """Where a command line keeps compiled programs, the renderer's stages are kept whole: a
+  later process loads them (no tracing) and renders the same scenes bit for bit."""
+  from sljax import executables
+  from sljax.render import synthetic
+  cfg = SynthConfig(size=32, t=4, baseline_m=0.051)  # a configuration of this test's own
+  plain = render_scene(3, SEED, cfg, raw=True)
+  monkeypatch.setenv(executables.ENV, "on")
+  executables.enable(tmp_path / "xla")
+  try:
+    synthetic._stage.cache_clear()
+    kept = render_scene(3, SEED, cfg, raw=True)
+    entries = sorted(p.name for p in (tmp_path / "xla").glob("sljax-program-render-*-cache"))
+    assert len(entries) == 8, entries  # every stage, the raw captures' two included
+    synthetic._stage.cache_clear()  # as a new process: programs found on disk
+    loaded = render_scene(3, SEED, cfg, raw=True)
+    assert {synthetic._stage(f, cfg.resolved()).origin for f in (
+        synthetic._rig, synthetic._stage_surface, synthetic._stage_raw)} == {"loaded"}
+  finally:
+    executables.enable(None)
+    synthetic._stage.cache_clear()
+  for scene in (kept, loaded):
+    for k in ("im0", "im1", "disp0", "sl0", "depth0", "occ0"):
+      np.testing.assert_array_equal(getattr(scene, k), getattr(plain, k), err_msg=k)
+    assert scene.raw0.keys() == plain.raw0.keys()
+    for k in plain.raw0:
+      np.testing.assert_array_equal(scene.raw0[k], plain.raw0[k], err_msg=k)

@@ -52,6 +52,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from sljax import executables
 from sljax.render import synth_geometry as geo
 from sljax.render import synth_scenes as scenes
 from sljax.render import synth_sensor as sensor
@@ -286,8 +287,11 @@ def _stage_raw(rig, base, lit_bits, cfg: SynthConfig):
 
 @functools.lru_cache(maxsize=None)
 def _stage(fn, cfg: SynthConfig):
-  """fn jitted for one (resolved) configuration: compiled once per config and input shapes."""
-  return jax.jit(functools.partial(fn, cfg=cfg))
+  """fn jitted for one (resolved) configuration: compiled once per config and input shapes,
+  and kept whole where a command line keeps programs (sljax.executables: a later run neither
+  traces nor lowers the renderer)."""
+  return executables.Program(jax.jit(functools.partial(fn, cfg=cfg)),
+                             f"render-{fn.__name__.strip('_')}", repr(cfg)).prefetch()
 
 
 def _render(seed, index, cfg: SynthConfig, raw: bool) -> dict[str, jax.Array]:

@@ -1,5 +1,8 @@
 """PSMNet: cost volume, regression, interpolation, wiring of the hourglasses, counts, init."""
 
+import importlib
+
+import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -317,3 +320,97 @@ def test_grouped_batch_norm_equals_one_call_per_group(shape):
                              plain.apply(v, x, use_running_average=True), rtol=0, atol=0)
   with pytest.raises(ValueError, match="groups=2"):
     grouped.apply(v, x[:3], use_running_average=False, mutable=["batch_stats"])
+
+
+def test_batch_norm_in_training_is_flaxs_with_pytorchs_running_variance():
+  """In training sljax's BatchNorm (one jitted function) gives flax's nn.BatchNorm output and
+  running mean bit for bit, and a running variance that averages in the unbiased batch
+  variance (float64 NumPy reference); the normalisation itself against NumPy too."""
+  from sljax.nets.layers import BN_EPSILON, BN_MOMENTUM, batch_norm
+  rng = np.random.default_rng(3)
+  x = jnp.asarray(rng.normal(1.5, 2.0, (3, 4, 5, 6)), jnp.float32)
+  c = x.shape[-1]
+  v = {"params": {"scale": jnp.asarray(rng.uniform(0.5, 1.5, c), jnp.float32),
+                  "bias": jnp.asarray(rng.normal(0, 1, c), jnp.float32)},
+       "batch_stats": {"mean": jnp.asarray(rng.normal(0, 1, c), jnp.float32),
+                       "var": jnp.asarray(rng.uniform(1, 2, c), jnp.float32)}}
+  def train(module):  # jitted, as a training step runs it (XLA fuses either the same way)
+    return jax.jit(lambda v, x: module.apply(v, x, use_running_average=False,
+                                             mutable=["batch_stats"]))(v, x)
+  ours, upd = train(batch_norm())
+  theirs, flax_upd = train(nn.BatchNorm(momentum=BN_MOMENTUM, epsilon=BN_EPSILON))
+  np.testing.assert_array_equal(ours, theirs)
+  np.testing.assert_array_equal(upd["batch_stats"]["mean"], flax_upd["batch_stats"]["mean"])
+  x64 = np.asarray(x, np.float64).reshape(-1, c)
+  n, mean, var = x64.shape[0], x64.mean(0), x64.var(0)
+  old = np.asarray(v["batch_stats"]["var"], np.float64)
+  np.testing.assert_allclose(upd["batch_stats"]["var"],
+                             BN_MOMENTUM * old + (1 - BN_MOMENTUM) * var * n / (n - 1),
+                             rtol=1e-5)
+  want = ((x64 - mean) / np.sqrt(var + BN_EPSILON) * np.asarray(v["params"]["scale"])
+          + np.asarray(v["params"]["bias"]))
+  np.testing.assert_allclose(np.asarray(ours).reshape(-1, c), want, rtol=1e-4, atol=1e-5)
+
+
+def test_layers_of_one_shape_are_traced_once(monkeypatch):
+  """A network's BatchNorms and fast convolutions of one shape are traced (and differentiated)
+  once, not once per layer: they are jitted (issue 49: half of the twin's step tracing).
+  Counted are their Python bodies run while a training gradient is traced."""
+  from flax.linen import normalization
+  from sljax.kernels import conv3d, conv_transpose3d
+  from sljax.nets.layers import BatchNorm
+  c3 = importlib.import_module("sljax.kernels.conv3d")  # the module, not its function
+  traced = {"stats": 0, "fold": 0}
+
+  def counting(name, f):
+    def wrapped(*args, **kwargs):
+      traced[name] += 1
+      return f(*args, **kwargs)
+    return wrapped
+
+  monkeypatch.setattr(normalization, "_compute_stats",
+                      counting("stats", normalization._compute_stats))
+  monkeypatch.setattr(c3, "fold_forward", counting("fold", c3.fold_forward))
+
+  # PSMNet's BatchNorms: one trace per distinct (shape, groups), of many more layers.
+  model = build_model("psmnet", maxdisp=MAXDISP, conv_impl="fast")
+  left = right = jnp.zeros((1, H, W, 3), jnp.float32)
+  variables = jax.jit(model.init)(KEY, left, right)
+  norms = []
+
+  def record(next_fun, args, kwargs, context):
+    if context.method_name == "__call__" and isinstance(context.module, BatchNorm):
+      norms.append((args[0].shape, context.module.groups))
+    return next_fun(*args, **kwargs)
+
+  def loss(params):
+    out, _ = model.apply({**variables, "params": params}, left, right, train=True,
+                         mutable=["batch_stats"])
+    return sum(jnp.sum(d) for d in out["disparities"])
+
+  jax.clear_caches()  # jitted layers traced by earlier tests would not be traced again
+  with nn.intercept_methods(record):
+    jax.make_jaxpr(jax.grad(loss))(variables["params"])
+  assert len(norms) > 2 * len(set(norms))  # many layers share a shape
+  assert traced["stats"] == len(set(norms))
+
+  # Folded convolutions (forwards and, in the backward, input gradients): as many traces for
+  # four hourglass-like blocks as for two (the first block's cotangents differ in kind from a
+  # later one's, so one block alone traces one signature fewer).
+  def blocks(n):
+    def f(x, k, kd, ku):
+      for _ in range(n):
+        y = conv3d(conv3d(x, k, impl="fast"), kd, (2, 2, 2), impl="fast")
+        x = x + conv_transpose3d(y, ku, impl="fast")
+      return jnp.sum(x)
+    return f
+
+  x = jnp.ones((1, 4, 8, 8, 2))
+  ks = (jnp.ones((3, 3, 3, 2, 2)), jnp.ones((3, 3, 3, 2, 2)), jnp.ones((3, 3, 3, 2, 2)))
+  counts = []
+  for n in (2, 4):
+    jax.clear_caches()
+    traced["fold"] = 0
+    jax.make_jaxpr(jax.grad(blocks(n), argnums=(1, 2, 3)))(x, *ks)
+    counts.append(traced["fold"])
+  assert counts[0] > 0 and counts[1] == counts[0], counts

@@ -21,6 +21,8 @@ def _unblocked_forward(x, kernel, strides, padding, dilation, block_values):
 
 
 def _blocked_bwd(strides, padding, dilation, block_values, inputs, dy):
+  # block_values: the kernel gradient's blocks (`grad_block_values`, resolved when the forward
+  # is traced, so that the jitted layer is keyed by them).
   x, kernel = inputs
   dx = jax.vjp(lambda x: plain_conv2d(x, kernel, strides, padding, dilation), x)[1](dy)[0]
   # dL/dkernel over blocks of output rows (and whole images when they are small).
@@ -29,7 +31,6 @@ def _blocked_bwd(strides, padding, dilation, block_values, inputs, dy):
   zero = jnp.zeros((), x.dtype)
   xp = lax.pad(x, zero, ((0, 0, 0), (*padding[0], 0), (*padding[1], 0), (0, 0, 0)))
   row_values = xp.shape[2] * xp.shape[3]
-  block_values = grad_block_values(block_values)
   _, rows = block_shape(n, ho, row_values, block_values)
   hb = -(-ho // rows) * rows
   need = sh * (hb - 1) + (kh - 1) * dh + 1
@@ -63,4 +64,5 @@ def conv2d(x: jax.Array, kernel: jax.Array, strides: Sequence[int] = (1, 1), pad
   padding = explicit_padding(padding, x.shape[1:3], kernel.shape[:2], strides, dilation)
   if conv_impl(impl) in XLA_IMPLS:
     return plain_conv2d(x, kernel, strides, padding, dilation)
-  return _conv2d_blocked(x, kernel, strides, padding, dilation, int(block_values))
+  return _conv2d_blocked(x, kernel, strides, padding, dilation,
+                         grad_block_values(int(block_values)))

@@ -45,20 +45,29 @@ def _flipped(kernel: jax.Array) -> jax.Array:
   return jnp.flip(kernel, (0, 1, 2)).swapaxes(3, 4)
 
 
-def _fold_bwd(strides, padding, block_values, inputs, dy):
+# The kernels' non-differentiable arguments: strides, padding pairs, the layer's block size and
+# its kernel gradients' (`grad_block_values`, resolved when the forward is traced: a static
+# argument, so that a layer traced once under one `grad_blocks` is not reused under another).
+
+
+def _fold_forward(x, kernel, strides, padding, block_values, grad_values):
+  del grad_values  # the backward's
+  return fold_forward(x, kernel, strides, padding, block_values)
+
+
+def _fold_bwd(strides, padding, block_values, grad_values, inputs, dy):
   x, kernel = inputs
   # dL/dx: the transposed convolution, i.e. a convolution of the stride-dilated dy with the
   # flipped kernel; stride 1 is another folded conv, stride s the phases.
   pads = input_grad_padding(kernel.shape, strides, padding, x.shape, dy.shape)
   if strides == (1, 1, 1):
-    dx = _fold(dy, _flipped(kernel), strides, pads, block_values)
+    dx = _fold(dy, _flipped(kernel), strides, pads, block_values, grad_values)
   else:
-    dx = _phase(dy, _flipped(kernel), strides, pads, block_values)
-  return dx, fold_kernel_grad(x, dy, kernel.shape, strides, padding,
-                              grad_block_values(block_values))
+    dx = _phase(dy, _flipped(kernel), strides, pads, block_values, grad_values)
+  return dx, fold_kernel_grad(x, dy, kernel.shape, strides, padding, grad_values)
 
 
-_fold = vjp_saving_inputs(fold_forward, _fold_bwd, nondiff_argnums=(2, 3, 4))
+_fold = vjp_saving_inputs(_fold_forward, _fold_bwd, nondiff_argnums=(2, 3, 4, 5))
 
 
 def _phases(x, kernel, strides, padding, conv):
@@ -67,24 +76,25 @@ def _phases(x, kernel, strides, padding, conv):
   return interleave_phases(conv(x, comb, pads), strides, lq, lengths)
 
 
-def _phase_forward(x, kernel, strides, padding, block_values):
+def _phase_forward(x, kernel, strides, padding, block_values, grad_values):
+  del grad_values  # the backward's
   return _phases(x, kernel, strides, padding,
                  lambda x, k, pads: fold_conv3d(x, k, (1, 1, 1), pads, block_values))
 
 
-def _phase_bwd(strides, padding, block_values, inputs, dy):
+def _phase_bwd(strides, padding, block_values, grad_values, inputs, dy):
   # The transposed conv is the adjoint of the stride-s conv with the flipped, in/out-swapped
   # kernel w; so dL/dx is that strided (folded) conv of dy and dL/dw its kernel gradient
   # with dy as input and x as output gradient, both cheaper than differentiating the phases.
   x, kernel = inputs
   w = _flipped(kernel)
   pads = adjoint_padding(kernel.shape, strides, padding, x.shape, dy.shape)
-  dx = _fold(dy, w, strides, pads, block_values)
-  dw = fold_kernel_grad(dy, x, w.shape, strides, pads, grad_block_values(block_values))
+  dx = _fold(dy, w, strides, pads, block_values, grad_values)
+  dw = fold_kernel_grad(dy, x, w.shape, strides, pads, grad_values)
   return dx, _flipped(dw)
 
 
-_phase = vjp_saving_inputs(_phase_forward, _phase_bwd, nondiff_argnums=(2, 3, 4))
+_phase = vjp_saving_inputs(_phase_forward, _phase_bwd, nondiff_argnums=(2, 3, 4, 5))
 
 
 def _backward_data_forward(x, kernel, strides, padding):
@@ -130,7 +140,7 @@ def fold_conv3d(x: jax.Array, kernel: jax.Array, strides: Sequence[int], padding
   pad = explicit_padding(padding, x.shape[1:4], kernel.shape[:3], strides)
   if strides == (1, 1, 1) and np.prod(kernel.shape[:3]) * kernel.shape[4] <= kernel.shape[3]:
     return tap_products_conv3d(x, kernel, pad)
-  return _fold(x, kernel, strides, pad, int(block_values))
+  return _fold(x, kernel, strides, pad, int(block_values), grad_block_values(int(block_values)))
 
 
 def phase_conv_transpose3d(x: jax.Array, kernel: jax.Array, strides: Sequence[int],
@@ -145,7 +155,8 @@ def phase_conv_transpose3d(x: jax.Array, kernel: jax.Array, strides: Sequence[in
   phases are interleaved (pixel shuffle) and the output cropped to its exact size.
   """
   strides = ntuple(strides, 3)
-  return _phase(x, kernel, strides, pairs(padding), int(block_values))
+  return _phase(x, kernel, strides, pairs(padding), int(block_values),
+                grad_block_values(int(block_values)))
 
 
 def gpu_conv_transpose3d(x: jax.Array, kernel: jax.Array, strides: Sequence[int],

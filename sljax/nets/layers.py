@@ -45,48 +45,69 @@ class BatchNorm(nn.BatchNorm):
     """Normalises as flax does; in training, rescales the running-variance update by n/(n-1)."""
     train = not nn.merge_param("use_running_average", self.use_running_average,
                                use_running_average)
-    if train and self.groups > 1:
-      return self._grouped(x)
-    updating = train and not self.is_initializing()
-    old = self.get_variable("batch_stats", "var") if updating else None
-    y = super().__call__(x, use_running_average=not train)
-    if updating:
-      # flax stored m * old + (1 - m) * biased; PyTorch averages in biased * n / (n - 1). The
-      # difference matters where n is small: the SPP branches' pooled maps have n = batch.
-      n = x.size // x.shape[-1]
-      new = self.get_variable("batch_stats", "var")
-      self.put_variable("batch_stats", "var", unbiased_update(new, old, self.momentum, n))
+    if self.groups > 1 and (x.shape[0] % self.groups or self.axis not in (-1, x.ndim - 1)):
+      raise ValueError(f"BatchNorm groups={self.groups} needs a batch divisible by it and "
+                       f"features last, got shape {x.shape}")
+    if not train or self.is_initializing():  # flax's own (it creates the same variables)
+      return super().__call__(x, use_running_average=not train)
+    if self.axis not in (-1, x.ndim - 1) or self.axis_name is not None:
+      raise ValueError("sljax's BatchNorm normalises the last axis of one device's batch "
+                       f"(a jitted step shards it), got axis {self.axis}, axis_name "
+                       f"{self.axis_name}")
+    c = x.shape[-1]
+    stats_dtype = jnp.float32 if self.force_float32_reductions else self.param_dtype  # flax's
+    ra_mean = self.variable("batch_stats", "mean", lambda s: jnp.zeros(s, stats_dtype), (c,))
+    ra_var = self.variable("batch_stats", "var", lambda s: jnp.ones(s, stats_dtype), (c,))
+    scale = self.param("scale", self.scale_init, (c,), self.param_dtype) if self.use_scale else None
+    bias = self.param("bias", self.bias_init, (c,), self.param_dtype) if self.use_bias else None
+    y, ra_mean.value, ra_var.value = _train_batch_norm(
+        x, scale, bias, ra_mean.value, ra_var.value, groups=self.groups,
+        momentum=self.momentum, epsilon=self.epsilon, dtype=self.dtype,
+        param_dtype=self.param_dtype, fast_variance=self.use_fast_variance,
+        float32_reductions=self.force_float32_reductions)
     return y
 
-  def _grouped(self, x: jax.Array) -> jax.Array:
-    """Training with `groups` groups of the batch: flax's statistics and normalisation per
-    group (the same functions), the running averages updated once per group in order."""
-    g = self.groups
-    if x.shape[0] % g or self.axis not in (-1, x.ndim - 1) or self.axis_name is not None:
-      raise ValueError(f"BatchNorm groups={g} needs a batch divisible by it and features last, "
-                       f"got shape {x.shape}")
-    xs = x.reshape((g, x.shape[0] // g) + x.shape[1:])
-    axes = tuple(range(1, xs.ndim - 1))
-    stats_dtype = jnp.float32 if self.force_float32_reductions else self.param_dtype  # flax's
-    ra_mean = self.variable("batch_stats", "mean", lambda s: jnp.zeros(s, stats_dtype),
-                            (x.shape[-1],))
-    ra_var = self.variable("batch_stats", "var", lambda s: jnp.ones(s, stats_dtype),
-                           (x.shape[-1],))
-    mean, var = normalization._compute_stats(  # [g, C]
-        xs, axes, dtype=self.dtype, use_fast_variance=self.use_fast_variance,
-        force_float32_reductions=self.force_float32_reductions)
-    if not self.is_initializing():
-      n = xs[0].size // x.shape[-1]
-      for i in range(g):
-        old = ra_var.value
-        ra_mean.value = self.momentum * ra_mean.value + (1 - self.momentum) * mean[i]
-        new = self.momentum * old + (1 - self.momentum) * var[i]
-        ra_var.value = unbiased_update(new, old, self.momentum, n)
-    y = normalization._normalize(
-        self, xs, mean, var, axes, (xs.ndim - 1,), self.dtype, self.param_dtype, self.epsilon,
-        self.use_bias, self.use_scale, self.bias_init, self.scale_init,
-        self.force_float32_reductions)
-    return y.reshape(x.shape)
+
+class _Params:
+  """What flax's `_normalize` asks of its module: the scale and bias, already created."""
+
+  def __init__(self, scale: jax.Array | None, bias: jax.Array | None):
+    self.values = {"scale": scale, "bias": bias}
+
+  def param(self, name: str, *_) -> jax.Array:
+    """The named parameter (flax's initialiser, shape and dtype arguments are not needed)."""
+    return self.values[name]
+
+
+@functools.partial(jax.jit, static_argnames=("groups", "momentum", "epsilon", "dtype",
+                                             "param_dtype", "fast_variance",
+                                             "float32_reductions"))
+def _train_batch_norm(x, scale, bias, ra_mean, ra_var, *, groups, momentum, epsilon, dtype,
+                      param_dtype, fast_variance, float32_reductions):
+  """(normalised x, running mean, running variance) of a BatchNorm in training: flax's
+  statistics and normalisation (its functions) per group of the batch, the running averages
+  updated once per group in order with PyTorch's unbiased variance.
+
+  Jitted, so that a network's BatchNorms of one shape are traced and differentiated once, not
+  once per layer: they were half of the twin's step tracing (issue 49); XLA inlines the call,
+  so the program and its values are the same."""
+  xs = x.reshape((groups, x.shape[0] // groups) + x.shape[1:]) if groups > 1 else x
+  axes = tuple(range(1 if groups > 1 else 0, xs.ndim - 1))
+  mean, var = normalization._compute_stats(  # [groups, C] or [C]
+      xs, axes, dtype=dtype, use_fast_variance=fast_variance,
+      force_float32_reductions=float32_reductions)
+  n = xs.size // (groups * x.shape[-1])
+  for i in range(groups):
+    m, v = (mean[i], var[i]) if groups > 1 else (mean, var)
+    old = ra_var
+    ra_mean = momentum * ra_mean + (1 - momentum) * m
+    # flax's m * old + (1 - m) * biased, turned into PyTorch's unbiased average: the
+    # difference matters where n is small (the SPP branches' pooled maps have n = batch).
+    ra_var = unbiased_update(momentum * old + (1 - momentum) * v, old, momentum, n)
+  y = normalization._normalize(
+      _Params(scale, bias), xs, mean, var, axes, (xs.ndim - 1,), dtype, param_dtype, epsilon,
+      scale is not None, bias is not None, None, None, float32_reductions)
+  return y.reshape(x.shape), ra_mean, ra_var
 
 
 def unbiased_update(new: jax.Array, old: jax.Array, momentum: float, n: int) -> jax.Array:

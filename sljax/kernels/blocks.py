@@ -32,7 +32,9 @@ _GRAD_BLOCKS: contextvars.ContextVar[int | None] = contextvars.ContextVar("grad_
 
 @contextlib.contextmanager
 def grad_blocks(values: int | None) -> Iterator[None]:
-  """Kernel gradients traced inside take blocks of `values` input values (None: each layer's)."""
+  """Layers traced inside take kernel-gradient blocks of `values` input values (None: each
+  layer's own); a layer's forward fixes its backward's blocks (a static argument of its jitted
+  kernel), so a gradient taken inside has them."""
   token = _GRAD_BLOCKS.set(None if values is None else int(values))
   try:
     yield
@@ -41,8 +43,8 @@ def grad_blocks(values: int | None) -> Iterator[None]:
 
 
 def grad_block_values(block_values: int) -> int:
-  """The block size of a kernel gradient traced now: the enclosing `grad_blocks`, else the
-  layer's own `block_values`."""
+  """The kernel-gradient block size of a layer traced now: the enclosing `grad_blocks`, else
+  the layer's own `block_values`."""
   values = _GRAD_BLOCKS.get()
   return block_values if values is None else values
 

@@ -45,7 +45,8 @@ class BatchNorm(nn.BatchNorm):
     """Normalises as flax does; in training, rescales the running-variance update by n/(n-1)."""
     train = not nn.merge_param("use_running_average", self.use_running_average,
                                use_running_average)
-    if self.groups > 1 and (x.shape[0] % self.groups or self.axis not in (-1, x.ndim - 1)):
+    if train and self.groups > 1 and (x.shape[0] % self.groups
+                                      or self.axis not in (-1, x.ndim - 1)):
       raise ValueError(f"BatchNorm groups={self.groups} needs a batch divisible by it and "
                        f"features last, got shape {x.shape}")
     if not train or self.is_initializing():  # flax's own (it creates the same variables)

@@ -292,6 +292,8 @@ def format_piece_row(r: dict) -> str:
 def main() -> None:
   """Parses the options, runs the parts, prints the tables and records them."""
   if "--child-run" in sys.argv:
+    from sljax.hugepages import reexec  # pylint: disable=import-outside-toplevel
+    reexec()  # as train.py starts (sljax/hugepages.py)
     child_run(sys.argv[sys.argv.index("--") + 1:])
     return
   p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])

@@ -32,6 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from common import best_time, machine, peak_gflops, record  # first: puts this checkout's sljax on the path
+from sljax.hugepages import reexec
 from sljax import kernels as c3
 from sljax import tune
 from sljax.losses.disparity import PSMNET_OUTPUT_WEIGHTS, disparity_loss
@@ -395,6 +396,7 @@ def print_micro_row(label, res, with_lax):
 
 def main() -> None:
   """Runs the selected parts and prints the tables."""
+  reexec()  # as sljax's commands run: malloc with huge pages (sljax/hugepages.py)
   ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   ap.add_argument("--part", choices=("all", "micro", "models"), default="all")
   ap.add_argument("--models", default="unet-sl,psmnet,psmnet-mtl")

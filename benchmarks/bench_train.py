@@ -28,6 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from common import machine, record
+from sljax.hugepages import reexec
 
 from sljax.data.dataset import split_indices
 from sljax.data.scene import write_scene
@@ -131,6 +132,7 @@ def write_folder(root: Path, n: int, size: int, seed: int = 0) -> Path:
 
 def main() -> None:
   """Prints the table."""
+  reexec()  # as sljax's commands run: malloc with huge pages (sljax/hugepages.py)
   p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
   p.add_argument("--preset", choices=("quick", "paper"), default="quick")
   p.add_argument("--net", default="psmnet-mtl", choices=registry.NAMES)

@@ -48,7 +48,9 @@ def machine(torch_module=None) -> str:
           f"({jax.default_backend()}); jax {jax.__version__}, jaxlib {jaxlib.__version__}")
   if torch_module is not None:
     line += f", torch {torch_module.__version__} ({torch_module.get_num_threads()} threads)"
-  return line
+  from sljax.hugepages import TUNABLE
+  huge = f"{TUNABLE}=1" in os.environ.get("GLIBC_TUNABLES", "")
+  return line + f"; malloc huge pages {'on' if huge else 'off'}"
 
 
 def best_time(fn: Callable[[], object], repeats: int) -> float:
@@ -141,6 +143,9 @@ def record(benchmark: str, rows: list[dict], torch_module=None, quiet: bool = Fa
   flags = os.environ.get("XLA_FLAGS", "").strip()
   if flags:  # a figure under other compiler flags is another figure
     entry["xla_flags"] = flags
+  tunables = os.environ.get("GLIBC_TUNABLES", "").strip()
+  if tunables:  # malloc's huge pages (sljax/hugepages.py) change the CPU figures
+    entry["glibc_tunables"] = tunables
   RESULTS.mkdir(parents=True, exist_ok=True)
   path = RESULTS / f"{records_key(cpu, where['backend'], where['device_kind'])}.jsonl"
   with open(path, "a", encoding="utf-8") as f:

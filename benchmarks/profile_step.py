@@ -32,6 +32,7 @@ from pathlib import Path
 import jax
 
 from common import machine, record  # first: puts this checkout's sljax on the path
+from sljax.hugepages import reexec
 from bench_nets import jax_loss, inputs
 from sljax import kernels, tune
 from sljax.nets import build_model
@@ -143,6 +144,7 @@ def kernel_rows(events: list[dict], calls: int, top: int) -> list[dict]:
 
 
 def main() -> None:
+  reexec()  # as sljax's commands run: malloc with huge pages (sljax/hugepages.py)
   ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   ap.add_argument("--model", default="psmnet")
   ap.add_argument("--size", type=int, default=256)

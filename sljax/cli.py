@@ -10,6 +10,7 @@ import importlib
 import sys
 
 from sljax.errors import run_command
+from sljax.hugepages import reexec
 from sljax.quiet import quiet_libraries
 
 # subcommand -> (module in sljax.commands, one line for `sljax --help`)
@@ -54,7 +55,9 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
   """Entry point: runs a subcommand; bad input ends with one line on stderr and exit 2."""
-  argv = sys.argv[1:] if argv is None else argv
+  if argv is None:  # the command line itself: start again with huge pages where that helps
+    reexec()
+    argv = sys.argv[1:]
   args = build_parser(argv).parse_args(argv)
   quiet_libraries()
   # Imported here, at the command-line edge, so that `sljax --help` does not import jax.

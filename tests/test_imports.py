@@ -12,7 +12,7 @@ ROOT = Path(__file__).resolve().parents[1] / "sljax"
 # From the ground up; a room is a top-level module or package of sljax.
 FLOORS = (
     ("ground", {"errors", "files", "sizes", "images", "markdown", "machine", "quiet", "cache",
-                "executables", "kernels"}),
+                "executables", "kernels", "hugepages"}),
     ("structured light", {"sl"}),
     ("data", {"data"}),
     ("importers of real data", {"capture"}),

@@ -118,7 +118,8 @@ def device_of_process(torch_module=None) -> dict:
   (initialises jax's backend: on a GPU, its memory)."""
   import jax
   return {"backend": jax.default_backend(), "device_kind": jax.devices()[0].device_kind,
-          "machine": machine(torch_module)}
+          "machine": machine(torch_module),
+          "glibc_tunables": os.environ.get("GLIBC_TUNABLES", "").strip()}
 
 
 def record(benchmark: str, rows: list[dict], torch_module=None, quiet: bool = False,
@@ -143,7 +144,7 @@ def record(benchmark: str, rows: list[dict], torch_module=None, quiet: bool = Fa
   flags = os.environ.get("XLA_FLAGS", "").strip()
   if flags:  # a figure under other compiler flags is another figure
     entry["xla_flags"] = flags
-  tunables = os.environ.get("GLIBC_TUNABLES", "").strip()
+  tunables = where.get("glibc_tunables", os.environ.get("GLIBC_TUNABLES", "").strip())
   if tunables:  # malloc's huge pages (sljax/hugepages.py) change the CPU figures
     entry["glibc_tunables"] = tunables
   RESULTS.mkdir(parents=True, exist_ok=True)

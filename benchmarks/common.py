@@ -48,9 +48,8 @@ def machine(torch_module=None) -> str:
           f"({jax.default_backend()}); jax {jax.__version__}, jaxlib {jaxlib.__version__}")
   if torch_module is not None:
     line += f", torch {torch_module.__version__} ({torch_module.get_num_threads()} threads)"
-  from sljax.hugepages import TUNABLE
-  huge = f"{TUNABLE}=1" in os.environ.get("GLIBC_TUNABLES", "")
-  return line + f"; malloc huge pages {'on' if huge else 'off'}"
+  from sljax import hugepages
+  return line + f"; malloc huge pages {'on' if hugepages.active() else 'off'}"
 
 
 def best_time(fn: Callable[[], object], repeats: int) -> float:

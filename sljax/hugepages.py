@@ -71,6 +71,11 @@ def restart_environment(environ: Mapping[str, str], mode: str,
   return env
 
 
+def active(environ: Mapping[str, str] = os.environ) -> bool:
+  """Whether this process was started with malloc's huge pages (the tunable set to 1)."""
+  return f"{TUNABLE}=1" in environ.get("GLIBC_TUNABLES", "").split(":")
+
+
 def reexec() -> None:
   """Starts this command line again with huge pages where that helps (see the module's
   docstring); returns where it does not. Call it first thing, before jax is imported."""

@@ -51,6 +51,25 @@ def test_no_restart_where_it_cannot_help_or_was_declined(environ, mode, glibc):
   assert hugepages.restart_environment(environ, mode, glibc) is None
 
 
+def test_active_reads_the_tunable_among_others():
+  assert hugepages.active({"GLIBC_TUNABLES": "glibc.malloc.arena_max=2:glibc.malloc.hugetlb=1"})
+  assert not hugepages.active({"GLIBC_TUNABLES": "glibc.malloc.hugetlb=0"})
+  assert not hugepages.active({"GLIBC_TUNABLES": "glibc.malloc.hugetlb=10"})
+  assert not hugepages.active({})
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="Linux")
+def test_glibc_version_is_the_running_librarys():
+  import ctypes
+  libc = ctypes.CDLL(None)
+  if not hasattr(libc, "gnu_get_libc_version"):  # musl and others
+    assert hugepages.glibc_version() is None
+    return
+  libc.gnu_get_libc_version.restype = ctypes.c_char_p
+  version = libc.gnu_get_libc_version().decode()  # asked of the library itself
+  assert hugepages.glibc_version() == tuple(int(p) for p in version.split(".")[:2])
+
+
 SET_BY_TEST = ("GLIBC_TUNABLES", "SLJAX_HUGEPAGES", "PYTHONOPTIMIZE")
 
 

@@ -143,7 +143,7 @@ def record(benchmark: str, rows: list[dict], torch_module=None, quiet: bool = Fa
   flags = os.environ.get("XLA_FLAGS", "").strip()
   if flags:  # a figure under other compiler flags is another figure
     entry["xla_flags"] = flags
-  tunables = where.get("glibc_tunables", os.environ.get("GLIBC_TUNABLES", "").strip())
+  tunables = where.get("glibc_tunables", "")  # the measuring process's (device_of_process)
   if tunables:  # malloc's huge pages (sljax/hugepages.py) change the CPU figures
     entry["glibc_tunables"] = tunables
   RESULTS.mkdir(parents=True, exist_ok=True)

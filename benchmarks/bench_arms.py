@@ -34,7 +34,7 @@ if ROOT not in sys.path:
 
 def child(arm: str, scale: str, steps: int, workdir: str) -> None:
   """Times one arm; prints one JSON line."""
-  from sljax.experiment import plans
+  from sljax.experiment.design import plans
   from sljax.train import loop
 
   plan = plans.build_plan(plans.V4_PILOT, scale, 1)

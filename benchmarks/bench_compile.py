@@ -5,7 +5,7 @@ Part `run` times the main job (`python train.py --strategy epr`, its preset) as 
 it, each run a fresh process: first from an empty SLJAX_CACHE_DIR (cold: a fresh machine's
 empty tuner and compile caches), then again from the cache that run filled (warm). Beside
 train.py's own figure it gives the seconds from the process's launch to the end of the first
-step (what a newcomer waits) and whether the step was loaded whole (sljax.executables). The
+step (what a newcomer waits) and whether the step was loaded whole (sljax.runtime.kept_programs). The
 figure is train.py's own "first step (...) N s" (from the first step call to its end); beside
 it, from `jax.monitoring`'s
 events during that call, the seconds spent tracing (jaxpr), lowering (StableHLO), in XLA's
@@ -292,8 +292,8 @@ def format_piece_row(r: dict) -> str:
 def main() -> None:
   """Parses the options, runs the parts, prints the tables and records them."""
   if "--child-run" in sys.argv:
-    from sljax.hugepages import reexec  # pylint: disable=import-outside-toplevel
-    reexec()  # as train.py starts (sljax/hugepages.py)
+    from sljax.runtime.hugepages import reexec  # pylint: disable=import-outside-toplevel
+    reexec()  # as train.py starts (sljax/runtime/hugepages.py)
     child_run(sys.argv[sys.argv.index("--") + 1:])
     return
   p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])

@@ -19,7 +19,7 @@ and whether the GPU's float32 arithmetic keeps the networks equal to the CPU's. 
    1.0 (the reference's main.py), random weights and inputs (disparities beyond maxdisp
    masked). sljax: the step train.py compiles (`sljax.train.step.make_train_step`: psmnet with
    each `--impls` convolution choice, and the twin psmnet-mtl with uncertainty weighting
-   beside it), the compile cache (sljax.cache) on as in training, in a folder fresh for the run
+   beside it), the compile cache (sljax.runtime.compile_cache) on as in training, in a folder fresh for the run
    unless `--cache DIR`, so the first child compiles cold; `--warm-start` runs the first sljax
    child again, which then loads its programs from the cache (the time to its first step is
    the warm start). The reference: JiaRenChang/PSMNet's `stackhourglass` from `--reference DIR`
@@ -178,10 +178,10 @@ def timed_steps(run_step, sync, warmup: int, steps: int, t0: float, setup: float
 def sljax_step_child(args) -> dict:
   """One sljax configuration: the compiled training step of sljax.train (as train.py builds
   it, compile cache on), on one fixed random batch."""
-  from sljax.cache import enable_compile_cache
   from sljax.losses.weighting import step_weights
   from sljax.nets import registry
   from sljax.nets.model_config import ModelConfig, init_variables
+  from sljax.runtime.compile_cache import enable_compile_cache
   from sljax.train import loop
   from sljax.train import state as st
   from sljax.train import step as stp
@@ -289,7 +289,7 @@ def step_part(args) -> None:
   env = dict(os.environ, PYTHONUNBUFFERED="1")
   cache = args.cache or tempfile.mkdtemp(prefix="sljax-step-cache-")  # fresh: cold first
   env["SLJAX_COMPILE_CACHE"] = cache
-  env.pop("JAX_COMPILATION_CACHE_DIR", None)  # the folder sljax.cache would defer to
+  env.pop("JAX_COMPILATION_CACHE_DIR", None)  # the folder sljax.runtime.compile_cache would defer to
   if args.reference:
     try:
       import torch  # noqa: F401  (only whether it is there; the child imports it again)

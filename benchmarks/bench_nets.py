@@ -32,11 +32,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from common import best_time, machine, peak_gflops, record  # first: puts this checkout's sljax on the path
-from sljax.hugepages import reexec
 from sljax import kernels as c3
-from sljax import tune
 from sljax.losses.disparity import PSMNET_OUTPUT_WEIGHTS, disparity_loss
 from sljax.nets import build_model
+from sljax.runtime import choices
+from sljax.runtime.hugepages import reexec
 
 
 # ------------------------------------------------------------------------- PyTorch stacks
@@ -279,9 +279,9 @@ def jax_loss(out, gt, maxdisp):
   return total
 
 
-def jax_time(name, batch, size, maxdisp, repeats, train, impl=None, kernels=tune.DEFAULT):
+def jax_time(name, batch, size, maxdisp, repeats, train, impl=None, kernels=choices.DEFAULT):
   """sljax forward (eval) or forward+backward (train) time; impl: the model's conv_impl,
-  kernels: the compiler choice (sljax.tune) of the program kind."""
+  kernels: the compiler choice (sljax.runtime.choices) of the program kind."""
   options = kernels.compiler_options("train" if train else "forward")
   model = build_model(name, maxdisp=maxdisp, conv_impl=impl)
   left, right, gt = (jnp.asarray(a) for a in inputs(batch, size, maxdisp))
@@ -296,7 +296,7 @@ def jax_time(name, batch, size, maxdisp, repeats, train, impl=None, kernels=tune
     return jax_loss(out, g, maxdisp)
 
   def grads(params, l, r, g):  # the gradient blocks training takes with these options
-    with c3.grad_blocks(tune.grad_blocks_for(kernels)):
+    with c3.grad_blocks(choices.grad_blocks_for(kernels)):
       return jax.grad(loss)(params, l, r, g)
   g = jax.jit(grads, compiler_options=options)
   return best_time(lambda: jax.block_until_ready(g(variables["params"], left, right, gt)),
@@ -396,7 +396,7 @@ def print_micro_row(label, res, with_lax):
 
 def main() -> None:
   """Runs the selected parts and prints the tables."""
-  reexec()  # as sljax's commands run: malloc with huge pages (sljax/hugepages.py)
+  reexec()  # as sljax's commands run: malloc with huge pages (sljax/runtime/hugepages.py)
   ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   ap.add_argument("--part", choices=("all", "micro", "models"), default="all")
   ap.add_argument("--models", default="unet-sl,psmnet,psmnet-mtl")
@@ -413,7 +413,7 @@ def main() -> None:
                   help="micro: XLA's YNNPACK fusions (default: XLA's, i.e. on)")
   ap.add_argument("--grad-blocks", type=int, default=None, metavar="LOG2",
                   help="micro: kernel gradients in blocks of 2**LOG2 values (default: the "
-                       "layers' BLOCK_VALUES); the models take the table's (sljax.tune)")
+                       "layers' BLOCK_VALUES); the models take the table's (sljax.runtime.choices)")
   args = ap.parse_args()
   batch = args.batch or (2 if args.reference else 1)
   import torch
@@ -421,7 +421,7 @@ def main() -> None:
   print(f"conv3d auto -> {c3.conv_impl()}; times: minimum of {args.repeats} after a warm-up")
   # What training and inference use on this CPU (sljax tune; measured once and cached): a
   # program kind whose choice differs from XLA's default gets a "tuned" column too.
-  kernels = tune.choice()
+  kernels = choices.choice()
   print(f"this CPU's tuned compiler choice: --ynn {kernels.name}")
   records = []
   if args.part in ("all", "micro"):
@@ -429,7 +429,7 @@ def main() -> None:
           "fwd ms, fwd+bwd ms (ratio to torch)")
     records += micro(args.repeats, args.with_lax,
                      None if args.grad_blocks is None else 1 << args.grad_blocks,
-                     tune.YNN_OFF if args.ynn == "off" else None)
+                     choices.YNN_OFF if args.ynn == "off" else None)
   if args.part in ("all", "models"):
     torch_, PSM, UNet = torch_models()
     torch_.manual_seed(0)

@@ -26,7 +26,7 @@ import numpy as np
 from common import best_time, machine, record  # first: puts this checkout's sljax on the path
 from sljax import inference
 from sljax.deploy import onnx as dx
-from sljax.export import parse_size
+from sljax.deploy.stablehlo import parse_size
 
 
 def psmnet_predictor(maxdisp: int):

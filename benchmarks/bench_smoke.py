@@ -20,8 +20,9 @@ from common import machine, record, run_child  # first: puts this checkout's slj
 
 def child(plan_name: str, impl: str, out: str) -> None:
   """Runs the smoke plan with the scale's conv_impl replaced; prints one JSON line."""
-  from sljax.cache import enable_compile_cache
-  from sljax.experiment import plans, runner
+  from sljax.experiment.design import plans
+  from sljax.experiment.running import runner
+  from sljax.runtime.compile_cache import enable_compile_cache
   enable_compile_cache()  # as `sljax experiment run` does: $SLJAX_COMPILE_CACHE is the folder
   plans.SCALES["smoke"] = dataclasses.replace(plans.SCALES["smoke"], conv_impl=impl)
   t0 = time.perf_counter()

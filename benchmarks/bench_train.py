@@ -28,15 +28,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from common import machine, record
-from sljax.hugepages import reexec
-
 from sljax.data.dataset import split_indices
 from sljax.data.scene import write_scene
-from sljax.render.synthetic import SynthConfig, SyntheticSource
 from sljax.losses.weighting import step_weights
 from sljax.nets import registry
-from sljax.train import loop
 from sljax.nets.model_config import init_variables
+from sljax.render.synthetic import SynthConfig, SyntheticSource
+from sljax.runtime.hugepages import reexec
+from sljax.train import loop
 from sljax.train import state as st
 from sljax.train import step as stp
 from sljax.train.config import PAPER, QUICK, TrainConfig
@@ -132,7 +131,7 @@ def write_folder(root: Path, n: int, size: int, seed: int = 0) -> Path:
 
 def main() -> None:
   """Prints the table."""
-  reexec()  # as sljax's commands run: malloc with huge pages (sljax/hugepages.py)
+  reexec()  # as sljax's commands run: malloc with huge pages (sljax/runtime/hugepages.py)
   p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
   p.add_argument("--preset", choices=("quick", "paper"), default="quick")
   p.add_argument("--net", default="psmnet-mtl", choices=registry.NAMES)

@@ -7,7 +7,7 @@ Usage: python benchmarks/bench_video.py [--frame 1280x1024] [--train-size 256x32
 The PSMNet has random weights (its speed does not depend on their values). The video is
 written first (mp4v, a textured pan, the right view shifted); the calibration has distortion and
 a small rotation, so every frame pair is remapped. One short run of --batch frames compiles the
-network; the timed run then predicts --frames frames through sljax.video.predict_video (read,
+network; the timed run then predicts --frames frames through sljax.depth.video.predict_video (read,
 split, rectify, resize, network, colour map, mp4) and prints frames/s with each stage's share.
 --with-frames also writes each frame's PFM, depth and PLY.
 """
@@ -69,7 +69,8 @@ def main() -> None:
   fw, fh = (int(v) for v in args.frame.lower().split("x"))
   th, tw = (int(v) for v in args.train_size.lower().split("x"))
 
-  from sljax import inference, predict, video
+  from sljax import inference
+  from sljax.depth import pairs, video
   kwargs = {"maxdisp": args.maxdisp, "in_channels": 3}
   predictor = inference.make_predictor("psmnet", kwargs, random_variables("psmnet", kwargs),
                                        mode="resize", train_size=(th, tw))
@@ -80,7 +81,7 @@ def main() -> None:
     write_clip(tmp / "warm.mp4", args.batch, fw, fh)
     write_clip(tmp / "clip.mp4", args.frames, fw, fh)
     write_calibration(tmp / "rig.yml", fw, fh // 2)
-    rig = predict.read_calibration([tmp / "rig.yml"])
+    rig = pairs.read_calibration([tmp / "rig.yml"])
     t0 = time.perf_counter()
     video.predict_video(predictor, video.open_video([tmp / "warm.mp4"], "stacked"),
                         tmp / "warm", rig, batch=args.batch, progress=False)

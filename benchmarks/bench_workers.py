@@ -1,5 +1,5 @@
 """A smoke grid run by 1 and by 2 `sljax experiment run` workers on one OUT, side by side in
-one run, and what a claim costs a cell (sljax.experiment.workers).
+one run, and what a claim costs a cell (sljax.experiment.running.workers).
 
 Each worker is its own process, as on a cluster; the grid's wall time runs from starting the
 workers to the last one's exit. A warm-up grid fills the compile cache first, so both timings
@@ -45,7 +45,7 @@ def grid(plan: str, out: Path, workers: int) -> tuple[float, float]:
 
 def claim_cost(folder: Path, cells: int) -> float:
   """Mean seconds to claim a free cell and release it."""
-  from sljax.experiment import workers
+  from sljax.experiment.running import workers
   with workers.Worker(folder, workers.identity(300.0)) as worker:
     t0 = time.perf_counter()
     for k in range(cells):

@@ -19,7 +19,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 if ROOT not in sys.path:
   sys.path.insert(0, ROOT)
 
-from sljax.machine import cpu_description, cpu_info, cpu_key  # noqa: E402  (after the path)
+from sljax.runtime.machine import cpu_description, cpu_info, cpu_key  # noqa: E402  (after the path)
 
 
 def peak_gflops(cpu: dict | None = None) -> tuple[float, str]:
@@ -48,7 +48,7 @@ def machine(torch_module=None) -> str:
           f"({jax.default_backend()}); jax {jax.__version__}, jaxlib {jaxlib.__version__}")
   if torch_module is not None:
     line += f", torch {torch_module.__version__} ({torch_module.get_num_threads()} threads)"
-  from sljax import hugepages
+  from sljax.runtime import hugepages
   return line + f"; malloc huge pages {'on' if hugepages.active() else 'off'}"
 
 
@@ -144,7 +144,7 @@ def record(benchmark: str, rows: list[dict], torch_module=None, quiet: bool = Fa
   if flags:  # a figure under other compiler flags is another figure
     entry["xla_flags"] = flags
   tunables = where.get("glibc_tunables", "")  # the measuring process's (device_of_process)
-  if tunables:  # malloc's huge pages (sljax/hugepages.py) change the CPU figures
+  if tunables:  # malloc's huge pages (sljax/runtime/hugepages.py) change the CPU figures
     entry["glibc_tunables"] = tunables
   RESULTS.mkdir(parents=True, exist_ok=True)
   path = RESULTS / f"{records_key(cpu, where['backend'], where['device_kind'])}.jsonl"

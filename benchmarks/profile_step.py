@@ -32,10 +32,11 @@ from pathlib import Path
 import jax
 
 from common import machine, record  # first: puts this checkout's sljax on the path
-from sljax.hugepages import reexec
+from sljax.runtime.hugepages import reexec
 from bench_nets import jax_loss, inputs
-from sljax import kernels, tune
+from sljax import kernels
 from sljax.nets import build_model
+from sljax.runtime import choices
 
 # Host-side spans, not XLA operations.
 RUNTIME = ("$", "ThunkExecutor", "PjitFunction", "CommonPjRt", "SlinkyThreadPool",
@@ -144,7 +145,7 @@ def kernel_rows(events: list[dict], calls: int, top: int) -> list[dict]:
 
 
 def main() -> None:
-  reexec()  # as sljax's commands run: malloc with huge pages (sljax/hugepages.py)
+  reexec()  # as sljax's commands run: malloc with huge pages (sljax/runtime/hugepages.py)
   ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   ap.add_argument("--model", default="psmnet")
   ap.add_argument("--size", type=int, default=256)
@@ -157,7 +158,7 @@ def main() -> None:
   args = ap.parse_args()
   print(machine())
   kind = "forward" if args.forward else "train"
-  choice = tune.choice()
+  choice = choices.choice()
   model = build_model(args.model, maxdisp=args.maxdisp)
   left, right, gt = (jax.numpy.asarray(a) for a in inputs(args.batch, args.size, args.maxdisp))
   variables = jax.jit(model.init)(jax.random.PRNGKey(0), left[:1], right[:1])
@@ -171,7 +172,7 @@ def main() -> None:
                            mutable=["batch_stats"])
       return jax_loss(out, g, args.maxdisp)
     def grads(params, l, r, g):  # with the kernel gradients' blocks training takes here
-      with kernels.grad_blocks(tune.grad_blocks_for(choice)):
+      with kernels.grad_blocks(choices.grad_blocks_for(choice)):
         return jax.grad(loss)(params, l, r, g)
     fn = jax.jit(grads, compiler_options=options)
     call = (variables["params"], left, right, gt)

@@ -10,8 +10,8 @@ import importlib
 import sys
 
 from sljax.errors import run_command
-from sljax.hugepages import reexec
-from sljax.quiet import quiet_libraries
+from sljax.runtime.hugepages import reexec
+from sljax.runtime.quiet import quiet_libraries
 
 # subcommand -> (module in sljax.commands, one line for `sljax --help`)
 COMMANDS = {
@@ -61,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
   args = build_parser(argv).parse_args(argv)
   quiet_libraries()
   # Imported here, at the command-line edge, so that `sljax --help` does not import jax.
-  from sljax.cache import enable_compile_cache  # pylint: disable=import-outside-toplevel
+  from sljax.runtime.compile_cache import enable_compile_cache  # pylint: disable=import-outside-toplevel
   enable_compile_cache(programs=True)
   code, result = run_command(f"sljax {args.command}", lambda: args.func(args),
                              quiet_broken_pipe=True)

@@ -4,7 +4,7 @@ four of them start in a second."""
 import random
 from pathlib import Path
 
-from sljax.experiment import workers
+from sljax.experiment.running import workers
 
 
 def claim_all(out: str, cells: list[str], barrier, seed: int, results, rounds: int) -> None:

@@ -54,7 +54,7 @@ ACCELERATORS = _accelerators()
 if ACCELERATORS:  # the suite runs in two processes (pyproject addopts); by default each would take
   os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")  # 75% of the GPU up front
 os.environ.setdefault("SLJAX_TUNE", "0")
-# Whole compiled programs are kept only where a test turns it on (tests/test_executables.py):
+# Whole compiled programs are kept only where a test turns it on (tests/test_kept_programs.py):
 # a test that patches a traced function would otherwise be served another test's program.
 os.environ["SLJAX_PROGRAM_CACHE"] = "off"  # even where a developer exported it on
 if os.environ.get("SLJAX_TEST_PRECISION", "highest") != "default":  # inherited by subprocesses
@@ -67,7 +67,7 @@ if "SLJAX_COMPILE_CACHE" not in os.environ:
   os.environ["SLJAX_COMPILE_CACHE"] = tempfile.mkdtemp(prefix="sljax-xla-")
   atexit.register(shutil.rmtree, os.environ["SLJAX_COMPILE_CACHE"], ignore_errors=True)
 
-from sljax.cache import enable_compile_cache  # noqa: E402  (after the settings above)
+from sljax.runtime.compile_cache import enable_compile_cache  # noqa: E402  (after the settings above)
 
 enable_compile_cache()
 

@@ -9,16 +9,17 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from sljax import geometry, inference, sl
+from sljax import inference, sl
 from sljax.corr import correlation
-from sljax.render import synthetic
+from sljax.data.camera import Calib, depth_from_disparity
 from sljax.data.dataset import FolderSource
-from sljax.data.calib import Calib, depth_from_disparity
 from sljax.data.dataset import iterate_batches
 from sljax.data.scene import Scene, load_scene, write_scene
+from sljax.depth import geometry
 from sljax.errors import SljaxError
-from sljax.metrics import DisparityAccumulator
+from sljax.evaluation.metrics import DisparityAccumulator
 from sljax.nets import ModelConfig
+from sljax.render import synthetic
 from sljax.sl import codes
 from toys import registered, toy_spec
 
@@ -51,11 +52,11 @@ def test_load_names_a_checkpoint_that_is_not_a_path(checkpoint):
 
 
 def test_load_refuses_kernels_that_are_not_a_choice_before_reading_the_checkpoint():
-  with pytest.raises(SljaxError, match="kernels must be a sljax.tune.KernelChoice"):
+  with pytest.raises(SljaxError, match="kernels must be a sljax.runtime.choices.KernelChoice"):
     inference.load("/nonexistent/run", kernels="fast")
   with pytest.raises(SljaxError, match="tune_kernels must be True, False or None"):
     inference.load("/nonexistent/run", tune_kernels="no")
-  with pytest.raises(SljaxError, match="kernels must be a sljax.tune.KernelChoice"):
+  with pytest.raises(SljaxError, match="kernels must be a sljax.runtime.choices.KernelChoice"):
     _toy(kernels="fast")  # else an AttributeError at the first prediction
 
 
@@ -82,7 +83,7 @@ def test_predict_names_an_input_that_is_not_an_image_array(left):
     _toy()(left, np.zeros((4, 4), np.float32))
 
 
-# ---- sljax.geometry --------------------------------------------------------------------------
+# ---- sljax.depth.geometry --------------------------------------------------------------------------
 
 
 def _calib(f=100.0, fy=None, baseline=10.0, width=8, height=6):
@@ -107,7 +108,7 @@ def test_point_cloud_refuses_zero_fy():
 
 
 def test_depth_refuses_no_calibration_and_a_calibration_of_another_size():
-  with pytest.raises(SljaxError, match=r"calib must be a sljax.data.calib.Calib .*got NoneType"):
+  with pytest.raises(SljaxError, match=r"calib must be a sljax.data.camera.Calib .*got NoneType"):
     geometry.depth_mm(DISP, None)
   with pytest.raises(SljaxError, match="calibration is for 8x6 images, the pair is 4x3"):
     geometry.point_cloud(DISP[:3, :4], _calib())

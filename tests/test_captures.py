@@ -19,7 +19,7 @@ from sljax.capture import captures, charuco
 from sljax.capture import rig as rigs
 from sljax.capture.frames import bit_counts, frame_number, opencv_roles, projector_frames
 from sljax.data import preflight
-from sljax.data.calib import read_calib
+from sljax.data.camera import read_calib
 from sljax.data.dataset import FolderSource, load_batch
 from sljax.data.pfm import read_pfm
 from sljax.data.scene import load_scene

@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from sljax.experiment import report
-from sljax.experiment.plans import build_plan
+from sljax.experiment.design.plans import build_plan
+from sljax.experiment.report import build
 
 ROOT = Path(__file__).resolve().parents[1]
 GRIDS = sorted((ROOT / "docs" / "results").glob("v[234]-*"))
@@ -54,6 +54,6 @@ def test_main_writes_the_committed_report_byte_for_byte(grid, tmp_path):
   out = tmp_path / grid.name
   shutil.copytree(grid, out, ignore=shutil.ignore_patterns("figures"))
   plans = list(json.loads((grid / "report.json").read_text()))
-  report.write_report(out, plans)
+  build.write_report(out, plans)
   for name in ("report.md", "report.json"):
     assert (out / name).read_bytes() == (grid / name).read_bytes(), (grid.name, name)

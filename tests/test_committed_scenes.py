@@ -12,8 +12,8 @@ import jax
 import numpy as np
 import pytest
 
-from sljax.experiment import runner
-from sljax.experiment.plans import build_plan
+from sljax.experiment.design.plans import build_plan
+from sljax.experiment.running import runner
 from sljax.train.loop import open_source
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -8,13 +8,14 @@ import pytest
 
 import jax.numpy as jnp
 
-from sljax import cli, inference, metrics
-from sljax.baselines import SGBMPredictor
-from sljax.data.calib import Calib
+from sljax import cli, inference
+from sljax.data.camera import Calib
+from sljax.data.dataset import FolderSource
 from sljax.data.pfm import read_pfm
 from sljax.data.scene import Scene, write_scene
-from sljax.evaluate import evaluate
-from sljax.data.dataset import FolderSource
+from sljax.evaluation import metrics
+from sljax.evaluation.scoring import evaluate
+from sljax.inference.sgbm import SGBMPredictor
 from sljax.nets import ModelConfig
 from toys import ToySL, registered, toy_spec
 
@@ -184,8 +185,8 @@ def _write_unet_sl_workdir(workdir, kwargs_in_config):
   """A training workdir (config.json + orbax checkpoint) of a tiny random unet-sl."""
   import jax
 
-  from sljax.nets import build_model
   from sljax.models import checkpoint as ckpt
+  from sljax.nets import build_model
   model = build_model("unet-sl", **UNET_KW)
   x = jax.ShapeDtypeStruct((1, 32, 32, 1), jnp.float32)
   shapes = jax.eval_shape(lambda a, b: model.init(jax.random.PRNGKey(0), a, b, train=False), x, x)
@@ -238,7 +239,7 @@ def test_full_disk_keeps_the_earlier_report_file(sgbm_run, tmp_path, monkeypatch
   stays byte for byte, no temporary file remains, the error names the file."""
   import errno
   from pathlib import Path
-  from sljax import evaluate as ev
+  from sljax.evaluation import scoring as ev
   report = json.loads((sgbm_run / "metrics.json").read_text())
   out = tmp_path / "r"
   ev.write_report(report, out)

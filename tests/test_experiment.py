@@ -14,13 +14,16 @@ import jax
 import numpy as np
 import pytest
 
-from sljax import cli, machine
+from sljax import cli
 from sljax.data.dataset import epoch_order
 from sljax.errors import SljaxError
-from sljax.experiment import plans, report, runner, workers
+from sljax.experiment.design import plans
+from sljax.experiment.report import build
+from sljax.experiment.running import runner, workers
 from sljax.nets import build_model, detach_sl
-from sljax.train import loop
 from sljax.nets.model_config import init_variables
+from sljax.runtime import machine
+from sljax.train import loop
 
 import toys
 
@@ -69,7 +72,8 @@ def test_smoke_plan_runs_end_to_end_and_a_second_run_trains_nothing(smoke_out, c
 
 _KILLED = textwrap.dedent("""
     import os, signal, sys
-    from sljax.experiment import plans, runner
+    from sljax.experiment.design import plans
+    from sljax.experiment.running import runner
     from sljax.train import loop
     fetch = loop.fetch_metrics
     def fetch_then_die(ctx, pending, state):
@@ -237,7 +241,7 @@ def test_every_plan_builds_at_every_scale():
 def test_report_of_partial_results_lists_the_missing(tmp_path):
   out = tmp_path / "out"
   runner.register(out, plans.build_plan("table2", "smoke", 1))
-  path = report.write_report(out)
+  path = build.write_report(out)
   md = path.read_text()
   assert "0 of 10 cells trained" in md and "Not scored yet" in md
   assert "no results yet" in md
@@ -364,7 +368,8 @@ def test_a_killed_workers_cell_is_finished_by_another_after_the_lease(smoke_out,
 
 _TERMINATED = textwrap.dedent("""
     import os, signal, sys
-    from sljax.experiment import plans, runner
+    from sljax.experiment.design import plans
+    from sljax.experiment.running import runner
     from sljax.train import loop
     fetch = loop.fetch_metrics
     def term_then_fetch(ctx, pending, state):

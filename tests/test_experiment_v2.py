@@ -7,9 +7,11 @@ import numpy as np
 import pytest
 
 from sljax.data.dataset import split_indices, split_three
-from sljax.render.synthetic import SynthConfig, render_scene
 from sljax.errors import SljaxError
-from sljax.experiment import calibrate, plans, runner
+from sljax.experiment.budget import calibrate
+from sljax.experiment.design import plans
+from sljax.experiment.running import runner
+from sljax.render.synthetic import SynthConfig, render_scene
 from sljax.train.loop import open_source
 
 

@@ -7,7 +7,10 @@ import numpy as np
 import pytest
 
 from sljax.errors import SljaxError
-from sljax.experiment import plans, regime, runner, stats
+from sljax.experiment.budget import regime
+from sljax.experiment.design import plans
+from sljax.experiment.report import stats
+from sljax.experiment.running import runner
 
 
 def test_pilot_cells_at_the_cpu_scale():
@@ -138,7 +141,7 @@ def test_the_committed_pilot_gives_the_committed_outcome():
 def test_v3_claims_on_fake_records(tmp_path):
   """The family of two: (a) final test Full MAE, (b) the overfitting rise from each cell's own
   curve; hand-computed differences; epr is in the tables but not a claim."""
-  from sljax.experiment import claims, report
+  from sljax.experiment.report import build, paper_claims
   plan = plans.build_plan("v3", "smoke", 3)
   runner.register(tmp_path, plan)
   mae = {"stl": [1.0, 1.2, 1.1], "unc": [0.9, 1.0, 1.05], "epr": [1.0, 1.1, 1.2]}
@@ -150,8 +153,8 @@ def test_v3_claims_on_fake_records(tmp_path):
       path = runner.cell_dir(tmp_path, cell.name) / "eval" / f"{e.name}.json"
       path.parent.mkdir(exist_ok=True)
       path.write_text(json.dumps({"pooled": {"full": {"mae": mae[cell.arm][k]}}}))
-  agg = report.aggregate(tmp_path, plan)
-  cl = claims.claims(plan, agg)
+  agg = build.aggregate(tmp_path, plan)
+  cl = paper_claims.claims(plan, agg)
   assert [c["set"] for c in cl] == ["test-objects", "validation-curve"]
   assert cl[0]["difference"]["mean"] == pytest.approx(np.mean(np.subtract(mae["unc"], mae["stl"])))
   assert cl[1]["difference"]["mean"] == pytest.approx(np.mean(np.subtract(rise["unc"], rise["stl"])))
@@ -160,5 +163,5 @@ def test_v3_claims_on_fake_records(tmp_path):
   assert [c["p_holm"] for c in cl] == pytest.approx(stats.holm(ps))
   curve_set = agg["groups"][0]["sets"]["validation-curve"]
   assert curve_set["arms"]["epr"]["rise"]["mean"] == pytest.approx(0.3)
-  md = (report.write_report(tmp_path)).read_text()
+  md = (build.write_report(tmp_path)).read_text()
   assert "overfitting rise" in md and "v3: stl, unc and epr" in md

@@ -7,7 +7,8 @@ import pytest
 
 from sljax.data.dataset import split_indices, take_fraction
 from sljax.errors import SljaxError
-from sljax.experiment import plans, regime
+from sljax.experiment.budget import regime
+from sljax.experiment.design import plans
 from sljax.train.feed import open_source
 
 
@@ -97,7 +98,7 @@ def test_v3_rule_on_steps_by_hand():
 
 def _fake(out, name, points):
   import json  # pylint: disable=import-outside-toplevel
-  from sljax.experiment import runner  # pylint: disable=import-outside-toplevel
+  from sljax.experiment.running import runner  # pylint: disable=import-outside-toplevel
   wd = runner.cell_dir(out, name)
   wd.mkdir(parents=True)
   (wd / "validation.jsonl").write_text("".join(json.dumps(r) + "\n" for r in _rows(points)))
@@ -113,7 +114,7 @@ FLAT = [(2, 1.0, 5), (4, 0.9, 3), (6, 0.9, 2), (8, 0.9, 2)]
     (FLAT, FLAT, None)])
 def test_the_grid_setting_by_the_rule(tmp_path, scratch, finetune, grid):
   """Both settings overfit: fine-tuning; one: that one; none: no grid. Waits for every cell."""
-  from sljax.experiment import runner  # pylint: disable=import-outside-toplevel
+  from sljax.experiment.running import runner  # pylint: disable=import-outside-toplevel
   plan = plans.build_plan("v4-pilot", "smoke", 1)
   runner.register(tmp_path, plan)
   for cell in plan.cells:
@@ -136,7 +137,7 @@ def test_the_grid_setting_by_the_rule(tmp_path, scratch, finetune, grid):
 
 
 def test_status_reads_a_step_budget_by_steps():
-  from sljax.experiment.status import TRAINING, CellState  # pylint: disable=import-outside-toplevel
+  from sljax.experiment.running.status import TRAINING, CellState  # pylint: disable=import-outside-toplevel
   cell = plans.build_plan("v4-pilot", "cpu", 1).cells[0]
   s = CellState(cell, TRAINING, epoch=300, step=675)
   assert s.share == pytest.approx(675 / 2700) and s.where == "step 675 of 2700"
@@ -267,7 +268,7 @@ def test_the_seed_rule_in_between(monkeypatch):
 
 
 def test_the_pilot_outcome_names_n_when_measured(tmp_path, monkeypatch):
-  from sljax.experiment import runner  # pylint: disable=import-outside-toplevel
+  from sljax.experiment.running import runner  # pylint: disable=import-outside-toplevel
   _measured(monkeypatch, 1.0)
   plan = plans.build_plan("v4-pilot", "smoke", 1)
   runner.register(tmp_path, plan)
@@ -284,7 +285,8 @@ def test_grid_claims_on_fake_records(tmp_path):
   (b) the rise of each fine-tuning cell's own curve by steps; hand-computed differences."""
   import json  # pylint: disable=import-outside-toplevel
   import numpy as np  # pylint: disable=import-outside-toplevel
-  from sljax.experiment import claims, report, runner, stats  # pylint: disable=import-outside-toplevel
+  from sljax.experiment.report import build, paper_claims, stats  # pylint: disable=import-outside-toplevel
+  from sljax.experiment.running import runner
   plan = plans.build_plan("v4", "smoke", 3)
   runner.register(tmp_path, plan)
   mae = {"stl": [1.0, 1.2, 1.1], "unc": [0.9, 1.0, 1.05], "epr": [1.0, 1.1, 1.2]}
@@ -299,8 +301,8 @@ def test_grid_claims_on_fake_records(tmp_path):
       path = runner.cell_dir(tmp_path, cell.name) / "eval" / f"{e.name}.json"
       path.parent.mkdir(exist_ok=True)
       path.write_text(json.dumps({"pooled": {"full": {"mae": mae[cell.arm][k]}}}))
-  agg = report.aggregate(tmp_path, plan)
-  cl = claims.claims(plan, agg)
+  agg = build.aggregate(tmp_path, plan)
+  cl = paper_claims.claims(plan, agg)
   assert [c["set"] for c in cl] == ["test-tissue", "validation-curve"]
   assert cl[0]["difference"]["mean"] == pytest.approx(np.mean(np.subtract(mae["unc"], mae["stl"])))
   assert cl[1]["difference"]["mean"] == pytest.approx(np.mean(np.subtract(rise["unc"],
@@ -313,7 +315,7 @@ def test_grid_claims_on_fake_records(tmp_path):
   # The training loss between validations, the seeds' mean per arm (secondary): 3, 4 and 5.
   ft = next(g for g in agg["groups"] if g["factors"]["setting"] == "finetune")
   assert [(p["step"], p["mean"]) for p in ft["train_curves"]["unc"]] == [(2, 4), (4, 2), (6, 1)]
-  md = report.write_report(tmp_path).read_text()
+  md = build.write_report(tmp_path).read_text()
   assert "v4: stl, unc and epr" in md and "overfitting rise" in md
   assert (tmp_path / "figures" / "v4_curves.png").exists()
   assert "Not finite at some validation" not in md
@@ -322,7 +324,7 @@ def test_grid_claims_on_fake_records(tmp_path):
   import shutil  # pylint: disable=import-outside-toplevel
   shutil.rmtree(runner.cell_dir(tmp_path, name))
   _fake(tmp_path, name, [(2, 1.0, 3), (4, 0.5, 2), (6, float("nan"), 1)])
-  md = report.write_report(tmp_path).read_text()
+  md = build.write_report(tmp_path).read_text()
   assert f"(diverged; the rise above is over the finite values only, so it understates theirs): " \
          f"{name}." in md
 
@@ -350,7 +352,8 @@ def test_a_diverged_grid_cell_is_left_out_and_the_grid_goes_on(tmp_path, monkeyp
   on without it and the cells fine-tuned from it; a rerun keeps them out; status and the
   report name them, and the pairs leave their seeds out (docs/plan-v4.md's addendum)."""
   import json  # pylint: disable=import-outside-toplevel
-  from sljax.experiment import report, runner, status  # pylint: disable=import-outside-toplevel
+  from sljax.experiment.report import build  # pylint: disable=import-outside-toplevel
+  from sljax.experiment.running import runner, status
   from sljax.train.record import TrainingDiverged  # pylint: disable=import-outside-toplevel
   plan = plans.build_plan("v4", "smoke", 3)
   by = _by(plan)
@@ -398,7 +401,7 @@ def test_a_diverged_grid_cell_is_left_out_and_the_grid_goes_on(tmp_path, monkeyp
   text = status.format_status(plan, states, "here")
   assert "3 left out (diverged)" in text and "Training left" not in text
   # The report: named, not "not scored yet", and the pairs over the seeds both arms have.
-  agg = report.aggregate(tmp_path, plan)
+  agg = build.aggregate(tmp_path, plan)
   ft = next(g for g in agg["groups"] if g["factors"]["setting"] == "finetune")
   test = ft["sets"]["test-tissue"]
   assert test["missing"] == [] and set(test["diverged"]) == {stl_ft, by[("epr", "finetune",
@@ -409,7 +412,7 @@ def test_a_diverged_grid_cell_is_left_out_and_the_grid_goes_on(tmp_path, monkeyp
   assert [p["n"] for p in ft["curves"]["stl"]] == [2, 2, 2]
   # epr's mean curve over its two finished seeds, not cut to the diverged cell's one step.
   assert [(p["step"], p["n"]) for p in ft["curves"]["epr"]] == [(2, 2), (4, 2), (6, 2)]
-  md = report.write_report(tmp_path).read_text()
+  md = build.write_report(tmp_path).read_text()
   assert "Left out, diverged" in md and stl_ft in md
 
 
@@ -417,7 +420,8 @@ def test_a_nan_score_leaves_its_seed_out_of_that_pair_only(tmp_path):
   """A finished cell scored NaN (None in its report) on the test set: that seed drops out of
   that metric's pair; the claim is still computed over the other seeds."""
   import json  # pylint: disable=import-outside-toplevel
-  from sljax.experiment import claims, report, runner  # pylint: disable=import-outside-toplevel
+  from sljax.experiment.report import build, paper_claims  # pylint: disable=import-outside-toplevel
+  from sljax.experiment.running import runner
   plan = plans.build_plan("v4", "smoke", 3)
   runner.register(tmp_path, plan)
   mae = {"stl": [1.0, 1.2, None], "unc": [0.9, 1.0, 1.05], "epr": [1.0, 1.1, 1.2]}
@@ -428,9 +432,9 @@ def test_a_nan_score_leaves_its_seed_out_of_that_pair_only(tmp_path):
       path.parent.mkdir(exist_ok=True)
       path.write_text(json.dumps({"pooled": {"full": {
           "mae": mae[cell.arm][cell.seed - 300], "bad_2": 0.1}}}))
-  agg = report.aggregate(tmp_path, plan)
+  agg = build.aggregate(tmp_path, plan)
   ft = next(g for g in agg["groups"] if g["factors"]["setting"] == "finetune")
   unc = ft["sets"]["test-tissue"]["paired"]["unc"]
   assert unc["mae"]["n"] == 2 and unc["mae"]["mean"] == pytest.approx(-0.15)
   assert unc["bad_2"]["n"] == 3
-  assert claims.claims(plan, agg)[0]["difference"]["n"] == 2
+  assert paper_claims.claims(plan, agg)[0]["difference"]["n"] == 2

@@ -11,7 +11,8 @@ import sys
 import numpy as np
 import pytest
 
-from sljax import cli, export, inference
+from sljax import cli, inference
+from sljax.deploy import stablehlo
 from sljax.errors import SljaxError
 from test_inference import UNET_KW, random_variables
 
@@ -43,7 +44,7 @@ def run_artifacts(jobs: list[dict]) -> None:
 
 def exported_outputs(tmp_path, predictor, size, batches):
   """Exports at size, runs the artifact on each batch in a clean process; returns its outputs."""
-  path, side = export.write_export(predictor, size, tmp_path / "model.jax", "test")
+  path, side = stablehlo.write_export(predictor, size, tmp_path / "model.jax", "test")
   jobs = []
   for i, (left, right) in enumerate(batches):
     np.savez(tmp_path / f"in{i}.npz", left=left, right=right)
@@ -130,7 +131,7 @@ def test_export_cli_and_bad_inputs(tmp_path, capsys, unet_disp_vars):
              "--search-range", "16"], "search_range is unet-sl's correlation range")
   assert not (tmp_path / "b.jax").exists()
   with pytest.raises(SljaxError, match="HEIGHTxWIDTH"):
-    export.parse_size("1x2x3")
+    stablehlo.parse_size("1x2x3")
 
 
 @pytest.mark.parametrize("size, message", [
@@ -143,28 +144,28 @@ def test_export_cli_and_bad_inputs(tmp_path, capsys, unet_disp_vars):
 ])
 def test_export_names_a_bad_size_before_tracing(tmp_path, unet_disp_vars, size, message):
   pred = inference.make_predictor("unet-disp", UNET_KW, unet_disp_vars, mode="pad")
-  for call in (lambda: export.export_model(pred, size),
-               lambda: export.inference_function(pred, size),
-               lambda: export.write_export(pred, size, tmp_path / "m.jax", "test")):
+  for call in (lambda: stablehlo.export_model(pred, size),
+               lambda: stablehlo.inference_function(pred, size),
+               lambda: stablehlo.write_export(pred, size, tmp_path / "m.jax", "test")):
     with pytest.raises(SljaxError, match=re.escape(message)):
       call()
   assert not list(tmp_path.iterdir())
 
 
 def test_export_names_a_predictor_that_is_not_one(tmp_path):
-  for call in (export.export_model, export.inference_function):
+  for call in (stablehlo.export_model, stablehlo.inference_function):
     with pytest.raises(SljaxError, match="predictor must be a sljax.inference.Predictor .*got "
                                          "str 'runs/x'"):
       call("runs/x", (8, 8))  # a path instead of sljax.inference.load(path): no AttributeError
   with pytest.raises(SljaxError, match="predictor must be a sljax.inference.Predictor"):
-    export.write_export("runs/x", (8, 8), tmp_path / "m.jax", "test")
+    stablehlo.write_export("runs/x", (8, 8), tmp_path / "m.jax", "test")
 
 
 def test_export_size_of_numpy_ints_writes_a_json_sidecar(tmp_path, unet_disp_vars):
   """np.int64 sizes (e.g. from an image's shape) are plain ints in the sidecar, which json
   refused before."""
   pred = inference.make_predictor("unet-disp", UNET_KW, unet_disp_vars, mode="pad")
-  _, side = export.write_export(pred, (np.int64(8), np.int64(12)), tmp_path / "m.jax", "test")
+  _, side = stablehlo.write_export(pred, (np.int64(8), np.int64(12)), tmp_path / "m.jax", "test")
   info = json.loads(side.read_text())
   assert (info["input"]["height"], info["input"]["width"]) == (8, 12)
 
@@ -174,11 +175,11 @@ def test_full_disk_keeps_the_earlier_export(tmp_path, unet_disp_vars, monkeypatc
   """--overwrite onto a disk that fills part-way: the earlier artifact and its sidecar stay
   byte for byte, no temporary file remains, and the error names the file being written."""
   pred = inference.make_predictor("unet-disp", UNET_KW, unet_disp_vars, mode="pad")
-  out, side = export.write_export(pred, (8, 8), tmp_path / "model.jax", "first")
+  out, side = stablehlo.write_export(pred, (8, 8), tmp_path / "model.jax", "first")
   before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
   assert sorted(before) == ["model.jax", "model.json"]
-  exported = export.export_model(pred, (8, 8))
-  monkeypatch.setattr(export, "export_model", lambda *args: exported)  # no second tracing
+  exported = stablehlo.export_model(pred, (8, 8))
+  monkeypatch.setattr(stablehlo, "export_model", lambda *args: exported)  # no second tracing
 
   def half_then_full(self, data, *args, **kwargs):
     with open(self, "w" if isinstance(data, str) else "wb") as f:
@@ -187,6 +188,6 @@ def test_full_disk_keeps_the_earlier_export(tmp_path, unet_disp_vars, monkeypatc
   method = "write_bytes" if fail == "artifact" else "write_text"
   monkeypatch.setattr(type(tmp_path), method, half_then_full)
   with pytest.raises(OSError) as info:
-    export.write_export(pred, (8, 8), out, "second", overwrite=True)
+    stablehlo.write_export(pred, (8, 8), out, "second", overwrite=True)
   assert info.value.filename == str(out if fail == "artifact" else side)
   assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before

@@ -1,4 +1,4 @@
-"""sljax.files: outputs written whole, output folders checked, .npz files read with one-line
+"""sljax.io.files: outputs written whole, output folders checked, .npz files read with one-line
 errors. The other tests reach these through the commands; here each rule is checked alone."""
 
 import errno
@@ -10,8 +10,8 @@ import threading
 import numpy as np
 import pytest
 
-from sljax import files
 from sljax.errors import SljaxError
+from sljax.io import files
 
 import toys
 

@@ -9,12 +9,13 @@ import cv2
 import numpy as np
 import pytest
 
-from sljax import cli, geometry
+from sljax import cli
 from sljax.capture import scared
-from sljax.data.calib import Calib, write_calib
+from sljax.data.camera import Calib, write_calib
 from sljax.data.pfm import read_pfm
-from sljax.images import write_image
+from sljax.depth import geometry
 from sljax.errors import SljaxError
+from sljax.io.images import write_image
 
 H, W = 24, 40
 FX, FY, CX, CY, BASELINE, DOFFS = 80.0, 97.0, 18.5, 13.0, 120.0, 3.5

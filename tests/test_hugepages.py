@@ -1,4 +1,4 @@
-"""sljax.hugepages: when a command line starts again with glibc's huge-page tunable, that it
+"""sljax.runtime.hugepages: when a command line starts again with glibc's huge-page tunable, that it
 starts once with its arguments and interpreter flags, and that malloc then gets huge pages."""
 
 import os
@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from sljax import hugepages
+from sljax.runtime import hugepages
 
 ROOT = Path(__file__).resolve().parents[1]
 GLIBC = (2, 36)
@@ -80,7 +80,7 @@ def _child(tmp_path: Path, body: str, *flags: str, env: dict | None = None) -> l
   script.write_text(textwrap.dedent(f"""\
       import os, sys
       sys.path.insert(0, {str(ROOT)!r})
-      from sljax import hugepages
+      from sljax.runtime import hugepages
       hugepages.thp_mode = lambda path=None: "madvise"
       print("start", os.environ.get("GLIBC_TUNABLES"), sys.argv[1:], sys.flags.optimize,
             flush=True)

@@ -5,11 +5,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from sljax import inference, tune
+from sljax import inference
 from sljax.data.dataset import resize_image
 from sljax.errors import SljaxError
 from sljax.nets import psmnet
 from sljax.nets import ModelConfig
+from sljax.runtime import choices
 from toys import ToySL, registered, toy_spec
 
 
@@ -185,14 +186,14 @@ def test_a_command_keeps_the_programs_whole_and_the_next_one_loads_them(tmp_path
   """With compiled programs kept on disk (command lines), a new process (a fresh Programs)
   loads the forward program instead of tracing it, with the same outputs; another model
   (its fields) or other compiler options is another program."""
-  from sljax import executables
   from sljax.inference import programs
+  from sljax.runtime import kept_programs
   variables = {"params": {"bias": jnp.array([0.25], jnp.float32)}}
   pair = _pair(21, 33, seed=7)
   expected = _predictor("toy", variables, mode="pad")(*pair)  # the plain jitted program
-  monkeypatch.setenv(executables.ENV, "on")
+  monkeypatch.setenv(kept_programs.ENV, "on")
   jax.clear_caches()
-  where = executables.enable(tmp_path / "xla")
+  where = kept_programs.enable(tmp_path / "xla")
   try:
     entries = lambda: sorted(p.name for p in where.glob("sljax-program-inference-forward-*-cache"))
     for process in range(2):
@@ -203,7 +204,7 @@ def test_a_command_keeps_the_programs_whole_and_the_next_one_loads_them(tmp_path
       model = ModelConfig.of("toy", in_channels=1).build()
       assert programs.PROGRAMS.traces(model) == (1 if process == 0 else 0)  # loaded, not traced
       assert len(entries()) == 1
-    off = _predictor("toy", variables, mode="pad", kernels=tune.KernelChoice(forward_ynn=False))
+    off = _predictor("toy", variables, mode="pad", kernels=choices.KernelChoice(forward_ynn=False))
     np.testing.assert_allclose(off(*pair)["disparity"], expected["disparity"], rtol=1e-6)
     assert len(entries()) == 2 and programs.PROGRAMS.traces(model) == 1
     # Another field of the model, with the same variables and inputs: another program.
@@ -212,7 +213,7 @@ def test_a_command_keeps_the_programs_whole_and_the_next_one_loads_them(tmp_path
     np.testing.assert_array_equal(other(*pair)["disparity"], expected["disparity"])
     assert len(entries()) == 3
   finally:
-    executables.enable(None)
+    kept_programs.enable(None)
 
 
 def test_bad_inputs(pad_predictor):

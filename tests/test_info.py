@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from sljax import cli
-from sljax.data.calib import Calib, write_calib
+from sljax.data.camera import Calib, write_calib
 from sljax.data.scene import Scene, load_scene, write_scene
 from sljax.errors import SljaxError
 
@@ -93,7 +93,7 @@ def test_info_flags_mixed_or_undeclared_pattern_counts(tmp_path, capsys):
 
 def test_info_does_not_count_a_killed_writes_leftover(tmp_path, capsys):
   """A decode or make-data killed mid-write leaves sl0/.000.tmpPID.png: not a fifth pattern."""
-  from sljax import files
+  from sljax.io import files
   write_scene(tmp_path / "a", _scene(0))
   write_scene(tmp_path / "b", _scene(1))
   sl0 = tmp_path / "b" / "sl0"

@@ -15,10 +15,10 @@ import jax
 import numpy as np
 import pytest
 
-from sljax import files
 from sljax.data.scene import Scene
-from sljax.nets import ModelConfig
+from sljax.io import files
 from sljax.models import checkpoint as ckpt
+from sljax.nets import ModelConfig
 from sljax.train import loop
 from sljax.train.config import TrainConfig
 

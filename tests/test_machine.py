@@ -1,4 +1,4 @@
-"""sljax.machine's reading of how busy other processes keep the CPUs (the tuner's guard against
+"""sljax.runtime.machine's reading of how busy other processes keep the CPUs (the tuner's guard against
 measuring beside other work): hand-made /proc/stat lines, and a real busy process."""
 
 import os
@@ -8,7 +8,7 @@ import time
 
 import pytest
 
-from sljax import machine
+from sljax.runtime import machine
 
 HZ = os.sysconf("SC_CLK_TCK")
 

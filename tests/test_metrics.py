@@ -3,9 +3,9 @@ import math
 import numpy as np
 import pytest
 
-from sljax import metrics
-from sljax.data.calib import Calib
+from sljax.data.camera import Calib
 from sljax.errors import SljaxError
+from sljax.evaluation import metrics
 
 
 def _calib(f=100.0, baseline=50.0, doffs=2.0):
@@ -139,7 +139,7 @@ def test_pattern_accuracy_over_known_pixels():
 
 
 # ------------------------------------------------------------
-# Metrics where mutants of sljax/metrics.py survived the other tests.
+# Metrics where mutants of sljax/evaluation/metrics.py survived the other tests.
 
 
 

@@ -1,4 +1,4 @@
-"""sljax predict and sljax.geometry: depth maps, 16-bit PNGs and PLY point clouds read back."""
+"""sljax predict and sljax.depth.geometry: depth maps, 16-bit PNGs and PLY point clouds read back."""
 
 import json
 
@@ -6,11 +6,12 @@ import cv2
 import numpy as np
 import pytest
 
-from sljax import cli, geometry, predict
-from sljax.data.calib import Calib, write_calib
+from sljax import cli
+from sljax.data.camera import Calib, write_calib
 from sljax.data.pfm import read_pfm
-from sljax.images import write_image
+from sljax.depth import geometry, pairs
 from sljax.errors import SljaxError
+from sljax.io.images import write_image
 
 H, W = 40, 64
 F, CX, CY, FY, BASELINE, DOFFS = 80.0, 30.5, 21.0, 80.0, 120.0, 2.5
@@ -263,19 +264,19 @@ def test_predict_bad_inputs(tmp_path, capsys):
 
 def test_predict_pairs_from_python_takes_a_str_out_and_checks_its_arguments_first(tmp_path):
   scene = _scene(tmp_path / "s")
-  pairs = predict.find_pairs([str(scene / "im0.png"), str(scene / "im1.png")])
-  sgbm = predict.load_predictor("sgbm", num_disparities=16)
+  found = pairs.find_pairs([str(scene / "im0.png"), str(scene / "im1.png")])
+  sgbm = pairs.load_predictor("sgbm", num_disparities=16)
   out = tmp_path / "out"
   for bad in (0, -1.0, float("nan")):  # else every pixel silently unknown: an empty cloud
     with pytest.raises(SljaxError, match="max_depth must be positive"):
-      predict.predict_pairs(sgbm, pairs, str(out), max_depth=bad, progress=False)
+      pairs.predict_pairs(sgbm, found, str(out), max_depth=bad, progress=False)
   with pytest.raises(SljaxError, match="max_depth must be a number of mm or None, got '3000'"):
-    predict.predict_pairs(sgbm, pairs, str(out), max_depth="3000", progress=False)
+    pairs.predict_pairs(sgbm, found, str(out), max_depth="3000", progress=False)
   with pytest.raises(SljaxError, match="predictor must be callable .* got str 'sgbm'"):
-    predict.predict_pairs("sgbm", pairs, str(out), progress=False)
+    pairs.predict_pairs("sgbm", found, str(out), progress=False)
   assert not out.exists()  # refused before the first prediction
   # A str folder, as on the command line (an AttributeError on str.mkdir before).
-  (summary,) = predict.predict_pairs(sgbm, pairs, str(out), max_depth=3000.0, progress=False)
+  (summary,) = pairs.predict_pairs(sgbm, found, str(out), max_depth=3000.0, progress=False)
   assert summary["points"] > 0 and (out / "cloud.ply").is_file()
 
 
@@ -292,15 +293,15 @@ def test_geometry_refuses_a_max_depth_that_would_drop_every_point():
 def test_find_pairs_names_a_single_path_given_instead_of_a_list(tmp_path):
   scene = _scene(tmp_path / "s")
   with pytest.raises(SljaxError, match="inputs must be a list of paths.*got the single path"):
-    predict.find_pairs(str(scene))  # was "got 15 paths" (one per character)
-  assert len(predict.find_pairs([scene])) == 1
+    pairs.find_pairs(str(scene))  # was "got 15 paths" (one per character)
+  assert len(pairs.find_pairs([scene])) == 1
 
 
 def test_find_pairs_rejects_scene_without_right_view(tmp_path):
   scene = _scene(tmp_path / "d" / "s")
   (scene / "im1.png").unlink()
   with pytest.raises(SljaxError, match="im1.png: missing"):
-    predict.find_pairs([str(tmp_path / "d")])
+    pairs.find_pairs([str(tmp_path / "d")])
 
 
 @pytest.mark.parametrize("victim", ["cloud.ply", "disparity.pfm", "depth_mm.png"])

@@ -11,7 +11,7 @@ import pytest
 
 from sljax import cli
 from sljax.data import preflight
-from sljax.data.calib import Calib, write_calib
+from sljax.data.camera import Calib, write_calib
 from sljax.data.dataset import FolderSource
 from sljax.data.pfm import write_pfm
 from sljax.data.scene import Scene, write_scene
@@ -221,11 +221,11 @@ def test_a_bad_file_is_named_before_any_tuning_or_compiling(tmp_path, monkeypatc
   """A 24-scene folder with one corrupt im0.png, on a CPU kind with empty tuning and pre-flight
   caches (the cache_dir fixture): `train` names the file and stops before it tunes XLA's
   settings (minutes on a new CPU kind) or compiles anything."""
-  from sljax import tune
+  from sljax.runtime import choices
   monkeypatch.delenv("SLJAX_TUNE", raising=False)
-  assert tune.enabled(None) and tune.cached_choice() is None  # a first run on this CPU kind
+  assert choices.enabled(None) and choices.measured_choice() is None  # a first run on this CPU kind
   tuned = []
-  monkeypatch.setattr(tune, "measure", lambda *a, **k: tuned.append(1) or pytest.fail("tuned"))
+  monkeypatch.setattr(choices, "measure", lambda *a, **k: tuned.append(1) or pytest.fail("tuned"))
   monkeypatch.setattr(loop, "compiled_steps",
                       lambda *a, **k: pytest.fail("compiled before the data check"))
   root = _dataset(tmp_path / "data", 24)

@@ -9,7 +9,9 @@ import math
 import pytest
 
 from sljax import cli
-from sljax.experiment import plans, report, runner, stats
+from sljax.experiment.design import plans
+from sljax.experiment.report import build, stats
+from sljax.experiment.running import runner
 
 T975_DF2 = 4.302653  # Student t, 0.975 quantile, 2 degrees of freedom
 STL = [1.0, 2.0, 3.0]  # stl's test MAE for seeds 0, 1, 2
@@ -54,7 +56,7 @@ def _p_df2(diffs):
 
 def test_means_intervals_and_paired_tests_by_hand(fake):
   out, plan = fake
-  agg = report.aggregate(out, plan)
+  agg = build.aggregate(out, plan)
   (group,) = agg["groups"]
   res = group["sets"]["test-objects"]
   stl = res["arms"]["stl"]["mae"]
@@ -81,19 +83,19 @@ def test_delta_m_is_the_relative_mae_change_by_hand(fake):
   """stl has no SL output, so Δm is over disparity MAE alone (bad-2, which moves 100x more,
   is not in it): seed by seed -(arm - stl) / stl * 100, then the mean over seeds."""
   out, plan = fake
-  dm = report.aggregate(out, plan)["groups"][0]["sets"]["test-objects"]["paired"]["cg_a"][
+  dm = build.aggregate(out, plan)["groups"][0]["sets"]["test-objects"]["paired"]["cg_a"][
       "delta_m"]
   per_seed = [30.0, 16.0, 34.0 / 3.0]  # 0.30 / 1, 0.32 / 2, 0.34 / 3, in %
   assert dm["mean"] == pytest.approx(sum(per_seed) / 3)
   assert dm["n"] == 3
   # Two SL outputs: pattern accuracy (higher is better) joins disparity MAE.
-  assert report.delta_m({"mae": 1.5, "pattern_acc": 90.0, "bad_2": 1.0},
+  assert build.delta_m({"mae": 1.5, "pattern_acc": 90.0, "bad_2": 1.0},
                         {"mae": 2.0, "pattern_acc": 80.0, "bad_2": 50.0}) == pytest.approx(18.75)
 
 
 def test_holm_and_the_three_verdicts(fake):
   out, plan = fake
-  cl = report.claims(plan, report.aggregate(out, plan))
+  cl = build.claims(plan, build.aggregate(out, plan))
   assert len(cl) == 8  # 4 arms x Full / Seg at 1/16: one family
   by = {(c["arm"], c["metric"]): c for c in cl}
   # Seg MAE is 2 x Full MAE in the fake data: the same t and p for both metrics of an arm.
@@ -117,7 +119,7 @@ def test_holm_and_the_three_verdicts(fake):
   # The detectable difference comes from the observed SD of the paired differences.
   assert by["cg_a", "mae"]["detectable"] == pytest.approx(
       stats.detectable_difference(0.02, 3), rel=1e-9)
-  md = report.write_report(out).read_text()
+  md = build.write_report(out).read_text()
   assert "Holm p" in md and "detectable (80%)" in md and "pattern acc % (left)" in md
   assert "(the paper found no gain here)" in md
   assert "fixed test set test-objects (20 objects scenes rendered from dataset seed" in md
@@ -134,7 +136,7 @@ def test_a_claim_that_holds_unadjusted_can_fail_after_holm():
       "unet-sl": {"mae": null, "seg_mae": null}}}}},
                     {"factors": {"data": "tissue"}, "sets": {"heldout": {"paired": {
                         "unet-sl": {"mae": gain}}}}}]}
-  cl = report.claims(plans.build_plan("table1", "smoke", 1), agg)
+  cl = build.claims(plans.build_plan("table1", "smoke", 1), agg)
   assert len(cl) == 3
   tissue = cl[-1]
   assert tissue["p_holm"] == pytest.approx(3 * p, rel=1e-8)
@@ -150,11 +152,11 @@ def test_a_partial_table_says_its_holm_family_is_interim(tmp_path):
   for cell in plan.cells:
     if cell.arm in ("stl", "cg_a"):  # 2 of the family's 8 claims can be tested
       _write_eval(out, cell, "test-objects", STL[cell.seed] + OFFSETS[cell.arm][cell.seed])
-  md = report.write_report(out).read_text()
+  md = build.write_report(out).read_text()
   assert "Holm-adjusted p over its 2 claims with results (the family has 8: until all" in md
   for cell in plan.cells:
     _write_eval(out, cell, "test-objects", STL[cell.seed] + OFFSETS[cell.arm][cell.seed])
-  md = report.write_report(out).read_text()
+  md = build.write_report(out).read_text()
   assert "Holm-adjusted p over its 8 claims; verdicts" in md and "interim" not in md
 
 
@@ -164,7 +166,7 @@ def test_pairing_is_by_seed_not_by_position(fake):
   out, plan = fake
   shuffled = dataclasses.replace(plan, cells=tuple(reversed(plan.cells)))
   for p in (plan, shuffled):
-    cg_a = report.aggregate(out, p)["groups"][0]["sets"]["test-objects"]["paired"]["cg_a"]["mae"]
+    cg_a = build.aggregate(out, p)["groups"][0]["sets"]["test-objects"]["paired"]["cg_a"]["mae"]
     assert cg_a["sd"] == pytest.approx(0.02)
   # The same numbers paired one seed apart (arm seed s with baseline seed s + 1) give another
   # SD, so the assertion above discriminates the pairing.
@@ -180,7 +182,7 @@ def test_a_misfiled_seed_is_caught(fake):
   by = {(c.arm, c.seed): c for c in plan.cells}
   _write_eval(out, by["cg_a", 0], "test-objects", STL[1] + OFFSETS["cg_a"][1], 90.0)
   _write_eval(out, by["cg_a", 1], "test-objects", STL[0] + OFFSETS["cg_a"][0], 90.0)
-  cg_a = report.aggregate(out, plan)["groups"][0]["sets"]["test-objects"]["paired"]["cg_a"]["mae"]
+  cg_a = build.aggregate(out, plan)["groups"][0]["sets"]["test-objects"]["paired"]["cg_a"]["mae"]
   assert cg_a["sd"] != pytest.approx(0.02)
 
 
@@ -191,18 +193,18 @@ def test_table3_claims_only_on_other_domains(tmp_path):
   for cell in plan.cells:
     for e in cell.evals:
       _write_eval(out, cell, e.name, 1.0 + 0.1 * cell.seed + (0.05 if cell.arm == "stl" else 0))
-  cl = report.claims(plan, report.aggregate(out, plan))
+  cl = build.claims(plan, build.aggregate(out, plan))
   assert {c["set"] for c in cl} == {"test-tissue"} and len(cl) == 4
   v1 = plans.build_plan("table3", "smoke", 2)
   agg = {"groups": [{"factors": {"data": "all"}, "sets": {
       "heldout": {"paired": {}}, "tissue": {"paired": {}}}}]}
-  assert {c["set"] for c in report.claims(v1, agg)} == {"tissue"}
+  assert {c["set"] for c in build.claims(v1, agg)} == {"tissue"}
 
 
 def test_fig7_says_where_the_paper_predicts_no_gain():
   plan = plans.build_plan("fig7-v2", "smoke", 1)
   agg = {"groups": [{"factors": {"data": "tissue"}, "sets": {"test-tissue": {"paired": {}}}}]}
-  cl = report.claims(plan, agg)
+  cl = build.claims(plan, agg)
   assert {c["arm"]: c["paper"] for c in cl} == {"cg_a": "no gain", "cg_b": "no gain",
                                                 "epr": "no gain", "unc": "gain"}
   assert all(c["verdict"] == "no results yet" for c in cl)
@@ -213,12 +215,12 @@ def test_paper_sized_gain_is_exploratory_and_computed_by_hand(fake):
   mean is 2.0 px, so a paper-sized difference is -0.193 px; cg_a's interval [-0.37, -0.27]
   does not exclude it, cg_b's (above 0) does."""
   out, plan = fake
-  by = {(c["arm"], c["metric"]): c for c in report.claims(plan, report.aggregate(out, plan))}
+  by = {(c["arm"], c["metric"]): c for c in build.claims(plan, build.aggregate(out, plan))}
   assert by["cg_a", "mae"]["paper_sized"] == pytest.approx((0.496 - 0.549) / 0.549 * 2.0)
   assert not by["cg_a", "mae"]["paper_sized_excluded"]
   assert by["cg_b", "mae"]["paper_sized_excluded"]
   assert "paper_sized" not in by["cg_b", "seg_mae"]  # the paper found no gain there
-  assert "Exploratory (not a pre-registered test)" in report.write_report(out).read_text()
+  assert "Exploratory (not a pre-registered test)" in build.write_report(out).read_text()
 
 
 def test_window_chosen_at_the_edge_is_noted(tmp_path):
@@ -231,8 +233,8 @@ def test_window_chosen_at_the_edge_is_noted(tmp_path):
     path = runner.cell_dir(out, cell.name) / runner.EVAL_DIR / runner.WINDOWS_FILE
     path.parent.mkdir(parents=True)
     path.write_text(json.dumps({"candidates": [3, 5], "chosen": chosen}))
-  assert report.window_edges(out, plan) == (1, 2)
-  text = report.write_report(out).read_text()
+  assert build.window_edges(out, plan) == (1, 2)
+  text = build.write_report(out).read_text()
   assert "the largest candidate in 1 of 2 cells" in text
 
 
@@ -248,7 +250,7 @@ def test_training_time_per_arm_and_cpu_by_hand(fake):
       ynn = {0: "on", 1: "forward-off"}.get(cell.seed)
       if ynn:
         (runner.cell_dir(out, cell.name) / "config.json").write_text(json.dumps({"ynn": ynn}))
-  times = report.cell_times(out, plan)
+  times = build.cell_times(out, plan)
   assert set(times) == {("stl", "1/16", "CPU A"), ("stl", "1/16", "not recorded"),
                         ("unc", "1/16", "CPU A"), ("unc", "1/16", "not recorded")}
   # Seeds 0 and 1 (10 and 20 min) on CPU A: mean 15; seed 2 (60 min) apart, not averaged in.
@@ -257,7 +259,7 @@ def test_training_time_per_arm_and_cpu_by_hand(fake):
   assert times["stl", "1/16", "not recorded"] == {"n": 1, "mean": pytest.approx(60.0),
                                                   "min": 60.0, "max": 60.0,
                                                   "ynn": ["not recorded"]}
-  text = report.write_report(out).read_text()
+  text = build.write_report(out).read_text()
   assert "| stl | 1/16 | 2 | 15.0 (10.0-20.0) | CPU A | forward-off, on |" in text
   assert "| stl | 1/16 | 1 | 60.0 (60.0-60.0) | not recorded | not recorded |" in text
 
@@ -269,10 +271,10 @@ def test_report_of_named_plans_only(fake, capsys):
   runner.register(out, plans.build_plan("fig7-v2", "smoke", 1))
   assert cli.main(["experiment", "report", str(out)]) == 0
   both = (out / "report.md").read_text()
-  assert report.TITLES["table2-v2"] in both and report.TITLES["fig7-v2"] in both
+  assert build.TITLES["table2-v2"] in both and build.TITLES["fig7-v2"] in both
   assert cli.main(["experiment", "report", str(out), "--plans", "table2-v2"]) == 0
   one = (out / "report.md").read_text()
-  assert report.TITLES["table2-v2"] in one and report.TITLES["fig7-v2"] not in one
+  assert build.TITLES["table2-v2"] in one and build.TITLES["fig7-v2"] not in one
   assert set(json.loads((out / "report.json").read_text())) == {"table2-v2"}
   capsys.readouterr()
   assert cli.main(["experiment", "report", str(out), "--plans", "table3-v2"]) == 2

@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 
 from sljax import cli
-from sljax.data.calib import read_calib
-from sljax.data.pfm import read_pfm
 from sljax.capture.scared import import_scared
+from sljax.data.camera import read_calib
+from sljax.data.pfm import read_pfm
 from sljax.data.scene import load_scene
 from sljax.errors import SljaxError
 
@@ -260,7 +260,7 @@ def test_evaluate_scores_keyframes_in_the_original_frame(keyframe, tmp_path):
   depth everywhere, so the keyframe's MAE is (1 - 1/1.05) times the mean assessed depth."""
   from sljax.capture import scared
   from sljax.data.dataset import FolderSource
-  from sljax.evaluate import evaluate
+  from sljax.evaluation.scoring import evaluate
   _, out, _ = keyframe
   calib = load_scene(out).calib
   pred = _exact_rectified_disparity(calib) * np.float32(1.05)

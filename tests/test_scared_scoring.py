@@ -13,11 +13,11 @@ import numpy as np
 import pytest
 
 from sljax.capture import scared
-from sljax.data.calib import Calib
+from sljax.data.camera import Calib
 from sljax.data.dataset import FolderSource
 from sljax.data.pfm import write_pfm
 from sljax.data.scene import Scene, write_scene
-from sljax.evaluate import evaluate
+from sljax.evaluation.scoring import evaluate
 
 H, W = 20, 30
 FX, FY, CX, CY, BASELINE, DOFFS = 80.0, 92.0, 14.5, 9.5, 50.0, 2.0

@@ -9,10 +9,10 @@ import cv2
 import numpy as np
 import pytest
 
-from sljax.data.calib import Calib
+from sljax.data.camera import Calib
 from sljax.data.scene import UNKNOWN_PATTERN, Scene, load_scene, present_parts, write_scene
-from sljax.images import read_image
 from sljax.errors import SljaxError
+from sljax.io.images import read_image
 
 H, W = 6, 8
 CALIB_TXT = """cam0=[100 0 4; 0 100 3; 0 0 1]

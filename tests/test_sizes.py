@@ -1,12 +1,13 @@
-"""sljax.sizes: the one parser of image sizes, checked against hand-written cases."""
+"""sljax.io.sizes: the one parser of image sizes, checked against hand-written cases."""
 
 import argparse
 
 import numpy as np
 import pytest
 
-from sljax import export, sizes
+from sljax.deploy import stablehlo
 from sljax.errors import SljaxError
+from sljax.io import sizes
 from sljax.train.config import parse_size as flag_size
 
 
@@ -25,14 +26,14 @@ def test_as_size_rejects_with_the_name(value):
 @pytest.mark.parametrize("text, want", [("96x128", (96, 128)), ("96X128", (96, 128))])
 def test_parse_size_every_entry_point(text, want):
   """The training flag, export's --size and the library agree on every spelling."""
-  assert sizes.parse_size(text) == flag_size(text) == export.parse_size(text) == want
+  assert sizes.parse_size(text) == flag_size(text) == stablehlo.parse_size(text) == want
 
 
 def test_square_sizes_where_allowed():
   """N means N x N for training; an export artifact's shape must be spelt out."""
   assert sizes.parse_size("256") == flag_size("256") == (256, 256)
   with pytest.raises(SljaxError, match="expected HEIGHTxWIDTH"):
-    export.parse_size("256")
+    stablehlo.parse_size("256")
 
 
 @pytest.mark.parametrize("text", ["1x2x3", "a", "", "0x3", "-1", "4x"])

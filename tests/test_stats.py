@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from sljax.experiment import stats
+from sljax.experiment.report import stats
 
 
 @pytest.mark.parametrize("t", [-7.0, -1.3, 0.0, 0.4, 2.5, 30.0])
@@ -82,7 +82,7 @@ def test_incomplete_beta_symmetry_and_bounds():
 def test_claim_of_the_baseline_counts_its_own_wins():
   """A claim that the baseline beats an arm flips the difference and counts the baseline's wins."""
   from types import SimpleNamespace
-  from sljax.experiment.report import claims
+  from sljax.experiment.report.build import claims
   diff = stats.paired_test([2.0, 2.1, 1.9], [1.0, 1.0, 1.0])  # unet-sl - unet-disp: all worse
   agg = {"groups": [{"factors": {"data": "objects"},
                      "sets": {"heldout": {"paired": {"unet-sl": {"mae": diff,
@@ -146,7 +146,7 @@ def test_delta_m_with_a_higher_is_better_metric_by_hand():
 
 
 # ------------------------------------------------------------
-# Experiment statistics where mutants of sljax/experiment/stats.py survived the other tests.
+# Experiment statistics where mutants of sljax/experiment/report/stats.py survived the other tests.
 #
 # Closed forms: df = 1 is the Cauchy distribution, F(t) = 1/2 + atan(t) / pi, quantile
 # tan(pi (p - 1/2)); df = 2 has F(t) = 1/2 + t / (2 sqrt(2 + t^2)), quantile

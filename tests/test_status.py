@@ -8,7 +8,8 @@ import time
 import pytest
 
 from sljax import cli
-from sljax.experiment import plans, runner, status, workers
+from sljax.experiment.design import plans
+from sljax.experiment.running import runner, status, workers
 
 X, Y = "CPU X", "CPU Y"
 

@@ -201,19 +201,19 @@ _HOST_INIT = textwrap.dedent("""
     import tempfile
     from pathlib import Path
     import jax, numpy as np
-    from sljax import executables
     from sljax.nets import build_model
     from sljax.nets import model_config as mc
+    from sljax.runtime import kept_programs
     assert jax.device_count() == 2, jax.devices()
     model = build_model("unet-disp", in_channels=3, depth=2, base_width=8)
     plain = jax.device_get(mc.init_variables(model, 3, 32, 32, 3))
     ran_on = []
-    real = executables.Program.__call__
+    real = kept_programs.Program.__call__
     def spy(self, *args):
       ran_on.append((str(self.device), sorted(d.id for a in args for d in a.devices())))
       return real(self, *args)
-    executables.Program.__call__ = spy
-    executables.enable(Path(tempfile.mkdtemp()))
+    kept_programs.Program.__call__ = spy
+    kept_programs.enable(Path(tempfile.mkdtemp()))
     origins = []
     for _ in range(2):  # compiled and kept, then loaded by a fresh program
       mc._init_fn.cache_clear()

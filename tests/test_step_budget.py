@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from sljax.errors import SljaxError
-from sljax.experiment import plans
+from sljax.experiment.design import plans
 from sljax.models import checkpoint as ckpt
 from sljax.train import loop
 from sljax.train.config import TrainConfig, validate

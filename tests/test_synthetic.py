@@ -384,12 +384,12 @@ def test_a_command_keeps_the_renderers_programs_and_the_next_one_loads_them(tmp_
                                                                             monkeypatch):
   """Where a command line keeps compiled programs, the renderer's stages are kept whole: a
   later process loads them (no tracing) and renders the same scenes bit for bit."""
-  from sljax import executables
   from sljax.render import synthetic
+  from sljax.runtime import kept_programs
   cfg = SynthConfig(size=32, t=4, baseline_m=0.051)  # a configuration of this test's own
   plain = render_scene(3, SEED, cfg, raw=True)
-  monkeypatch.setenv(executables.ENV, "on")
-  executables.enable(tmp_path / "xla")
+  monkeypatch.setenv(kept_programs.ENV, "on")
+  kept_programs.enable(tmp_path / "xla")
   try:
     synthetic._stage.cache_clear()
     kept = render_scene(3, SEED, cfg, raw=True)
@@ -400,7 +400,7 @@ def test_a_command_keeps_the_renderers_programs_and_the_next_one_loads_them(tmp_
     assert {synthetic._stage(f, cfg.resolved()).origin for f in (
         synthetic._rig, synthetic._stage_surface, synthetic._stage_raw)} == {"loaded"}
   finally:
-    executables.enable(None)
+    kept_programs.enable(None)
     synthetic._stage.cache_clear()
   for scene in (kept, loaded):
     for k in ("im0", "im1", "disp0", "sl0", "depth0", "occ0"):

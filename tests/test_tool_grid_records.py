@@ -6,7 +6,8 @@ import os
 import sys
 from pathlib import Path
 
-from sljax.experiment import plans, runner
+from sljax.experiment.design import plans
+from sljax.experiment.running import runner
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
 import grid_records  # noqa: E402  (tools/ is on the path above)

@@ -1,4 +1,4 @@
-"""The per-CPU compiler tuner (sljax.tune): the choice rule, the cache, the switch, that both
+"""The per-CPU compiler tuner (sljax.runtime.choices): the choice rule, the cache, the switch, that both
 settings compute the same function, and that training and inference use the choice."""
 
 import dataclasses
@@ -9,13 +9,14 @@ import jax
 import numpy as np
 import pytest
 
-from sljax import cache, cli, inference, machine, tune
-from sljax.nets import ModelConfig
+from sljax import cli, inference
 from sljax.models import checkpoint as ckpt
+from sljax.nets import ModelConfig
+from sljax.nets.model_config import init_variables
+from sljax.runtime import choices, compile_cache, machine
 from sljax.train import loop
 from sljax.train import step as stp
 from sljax.train.config import QUICK, config_from_json
-from sljax.nets.model_config import init_variables
 
 
 def fake(table):
@@ -25,10 +26,10 @@ def fake(table):
 
 def test_names_round_trip():
   for name in ("on", "off", "forward-off", "train-off"):
-    assert tune.KernelChoice.from_name(name).name == name
-  assert tune.DEFAULT.name == "on"
-  assert tune.KernelChoice(False, True).compiler_options("forward") == tune.YNN_OFF
-  assert tune.KernelChoice(False, True).compiler_options("train") is None
+    assert choices.KernelChoice.from_name(name).name == name
+  assert choices.DEFAULT.name == "on"
+  assert choices.KernelChoice(False, True).compiler_options("forward") == choices.YNN_OFF
+  assert choices.KernelChoice(False, True).compiler_options("train") is None
 
 
 @pytest.mark.skipif(jax.default_backend() != "cpu", reason="XLA:CPU's fusions")
@@ -44,7 +45,7 @@ def test_off_keeps_ynnpack_for_reductions_only():
                                      dimension_numbers=("NHWC", "HWIO", "NHWC"))
     return y.sum(axis=(0, 1, 2)), (y * y).sum(axis=(0, 1, 2))
 
-  options = tune.KernelChoice.from_name("off").compiler_options("train")
+  options = choices.KernelChoice.from_name("off").compiler_options("train")
   compiled = jax.jit(program, compiler_options=options).lower(x, k).compile()
   text = compiled.as_text()
   ynn = [line for line in text.splitlines() if "__ynn_fusion" in line and " fusion(" in line]
@@ -64,10 +65,10 @@ def test_off_keeps_ynnpack_for_reductions_only():
 def test_the_measured_programs_take_the_choice_they_time(monkeypatch):
   """`sljax tune` times what runs: each program compiled with that setting's options (off:
   YNNPACK for the reductions only), the training one traced with that setting's kernel-gradient
-  blocks (tune.grad_blocks_for), the forward one with the layers' own; and it runs."""
+  blocks (choices.grad_blocks_for), the forward one with the layers' own; and it runs."""
   from sljax import kernels
   seen, jit = {}, jax.jit
-  monkeypatch.setattr(tune, "grad_blocks_for", lambda k: 1000 + k.train_ynn)
+  monkeypatch.setattr(choices, "grad_blocks_for", lambda k: 1000 + k.train_ynn)
 
   def spy(fn, **kw):
     seen["options"] = kw.get("compiler_options")
@@ -80,54 +81,54 @@ def test_the_measured_programs_take_the_choice_they_time(monkeypatch):
       seen[kind] = kernels.grad_block_values(7)
       return (a * a).sum(axis=0)
     return program
-  fns = {kind: traced(kind) for kind in tune.KINDS}
-  for kind in tune.KINDS:
+  fns = {kind: traced(kind) for kind in choices.KINDS}
+  for kind in choices.KINDS:
     for ynn in (True, False):
-      compiled = tune._compiled(fns, (x,), kind, ynn)  # pylint: disable=protected-access
-      assert seen["options"] == (None if ynn else tune.YNN_OFF), (kind, ynn)
+      compiled = choices._compiled(fns, (x,), kind, ynn)  # pylint: disable=protected-access
+      assert seen["options"] == (None if ynn else choices.YNN_OFF), (kind, ynn)
       assert seen[kind] == (1000 + ynn if kind == "train" else 7), (kind, ynn, seen)
       np.testing.assert_allclose(compiled(x), (x.astype(np.float64) ** 2).sum(0), rtol=1e-5)
 
 
 def test_default_kept_unless_clearly_faster():
-  best, table = tune.measure(timings=fake({("forward", False): 0.97, ("train", False): 0.96}))
-  assert best == tune.DEFAULT  # 3-4% is within the margin
+  best, table = choices.measure(timings=fake({("forward", False): 0.97, ("train", False): 0.96}))
+  assert best == choices.DEFAULT  # 3-4% is within the margin
   assert [(r["kind"], r["ynn"]) for r in table] == [("forward", True), ("forward", False),
                                                      ("train", True), ("train", False)]
-  best, _ = tune.measure(timings=fake({("forward", False): 0.5}))
-  assert best == tune.KernelChoice(forward_ynn=False, train_ynn=True) and best.name == "forward-off"
-  best, _ = tune.measure(timings=fake({("train", False): 0.9, ("forward", True): 0.5}))
+  best, _ = choices.measure(timings=fake({("forward", False): 0.5}))
+  assert best == choices.KernelChoice(forward_ynn=False, train_ynn=True) and best.name == "forward-off"
+  best, _ = choices.measure(timings=fake({("train", False): 0.9, ("forward", True): 0.5}))
   assert best.name == "train-off"
 
 
 def test_a_choice_cached_under_another_rule_is_measured_again(cache_dir):
-  best, table = tune.measure(timings=fake({("forward", False): 0.5}))
-  path = tune.write_cache(tune.cache_key(), best, table, 1.0)
-  assert tune.cached_choice() == best
+  best, table = choices.measure(timings=fake({("forward", False): 0.5}))
+  path = choices.write_measurement(choices.measurement_key(), best, table, 1.0)
+  assert choices.measured_choice() == best
   data = json.loads(path.read_text())
-  data[tune.cache_key()]["rule"] = tune.RULE - 1
+  data[choices.measurement_key()]["rule"] = choices.RULE - 1
   path.write_text(json.dumps(data))
-  assert tune.cached_choice() is None
+  assert choices.measured_choice() is None
 
 
 def test_a_round_that_disagrees_keeps_the_default():
   on = [1.0, 1.0, 1.0, 1.0, 1.0]
   consistent = {("forward", True): on, ("forward", False): [0.6, 0.7, 0.62, 0.65, 0.9],
                 ("train", True): on, ("train", False): [0.9, 0.91, 0.92, 0.9, 0.93]}
-  assert tune.choose(consistent) == tune.KernelChoice(forward_ynn=False, train_ynn=False)
+  assert choices.choose(consistent) == choices.KernelChoice(forward_ynn=False, train_ynn=False)
   # Faster in the median round, slower in one (a burst of load): not consistent evidence.
   burst = {**consistent, ("forward", False): [0.6, 0.7, 1.05, 0.65, 0.6]}
-  assert tune.choose(burst).forward_ynn
+  assert choices.choose(burst).forward_ynn
   # Faster in every round but within the margin in the median one.
   small = {**consistent, ("train", False): [0.99, 0.9, 0.97, 0.96, 0.98]}
-  assert tune.choose(small).train_ynn
+  assert choices.choose(small).train_ynn
 
 
 def test_verdict_by_hand():
-  assert tune.verdict([0.6, 0.7, 0.62, 0.65, 0.9]) == "off"
-  assert tune.verdict([0.6, 0.7, 1.05, 0.65, 0.6]) == "undecided"  # median 0.65, one round 1.05
-  assert tune.verdict([0.99, 0.9, 0.97, 0.96, 0.98]) == "on"  # median 0.97: within 5%
-  assert tune.verdict([0.7, 1.2, 1.1, 1.3, 0.6]) == "on"      # median 1.1
+  assert choices.verdict([0.6, 0.7, 0.62, 0.65, 0.9]) == "off"
+  assert choices.verdict([0.6, 0.7, 1.05, 0.65, 0.6]) == "undecided"  # median 0.65, one round 1.05
+  assert choices.verdict([0.99, 0.9, 0.97, 0.96, 0.98]) == "on"  # median 0.97: within 5%
+  assert choices.verdict([0.7, 1.2, 1.1, 1.3, 0.6]) == "on"      # median 1.1
 
 
 def scripted(batches_of_forward_off):
@@ -146,7 +147,7 @@ def scripted(batches_of_forward_off):
 def test_rounds_that_disagree_are_measured_again():
   burst = [0.7, 0.7, 1.05, 0.7, 0.66]  # a burst of load in the third round
   timings, calls = scripted([burst, [0.7, 0.71, 0.69, 0.72, 0.7]])
-  best, table = tune.measure(timings=timings)
+  best, table = choices.measure(timings=timings)
   assert best.name == "forward-off"
   # Only the undecided kind is measured again, on and off alike; training is decided at once.
   assert calls == {("forward", True): 10, ("forward", False): 10,
@@ -154,37 +155,37 @@ def test_rounds_that_disagree_are_measured_again():
   rows = {(r["kind"], r["ynn"]): r for r in table}
   assert rows[("forward", False)]["batches"] == 2 and rows[("train", False)]["batches"] == 1
   assert rows[("forward", False)]["off_vs_on"] == [0.7, 0.71, 0.69, 0.72, 0.7]  # the last batch
-  assert rows[("forward", False)]["verdict"] == "off" and tune.undecided_note(table) == ""
+  assert rows[("forward", False)]["verdict"] == "off" and choices.undecided_note(table) == ""
   assert "forward: the first rounds disagreed, measured again (2 batches" in \
-      tune.format_table(table, best)
+      choices.format_table(table, best)
 
 
 @pytest.fixture
 def on_cpu(monkeypatch):
   """choice() tunes only when jax computes on the CPU; its logic is tested wherever the suite
   runs (on a GPU too), with the measurement scripted."""
-  monkeypatch.setattr(tune.jax, "default_backend", lambda: "cpu")
+  monkeypatch.setattr(choices.jax, "default_backend", lambda: "cpu")
 
 
 def test_rounds_that_keep_disagreeing_keep_the_default_and_say_so(tmp_path, monkeypatch, on_cpu,
                                                                    capsys):
   burst = [0.7, 0.7, 1.05, 0.7, 0.66]
-  timings, calls = scripted([burst] * (1 + tune.RETRIES))
-  best, table = tune.measure(timings=timings)
-  assert best == tune.DEFAULT
-  assert calls[("forward", False)] == 5 * (1 + tune.RETRIES)
-  note = tune.undecided_note(table)
+  timings, calls = scripted([burst] * (1 + choices.RETRIES))
+  best, table = choices.measure(timings=timings)
+  assert best == choices.DEFAULT
+  assert calls[("forward", False)] == 5 * (1 + choices.RETRIES)
+  note = choices.undecided_note(table)
   assert note.startswith("forward: the rounds disagreed") and "sljax tune" in note
   # `sljax tune` prints it, so a user knows the default was kept, not chosen.
-  monkeypatch.setenv(cache.ENV_DIR, str(tmp_path))
-  monkeypatch.setattr(tune, "tuned", lambda repeats: (best, table, None))
+  monkeypatch.setenv(compile_cache.ENV_DIR, str(tmp_path))
+  monkeypatch.setattr(choices, "tuned", lambda workload, repeats: (best, table, None))
   assert cli.main(["tune", "--repeats", "1"]) == 0
   assert note in capsys.readouterr().out
 
 
 def test_format_table_marks_the_choice():
-  best, table = tune.measure(timings=fake({("forward", False): 0.5}))
-  text = tune.format_table(table, best)
+  best, table = choices.measure(timings=fake({("forward", False): 0.5}))
+  text = choices.format_table(table, best)
   assert text.count("(chosen)") == 2
   assert "| forward | off | 500.0 | 1.00x (chosen) | 0.50-0.50 |" in text
   assert "| forward | on | 1000.0 | 2.00x |  |" in text
@@ -192,87 +193,87 @@ def test_format_table_marks_the_choice():
 
 @pytest.fixture
 def cache_dir(tmp_path, monkeypatch, on_cpu):
-  monkeypatch.setenv(cache.ENV_DIR, str(tmp_path / "cache"))
-  monkeypatch.setenv(tune.ENV_TUNE, "1")
+  monkeypatch.setenv(compile_cache.ENV_DIR, str(tmp_path / "cache"))
+  monkeypatch.setenv(choices.ENV_TUNE, "1")
   # The load beside a fake measurement is no measurement: the tests that want one set it.
-  monkeypatch.setattr(tune.machine, "cpu_snapshot", lambda: None)
+  monkeypatch.setattr(choices.machine, "cpu_snapshot", lambda: None)
   return tmp_path / "cache"
 
 
 def test_cache_round_trip_keyed_by_cpu_and_versions(cache_dir):
-  choice = tune.KernelChoice(False, True)
-  path = tune.write_cache(tune.cache_key(), choice, [{"x": 1}], 12.3)
+  choice = choices.KernelChoice(False, True)
+  path = choices.write_measurement(choices.measurement_key(), choice, [{"x": 1}], 12.3)
   assert path == cache_dir / "tune.json"
-  assert tune.cached_choice() == choice
-  key = tune.cache_key()
+  assert choices.measured_choice() == choice
+  key = choices.measurement_key()
   assert machine.cpu_key() in key and jax.__version__ in key
   data = json.loads(path.read_text())
   assert data[key]["seconds"] == 12.3 and data[key]["table"] == [{"x": 1}]
-  tune.write_cache("other-cpu jax-0 jaxlib-0", tune.DEFAULT, [], 1.0)  # kept beside it
+  choices.write_measurement("other-cpu jax-0 jaxlib-0", choices.DEFAULT, [], 1.0)  # kept beside it
   assert set(json.loads(path.read_text())) == {key, "other-cpu jax-0 jaxlib-0"}
-  assert tune.cached_choice() == choice
+  assert choices.measured_choice() == choice
 
 
 def test_corrupt_cache_is_ignored(cache_dir):
   cache_dir.mkdir()
   (cache_dir / "tune.json").write_text("{not json")
-  assert tune.read_cache() == {} and tune.cached_choice() is None
-  (cache_dir / "tune.json").write_text(json.dumps({tune.cache_key(): {"choice": {"bogus": 1}}}))
-  assert tune.cached_choice() is None
+  assert choices.read_measurements() == {} and choices.measured_choice() is None
+  (cache_dir / "tune.json").write_text(json.dumps({choices.measurement_key(): {"choice": {"bogus": 1}}}))
+  assert choices.measured_choice() is None
 
 
 def test_a_run_takes_the_table_and_never_measures(cache_dir, monkeypatch):
   """Issue 49: a CPU kind measured before starts at once with its choice, one never measured
   with UNKNOWN; nothing is measured or written, and the line says how to measure."""
-  monkeypatch.setattr(tune, "measure", lambda **_: pytest.fail("a run must not measure"))
-  monkeypatch.setattr(tune, "write_cache", lambda *a, **k: pytest.fail("nor write"))
-  monkeypatch.setitem(tune.KNOWN, "amd-epyc-f26-m2-avx512", ("forward-off", "Zen 5, by hand"))
-  monkeypatch.setattr(tune.machine, "cpu_key", lambda: "amd-epyc-f26-m2-avx512")
+  monkeypatch.setattr(choices, "measure", lambda *_, **__: pytest.fail("a run must not measure"))
+  monkeypatch.setattr(choices, "write_measurement", lambda *a, **k: pytest.fail("nor write"))
+  monkeypatch.setitem(choices.KNOWN, "amd-epyc-f26-m2-avx512", ("forward-off", "Zen 5, by hand"))
+  monkeypatch.setattr(choices.machine, "cpu_key", lambda: "amd-epyc-f26-m2-avx512")
   lines = []
-  assert tune.choice(log=lines.append) == tune.KernelChoice(False, True)  # the table's entry
+  assert choices.choice(log=lines.append) == choices.KernelChoice(False, True)  # the table's entry
   assert "measured on this CPU kind (Zen 5, by hand)" in lines[-1] and "`sljax tune`" in lines[-1]
-  monkeypatch.setattr(tune.machine, "cpu_key", lambda: "amd-epyc-f25-m1-avx2")
-  assert tune.choice(log=lines.append) == tune.KernelChoice(False, False)  # Zen 3: off
-  monkeypatch.setattr(tune, "UNKNOWN", "train-off")
-  monkeypatch.setattr(tune.machine, "cpu_key", lambda: "some-future-cpu-avx10")
-  assert tune.choice(log=lines.append) == tune.KernelChoice(True, False)
+  monkeypatch.setattr(choices.machine, "cpu_key", lambda: "amd-epyc-f25-m1-avx2")
+  assert choices.choice(log=lines.append) == choices.KernelChoice(False, False)  # Zen 3: off
+  monkeypatch.setattr(choices, "UNKNOWN", "train-off")
+  monkeypatch.setattr(choices.machine, "cpu_key", lambda: "some-future-cpu-avx10")
+  assert choices.choice(log=lines.append) == choices.KernelChoice(True, False)
   assert "not measured yet" in lines[-1]
   assert not (cache_dir / "tune.json").exists()
 
 
 def test_the_table_names_real_choices_and_cpu_keys():
-  for key, (name, where) in tune.KNOWN.items():
-    assert tune.KernelChoice.from_name(name).name == name and where
+  for key, (name, where) in choices.KNOWN.items():
+    assert choices.KernelChoice.from_name(name).name == name and where
     assert key == key.lower() and key.endswith(("-avx2", "-avx512"))  # cpu_key's form
-  assert tune.UNKNOWN in tune.NAMES.values()
+  assert choices.UNKNOWN in choices.NAMES.values()
   cpu = {"model": "AMD EPYC", "family": 25, "model_number": 1, "isa": ["AVX2"]}
-  assert machine.cpu_key(cpu) in tune.KNOWN  # the kind of the issue's fresh Zen 3
+  assert machine.cpu_key(cpu) in choices.KNOWN  # the kind of the issue's fresh Zen 3
 
 
 def test_a_measured_entry_wins_over_the_table(cache_dir, monkeypatch):
-  monkeypatch.setattr(tune.machine, "cpu_key", lambda: "amd-epyc-f25-m1-avx2")  # table: off
-  measured = tune.KernelChoice(True, False)
-  tune.write_cache(tune.cache_key(), measured, [], 1.0)
+  monkeypatch.setattr(choices.machine, "cpu_key", lambda: "amd-epyc-f25-m1-avx2")  # table: off
+  measured = choices.KernelChoice(True, False)
+  choices.write_measurement(choices.measurement_key(), measured, [], 1.0)
   lines = []
-  assert tune.choice(log=lines.append) == measured and lines == []
+  assert choices.choice(log=lines.append) == measured and lines == []
 
 
 def test_choice_off_by_flag_or_environment(cache_dir, monkeypatch):
-  monkeypatch.setattr(tune, "measure", lambda **_: pytest.fail("must not measure"))
-  assert tune.choice(tune=False) == tune.DEFAULT
-  monkeypatch.setenv(tune.ENV_TUNE, "0")
-  assert tune.choice() == tune.DEFAULT
+  monkeypatch.setattr(choices, "measure", lambda *_, **__: pytest.fail("must not measure"))
+  assert choices.choice(tune=False) == choices.DEFAULT
+  monkeypatch.setenv(choices.ENV_TUNE, "0")
+  assert choices.choice() == choices.DEFAULT
   assert not (cache_dir / "tune.json").exists()
 
 
 def test_no_tuning_off_the_cpu(tmp_path, monkeypatch):
   """On an accelerator the CPU kernels' choice does not matter: the default, nothing measured
   or cached."""
-  monkeypatch.setenv(cache.ENV_DIR, str(tmp_path))
-  monkeypatch.setenv(tune.ENV_TUNE, "1")
-  monkeypatch.setattr(tune.jax, "default_backend", lambda: "gpu")
-  monkeypatch.setattr(tune, "measure", lambda **_: pytest.fail("must not measure"))
-  assert tune.choice() == tune.DEFAULT
+  monkeypatch.setenv(compile_cache.ENV_DIR, str(tmp_path))
+  monkeypatch.setenv(choices.ENV_TUNE, "1")
+  monkeypatch.setattr(choices.jax, "default_backend", lambda: "gpu")
+  monkeypatch.setattr(choices, "measure", lambda *_, **__: pytest.fail("must not measure"))
+  assert choices.choice() == choices.DEFAULT
   assert not (tmp_path / "tune.json").exists()
 
 
@@ -290,7 +291,7 @@ def test_both_settings_compute_the_same_function():
     out = model.apply({**variables, "params": params}, x, y, train=False)["disparity"]
     return (out ** 2).mean(), out
   results = []
-  for choice in (tune.DEFAULT, tune.KernelChoice(forward_ynn=False, train_ynn=False)):
+  for choice in (choices.DEFAULT, choices.KernelChoice(forward_ynn=False, train_ynn=False)):
     fwd = jax.jit(f, compiler_options=choice.compiler_options("forward"))
     grad = jax.jit(jax.grad(lambda p: f(p)[0]), compiler_options=choice.compiler_options("train"))
     results.append((np.asarray(fwd(variables["params"])[1]), grad(variables["params"])))
@@ -307,11 +308,11 @@ def test_training_steps_get_the_choice_as_compiler_options(monkeypatch):
   monkeypatch.setattr(stp, "make_eval_step", lambda *a, **k: seen.setdefault("eval", k["compiler_options"]))
   loop.compiled_steps.__wrapped__(ModelConfig("unet-disp", 1, 16), "l2", 1e-3, None, None,
                                   "forward-off")
-  assert seen == {"train": None, "eval": tune.YNN_OFF}
+  assert seen == {"train": None, "eval": choices.YNN_OFF}
 
 
 def test_auto_resolves_once_and_a_resume_keeps_the_saved_choice(tmp_path, monkeypatch):
-  monkeypatch.setattr(tune, "choice", lambda log=print: tune.KernelChoice(False, True))
+  monkeypatch.setattr(choices, "choice", lambda log=print: choices.KernelChoice(False, True))
   config = dataclasses.replace(QUICK, ynn="auto")
   assert loop.resolve_ynn(config, tmp_path, False, False, print).ynn == "forward-off"
   off = dataclasses.replace(config, ynn="off")
@@ -334,13 +335,13 @@ def test_inference_runs_its_forward_with_the_choice(monkeypatch):
   model = build_model("unet-disp", **kw)
   variables = init_variables(model, 0, 16, 16, 1)
   pred = inference.make_predictor("unet-disp", kw, variables, mode="pad",
-                                  kernels=tune.KernelChoice(forward_ynn=False))
+                                  kernels=choices.KernelChoice(forward_ynn=False))
   out = pred(np.zeros((16, 16), np.float32), np.zeros((16, 16), np.float32))
   assert out["disparity"].shape == (16, 16) and got and all(v is False for v in got)
 
 
 def test_cli_show_without_a_measurement_names_what_runs_take(cache_dir, capsys, monkeypatch):
-  monkeypatch.setattr(tune.machine, "cpu_key", lambda: "amd-epyc-f26-m2-avx512")
+  monkeypatch.setattr(choices.machine, "cpu_key", lambda: "amd-epyc-f26-m2-avx512")
   assert cli.main(["tune", "--show"]) == 0
   out = capsys.readouterr().out
   assert "not measured on this machine: runs take YNNPACK fusions off in forward programs, off " \
@@ -348,32 +349,32 @@ def test_cli_show_without_a_measurement_names_what_runs_take(cache_dir, capsys, 
 
 
 def test_cli_show_prints_the_cached_table(cache_dir, capsys):
-  best, table = tune.measure(timings=fake({("forward", False): 0.5}))
-  tune.write_cache(tune.cache_key(), best, table, 42.0)
+  best, table = choices.measure(timings=fake({("forward", False): 0.5}))
+  choices.write_measurement(choices.measurement_key(), best, table, 42.0)
   assert cli.main(["tune", "--show"]) == 0
   out = capsys.readouterr().out
   assert "in 42.0 s" in out and "(chosen)" in out and "--ynn forward-off" in out
-  assert Path(str(tune.cache_path())).name in out
+  assert Path(str(choices.measurements_path())).name in out
 
 
 def test_cli_show_a_hand_written_entry_shows_its_note(cache_dir, capsys):
   """An entry whose table holds a note, not measurements (was KeyError 'ynn')."""
   note = "set by hand to the setting of every earlier cell, not measured"
-  tune.write_cache(tune.cache_key(), tune.KernelChoice(True, True), [{"note": note}], 0.0)
+  choices.write_measurement(choices.measurement_key(), choices.KernelChoice(True, True), [{"note": note}], 0.0)
   assert cli.main(["tune", "--show"]) == 0
   out = capsys.readouterr().out
   assert f"in 0.0 s\n\nnote: {note}\n\nchoice: " in out
   # A measured table with a note row keeps its table and adds the note.
-  best, table = tune.measure(timings=fake({("forward", False): 0.5}))
-  text = tune.format_table(table + [{"note": "checked by hand"}], best)
-  assert text.startswith(tune.format_table(table, best)) and text.endswith("\n\nnote: checked "
+  best, table = choices.measure(timings=fake({("forward", False): 0.5}))
+  text = choices.format_table(table + [{"note": "checked by hand"}], best)
+  assert text.startswith(choices.format_table(table, best)) and text.endswith("\n\nnote: checked "
                                                                             "by hand")
   # A measurement edited into nonsense is shown as a note, not a TypeError.
   bad = dict(table[0], seconds="fast")
-  text = tune.format_table([bad] + table[1:], best)
+  text = choices.format_table([bad] + table[1:], best)
   assert f"note: {bad}" in text and "| forward | on |" not in text
-  path = tune.cache_path()
-  path.write_text(json.dumps({tune.cache_key(): {"choice": "on", "table": []}}))
+  path = choices.measurements_path()
+  path.write_text(json.dumps({choices.measurement_key(): {"choice": "on", "table": []}}))
   assert cli.main(["tune", "--show"]) == 2
   err = capsys.readouterr().err.strip().splitlines()
   assert len(err) == 1 and "has no readable choice; run `sljax tune`" in err[0]
@@ -384,46 +385,46 @@ def test_a_choice_measured_beside_other_work_is_provisional(cache_dir, monkeypat
   training run chose the fusions, idle it drops them): `sljax tune` keeps such a choice and
   says so; it serves runs while the machine stays busy, the table once it is quiet."""
   snapshots = iter([(0.0, 0.0, 0.0), (100.0, 90.0, 50.0)])  # others: 40 of 100 CPU-seconds
-  monkeypatch.setattr(tune.machine, "cpu_snapshot", lambda: next(snapshots))
-  monkeypatch.setattr(tune.machine, "cpu_key", lambda: "amd-epyc-f25-m1-avx2")  # table: off
-  busy_pick = tune.KernelChoice(True, True)
-  monkeypatch.setattr(tune, "measure", lambda **_: (busy_pick, []))
+  monkeypatch.setattr(choices.machine, "cpu_snapshot", lambda: next(snapshots))
+  monkeypatch.setattr(choices.machine, "cpu_key", lambda: "amd-epyc-f25-m1-avx2")  # table: off
+  busy_pick = choices.KernelChoice(True, True)
+  monkeypatch.setattr(choices, "measure", lambda *_, **__: (busy_pick, []))
   assert cli.main(["tune", "--repeats", "1"]) == 0
   out = capsys.readouterr().out
   assert "40% of the CPUs" in out and "provisional" in out
-  assert tune.read_cache()[tune.cache_key()]["others"] == 0.4
-  monkeypatch.setattr(tune, "measure", lambda **_: pytest.fail("a run must not measure"))
+  assert choices.read_measurements()[choices.measurement_key()]["others"] == 0.4
+  monkeypatch.setattr(choices, "measure", lambda *_, **__: pytest.fail("a run must not measure"))
   lines = []
   # Still busy: the provisional choice serves.
-  monkeypatch.setattr(tune.machine, "others_now", lambda: 0.5)
-  assert tune.choice(log=lines.append) == busy_pick and lines == []
+  monkeypatch.setattr(choices.machine, "others_now", lambda: 0.5)
+  assert choices.choice(log=lines.append) == busy_pick and lines == []
   # Quiet now: the CPU kind's table, and the line says how to measure.
-  monkeypatch.setattr(tune.machine, "others_now", lambda: 0.01)
-  assert tune.choice(log=lines.append) == tune.KernelChoice(False, False)
+  monkeypatch.setattr(choices.machine, "others_now", lambda: 0.01)
+  assert choices.choice(log=lines.append) == choices.KernelChoice(False, False)
   assert "`sljax tune`" in lines[-1]
   # Measured again on the quiet machine: final, no look at the load any more.
   snapshots = iter([(0.0, 0.0, 0.0), (100.0, 51.0, 50.0)])
-  monkeypatch.setattr(tune, "tuned", lambda repeats: (tune.KernelChoice(False, True), [], 0.01))
+  monkeypatch.setattr(choices, "tuned", lambda workload, repeats: (choices.KernelChoice(False, True), [], 0.01))
   assert cli.main(["tune", "--repeats", "1"]) == 0
-  monkeypatch.setattr(tune.machine, "others_now", lambda: pytest.fail("a kept choice is final"))
-  assert tune.choice(log=lines.append) == tune.KernelChoice(False, True)
+  monkeypatch.setattr(choices.machine, "others_now", lambda: pytest.fail("a kept choice is final"))
+  assert choices.choice(log=lines.append) == choices.KernelChoice(False, True)
 
 
 def test_busy_threshold_and_unknown_load():
-  assert tune.busy(0.4) and not tune.busy(tune.BUSY) and not tune.busy(0.02)
-  assert not tune.busy(None) and not tune.busy("high")  # unknown (no /proc/stat): not provisional
+  assert choices.busy(0.4) and not choices.busy(choices.BUSY) and not choices.busy(0.02)
+  assert not choices.busy(None) and not choices.busy("high")  # unknown (no /proc/stat): not provisional
   for odd in (5.0, float("inf"), float("nan"), -0.2, True):  # edited by hand: no share
-    assert not tune.busy(odd)
-  assert tune.busy_note(None) == "" and tune.busy_note(0.05) == ""
+    assert not choices.busy(odd)
+  assert choices.busy_note(None) == "" and choices.busy_note(0.05) == ""
 
 
 def test_cli_tune_says_the_load_beside_it(cache_dir, capsys, monkeypatch):
-  best, table = tune.measure(timings=fake({("forward", False): 0.5}))
-  monkeypatch.setattr(tune, "tuned", lambda repeats: (best, table, 0.62))
+  best, table = choices.measure(timings=fake({("forward", False): 0.5}))
+  monkeypatch.setattr(choices, "tuned", lambda workload, repeats: (best, table, 0.62))
   assert cli.main(["tune", "--repeats", "1"]) == 0
   out = capsys.readouterr().out
   assert "other processes using 62% of the CPUs meanwhile" in out and "provisional" in out
-  assert tune.read_cache()[tune.cache_key()]["others"] == 0.62
+  assert choices.read_measurements()[choices.measurement_key()]["others"] == 0.62
   assert cli.main(["tune", "--show"]) == 0
   out = capsys.readouterr().out
   assert "other processes using 62% of the CPUs meanwhile" in out and "provisional" in out
@@ -432,13 +433,13 @@ def test_cli_tune_says_the_load_beside_it(cache_dir, capsys, monkeypatch):
 def test_grad_blocks_for_come_from_the_table(monkeypatch):
   """The kernel gradients' blocks follow the CPU kind and the training programs' fusions; a
   kind or a choice not in the table keeps each layer's blocks (None)."""
-  (key, train_ynn), (values, _) = next(iter(tune.GRAD_BLOCKS.items()))
-  listed = tune.KernelChoice(forward_ynn=True, train_ynn=train_ynn)
-  other = tune.KernelChoice(forward_ynn=True, train_ynn=not train_ynn)
-  assert tune.grad_blocks_for(listed, key) == values
-  assert tune.grad_blocks_for(other, key) is None
-  assert tune.grad_blocks_for(listed, "some-cpu-never-measured") is None
-  monkeypatch.setattr(tune.machine, "cpu_key", lambda: key)
-  assert tune.grad_blocks_for(listed) == values
-  monkeypatch.setattr(tune.jax, "default_backend", lambda: "gpu")
-  assert tune.grad_blocks_for(listed) is None
+  (key, train_ynn), (values, _) = next(iter(choices.GRAD_BLOCKS.items()))
+  listed = choices.KernelChoice(forward_ynn=True, train_ynn=train_ynn)
+  other = choices.KernelChoice(forward_ynn=True, train_ynn=not train_ynn)
+  assert choices.grad_blocks_for(listed, key) == values
+  assert choices.grad_blocks_for(other, key) is None
+  assert choices.grad_blocks_for(listed, "some-cpu-never-measured") is None
+  monkeypatch.setattr(choices.machine, "cpu_key", lambda: key)
+  assert choices.grad_blocks_for(listed) == values
+  monkeypatch.setattr(choices.jax, "default_backend", lambda: "gpu")
+  assert choices.grad_blocks_for(listed) is None

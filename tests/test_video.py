@@ -1,7 +1,7 @@
 """sljax predict --video: layouts, --every, --frames, rectification with an OpenCV calibration
 (for video and for pairs), and refusals that leave nothing behind.
 
-References are independent of sljax.video: frames are read back from the written video (the
+References are independent of sljax.depth.video: frames are read back from the written video (the
 codec is lossy) and split by numpy slicing, rectification is done by hand with
 cv2.stereoRectify / initUndistortRectifyMap / remap, and each frame pair goes through the
 pair path (the predictor called on one pair)."""
@@ -10,12 +10,13 @@ import cv2
 import numpy as np
 import pytest
 
-from sljax import cli, predict, video
-from sljax.data.calib import read_calib, write_calib
+from sljax import cli
+from sljax.data.camera import read_calib, write_calib
 from sljax.data.pfm import read_pfm
-from sljax.render.synthetic import SynthConfig, render_scene  # the renderer: one import line
+from sljax.depth import pairs, video
 from sljax.errors import SljaxError
-from sljax.images import image_to_float, write_image
+from sljax.io.images import image_to_float, write_image
+from sljax.render.synthetic import SynthConfig, render_scene  # the renderer: one import line
 
 from test_predict import _calib, _converted_model, read_ply
 
@@ -69,7 +70,7 @@ def clip(tmp_path_factory):
   }
   model = _converted_model(root / "unet", "unet-disp", UNET, hw=(H, W))
   return {"root": root, "files": files, "model": model,
-          "predictor": predict.load_predictor(str(model))}
+          "predictor": pairs.load_predictor(str(model))}
 
 
 def _split_back(clip, layout):

@@ -1,4 +1,4 @@
-"""Workers sharing one experiment folder (sljax.experiment.workers): claims made at the same
+"""Workers sharing one experiment folder (sljax.experiment.running.workers): claims made at the same
 instant by several processes never overlap, a dead worker's claim is taken over (its pid gone,
 its lease over, an earlier run of its job) and a live one's is not, a superseded holder gives
 its cell up, a fine-tuning cell never starts before its base, and the SLURM parameters that
@@ -19,7 +19,8 @@ import pytest
 
 from sljax import cli
 from sljax.errors import SljaxError
-from sljax.experiment import plans, runner, submit, workers
+from sljax.experiment.design import plans
+from sljax.experiment.running import runner, submit, workers
 
 import claim_race
 import toys

@@ -81,7 +81,7 @@ def tiny_steps(model_config, disp_loss, lr, lr_drop_step, mesh, ynn="on"):
 
 
 _HOLD = """import sys, time
-from sljax import files
+from sljax.io import files
 with files.exclusive(sys.argv[1], sys.argv[2]):
   print("held", flush=True)
   time.sleep(600)
@@ -89,7 +89,7 @@ with files.exclusive(sys.argv[1], sys.argv[2]):
 
 
 def hold(folder, what: str) -> subprocess.Popen:
-  """Another process holding folder with sljax.files.exclusive (kill it to end the hold)."""
+  """Another process holding folder with sljax.io.files.exclusive (kill it to end the hold)."""
   proc = subprocess.Popen([sys.executable, "-c", _HOLD, str(folder), what], text=True,
                           stdout=subprocess.PIPE, env=dict(os.environ, PYTHONPATH=str(ROOT)))
   assert proc.stdout.readline() == "held\n"
@@ -109,7 +109,7 @@ def same_device_env() -> dict:
 
 def need_submitit() -> None:
   """Skips the test without submitit (the [cluster] extra), without importing it here: its
-  import reconfigures logging, closing pytest's handlers (sljax.experiment.submit imports it
+  import reconfigures logging, closing pytest's handlers (sljax.experiment.running.submit imports it
   so that it does not)."""
   import importlib.util  # pylint: disable=import-outside-toplevel
   import pytest  # pylint: disable=import-outside-toplevel

@@ -20,8 +20,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-from sljax.experiment import runner
-from sljax.machine import cpu_description
+from sljax.experiment.running import runner
+from sljax.runtime.machine import cpu_description
 
 KEPT = ("config.json", "epochs.jsonl", "validation.jsonl", "train.log", "notes.txt")
 

@@ -40,10 +40,10 @@ ROOT = Path(__file__).resolve().parents[1]
 # module name -> (files to mutate, fast test files that cover them). JAX tests compile: keep
 # each list to the tests that exercise the module directly.
 MODULES: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
-    "stats": (("sljax/experiment/stats.py",), ("tests/test_stats.py",)),
-    "report": (("sljax/experiment/report.py",), ("tests/test_stats.py",)),
-    "geometry": (("sljax/geometry.py",), ("tests/test_geometry.py", "tests/test_predict.py")),
-    "metrics": (("sljax/metrics.py",), ("tests/test_metrics.py",)),
+    "stats": (("sljax/experiment/report/stats.py",), ("tests/test_stats.py",)),
+    "report": (("sljax/experiment/report/build.py",), ("tests/test_stats.py",)),
+    "geometry": (("sljax/depth/geometry.py",), ("tests/test_geometry.py", "tests/test_predict.py")),
+    "metrics": (("sljax/evaluation/metrics.py",), ("tests/test_metrics.py",)),
     "checkpoint": (("sljax/models/checkpoint.py", "sljax/models/load.py"),
                    ("tests/test_load.py", "tests/test_checkpoint.py")),
     "losses": (("sljax/losses/disparity.py", "sljax/losses/sl.py", "sljax/losses/weighting.py"),

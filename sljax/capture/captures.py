@@ -22,12 +22,12 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from sljax import files
 from sljax.capture import frames, refusals
 from sljax.capture import rig as rigs
 from sljax.data.scene import Scene, write_scene
-from sljax.images import holds_12_bit, image_to_float
 from sljax.errors import SljaxError, require
+from sljax.io import files
+from sljax.io.images import holds_12_bit, image_to_float
 from sljax.sl.decode import DecodeConfig, count_patterns
 from sljax.sl.stereo import MatchConfig, StereoDecoded, decode_views, match_views
 

@@ -26,8 +26,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from sljax import files
 from sljax.errors import SljaxError, require
+from sljax.io import files
 from sljax.sl import codes
 from sljax.sl.decode import count_patterns
 

@@ -23,9 +23,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from sljax import files
-from sljax.data.calib import Calib
+from sljax.data.camera import Calib
 from sljax.errors import SljaxError
+from sljax.io import files
 
 RECTIFY_ALPHA = 0.0
 CALIB_KEYS = ("M1", "D1", "M2", "D2", "R", "T")

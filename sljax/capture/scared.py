@@ -29,14 +29,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from sljax import files
-from sljax.data.calib import Calib
+from sljax.data.camera import Calib
 from sljax.data.pfm import write_pfm
+from sljax.io import files
 from sljax.capture.rig import (RECTIFY_ALPHA, check_rig, read_calibration, rectify, rectify_maps,
                             remap)
 from sljax.data.scene import Scene, write_scene
-from sljax.images import image_to_float
 from sljax.errors import SljaxError
+from sljax.io.images import image_to_float
 
 LEFT, RIGHT = "Left_Image.png", "Right_Image.png"
 DEPTH, CALIB = "left_depth_map.tiff", "endoscope_calibration.yaml"

@@ -12,8 +12,8 @@ from sljax.data import preflight
 from sljax.data.dataset import FolderSource
 from sljax.data.pfm import write_pfm
 from sljax.data.scene import write_patterns
-from sljax.images import read_image
 from sljax.errors import SljaxError, require
+from sljax.io.images import read_image
 from sljax.sl.decode import DecodeConfig, count_patterns
 from sljax.sl.stereo import MatchConfig, decode_views, match_views
 

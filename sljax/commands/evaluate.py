@@ -4,10 +4,10 @@ import argparse
 from pathlib import Path
 
 from sljax import inference
-from sljax.baselines import SGBMConfig, SGBMPredictor
 from sljax.data.dataset import FolderSource, split_indices
 from sljax.errors import SljaxError
-from sljax.evaluate import check_out_dir, evaluate, markdown_report
+from sljax.evaluation.scoring import check_out_dir, evaluate, markdown_report
+from sljax.inference.sgbm import SGBMConfig, SGBMPredictor
 
 
 def register(subparsers) -> None:

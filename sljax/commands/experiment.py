@@ -4,9 +4,10 @@ import argparse
 import signal
 from pathlib import Path
 
-
-from sljax.experiment import (calibrate as cal, plans, regime as reg, report as rep, runner,
-                              status as st, submit as subm, workers)
+from sljax.experiment.budget import calibrate as cal, regime as reg
+from sljax.experiment.design import plans
+from sljax.experiment.report import build as rep
+from sljax.experiment.running import runner, status as st, submit as subm, workers
 
 
 def register(subparsers) -> None:
@@ -68,7 +69,7 @@ def register(subparsers) -> None:
       description="Trains each arm and phase of a v2 plan once (seed 0, fixed learning rate, "
                   "the scale's long calibration budget, validated on every validation scene) "
                   "under OUT, resumably, applies the pre-registered plateau rule "
-                  "(sljax.experiment.calibrate) and prints the budgets to commit into the "
+                  "(sljax.experiment.budget.calibrate) and prints the budgets to commit into the "
                   "scale; OUT/calibration-PLAN.json keeps the curves.",
       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
   c.add_argument("plan", metavar="PLAN", help="table1-v2, table2-v2, table3-v2 or fig7-v2")
@@ -79,7 +80,7 @@ def register(subparsers) -> None:
   g = sub.add_parser(
       "regime", help="v3, v4: where stl overfits, from the pilot's curves (docs/plan-v3.md, "
       "docs/plan-v4.md)",
-      description="Applies the pre-registered regime rule (sljax.experiment.regime) to the "
+      description="Applies the pre-registered regime rule (sljax.experiment.budget.regime) to the "
                   "v3-pilot cells under OUT: the largest training fraction whose smoothed mean "
                   "validation curve ends at least 10% above its minimum, and the budget (twice "
                   "the minimum's epoch); for a v4-pilot folder the same rule on steps, per "
@@ -172,7 +173,7 @@ def calibrate(args: argparse.Namespace) -> int:
   """Runs the calibration and prints the budgets by the plateau rule."""
   result = cal.calibrate(args.plan, args.scale, args.out, progress=not args.no_progress)
   print(f"budgets for scale {args.scale} by the plateau rule (commit them into "
-        "sljax/experiment/plans.py, SCALES[...].budgets):")
+        "sljax/experiment/design/plans.py, SCALES[...].budgets):")
   for line in cal.budget_lines(result):
     print("  " + line)
   if result["missing"]:

@@ -4,7 +4,8 @@ an ONNX model checked by ONNX Runtime when OUT ends in .onnx (sljax.deploy.onnx)
 import argparse
 from pathlib import Path
 
-from sljax import export, inference
+from sljax import inference
+from sljax.deploy import stablehlo
 from sljax.deploy import onnx as onnx_export
 from sljax.errors import SljaxError
 
@@ -46,7 +47,7 @@ def register(subparsers) -> None:
 
 def run(args) -> int:
   """Exports and prints what was written."""
-  size = export.parse_size(args.size)
+  size = stablehlo.parse_size(args.size)
   if args.model == "sgbm":
     raise SljaxError("MODEL sgbm: the OpenCV baseline is not a JAX model; nothing to export")
   if not Path(args.model).exists():
@@ -56,7 +57,7 @@ def run(args) -> int:
   if onnx:
     onnx_export.require()  # before the (slow) loading
   out = Path(args.out)
-  side = onnx_export.sidecar_path(out) if onnx else export.sidecar_path(out)
+  side = onnx_export.sidecar_path(out) if onnx else stablehlo.sidecar_path(out)
   for p in (out, side):  # before the (slow) loading and tracing
     if p.exists() and not args.overwrite:
       raise SljaxError(f"{p}: exists (pass --overwrite to replace it)")
@@ -66,6 +67,6 @@ def run(args) -> int:
     out, side, _ = onnx_export.write_onnx(predictor, size, out, args.model,
                                           overwrite=args.overwrite, log=print)
   else:
-    out, side = export.write_export(predictor, size, out, args.model, overwrite=args.overwrite)
+    out, side = stablehlo.write_export(predictor, size, out, args.model, overwrite=args.overwrite)
   print(f"wrote {out} ({out.stat().st_size / 2**20:.2f} MiB, {predictor.describe()}) and {side}")
   return 0

@@ -11,14 +11,14 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from sljax import files
 from sljax.data import preflight
-from sljax.data.calib import read_calib
+from sljax.data.camera import read_calib
 from sljax.data.dataset import FolderSource, split_indices
 from sljax.data.pfm import read_pfm
 from sljax.data.scene import negative_share, present_parts
-from sljax.images import holds_12_bit
 from sljax.errors import SljaxError
+from sljax.io import files
+from sljax.io.images import holds_12_bit
 
 _FILES = ("im1.png", "disp0.pfm", "disp1.pfm", "mask0.png", "sl0", "sl1", "raw0", "raw1",
           "calib.txt", "meta.json")

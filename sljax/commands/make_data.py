@@ -6,10 +6,10 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from sljax import files
 from sljax.data.scene import write_scene
-from sljax.render.synthetic import SynthConfig, render_scene
 from sljax.errors import require
+from sljax.io import files
+from sljax.render.synthetic import SynthConfig, render_scene
 
 
 def register(subparsers) -> None:

@@ -10,9 +10,9 @@ from typing import Any
 from matplotlib.figure import Figure
 from matplotlib.ticker import MaxNLocator
 
-from sljax import files, markdown
-from sljax.files import read_json_object
 from sljax.errors import SljaxError
+from sljax.io import files, tables
+from sljax.io.files import read_json_object
 from sljax.nets.registry import NETS
 
 EPOCHS_FILE = "epochs.jsonl"
@@ -101,7 +101,7 @@ def summary_table(runs: list[dict[str, Any]]) -> str:
     else:
       cells = ["-", "-"] + ["-"] * len(extra)
     rows.append([r["label"], f"`{r['workdir']}`", str(epochs)] + cells)
-  return "\n".join(markdown.table(header, rows)) + "\n"
+  return "\n".join(tables.table(header, rows)) + "\n"
 
 
 def plot(runs: list[dict[str, Any]], out: str | os.PathLike, title: str = "Validation MAE",

@@ -3,7 +3,7 @@
 
 from pathlib import Path
 
-from sljax import geometry, predict, video
+from sljax.depth import geometry, pairs, video
 from sljax.errors import SljaxError
 
 
@@ -42,7 +42,7 @@ def register(subparsers) -> None:
                       "intrinsics.yml extrinsics.yml together; as import-captures reads "
                       "them). Default: calib.txt beside LEFT or the video, in each scene "
                       "folder, or in PAIRS_DIR")
-  p.add_argument("--unit", choices=tuple(predict.UNITS_MM), default="mm",
+  p.add_argument("--unit", choices=tuple(pairs.UNITS_MM), default="mm",
                  help="length unit of an OpenCV calibration's T (default mm; depth is in mm)")
   v = p.add_argument_group("video")
   v.add_argument("--video", nargs="+", metavar="FILE", default=None,
@@ -87,14 +87,14 @@ def run(args) -> int:
                       ("--batch", args.batch)):
     if value:
       raise SljaxError(f"{flag} is for --video")
-  pairs = predict.find_pairs(args.inputs, args.calib, predict.UNITS_MM[args.unit])
+  found = pairs.find_pairs(args.inputs, args.calib, pairs.UNITS_MM[args.unit])
   out = Path(args.out)
-  predict.check_outputs(out, pairs, args.overwrite)  # before the (slow) model loading
-  predictor = predict.load_predictor(args.model, args.mode, args.maxdisp, args.search_range,
+  pairs.check_outputs(out, found, args.overwrite)  # before the (slow) model loading
+  predictor = pairs.load_predictor(args.model, args.mode, args.maxdisp, args.search_range,
                                      args.num_disparities)
-  summaries = predict.predict_pairs(predictor, pairs, out, args.max_depth)
-  for pair, s in zip(pairs, summaries):
-    line = f"{predict.output_dir(out, pair)}: disparity known on {s['known_disparity']:.1%}"
+  summaries = pairs.predict_pairs(predictor, found, out, args.max_depth)
+  for pair, s in zip(found, summaries):
+    line = f"{pairs.output_dir(out, pair)}: disparity known on {s['known_disparity']:.1%}"
     if "points" in s:
       line += f", {s['points']} points"
       if s["png_zero_but_known"]:
@@ -112,9 +112,9 @@ def run_video(args) -> int:
     raise SljaxError(f"--video takes the video file(s); got INPUT {' '.join(args.inputs)} too")
   video.check_options(args.every, args.batch or 4, args.disp_range)
   source = video.open_video(args.video, args.layout)
-  calib = video.find_calibration(source, args.calib, predict.UNITS_MM[args.unit])
+  calib = video.find_calibration(source, args.calib, pairs.UNITS_MM[args.unit])
   video.check_outputs(args.out, args.frames, args.overwrite)  # all before the (slow) loading
-  predictor = predict.load_predictor(args.model, args.mode, args.maxdisp, args.search_range,
+  predictor = pairs.load_predictor(args.model, args.mode, args.maxdisp, args.search_range,
                                      args.num_disparities)
   s = video.predict_video(predictor, source, args.out, calib, args.every, args.batch or 4,
                           args.frames, args.max_depth,

@@ -7,9 +7,9 @@ import numpy as np
 
 from sljax.data.dataset import find_scenes
 from sljax.data.scene import load_scene, present_parts
-from sljax import files, viz
 from sljax.errors import require
-from sljax.viz import Panel, save_panels
+from sljax.io import files, pictures
+from sljax.io.pictures import Panel, save_panels
 
 
 def register(subparsers) -> None:
@@ -36,7 +36,7 @@ def _pattern_panels(sl, side: str):
 
 def run(args: argparse.Namespace) -> int:
   """Loads the scene and writes the picture."""
-  files.refuse_existing([viz.check_figure_path(args.out)], args.overwrite)  # before any reading
+  files.refuse_existing([pictures.check_figure_path(args.out)], args.overwrite)  # before any reading
   path = Path(args.path)
   require(path.is_dir(), f"{path}: no such scene or dataset folder")
   if (path / "im0.png").exists():

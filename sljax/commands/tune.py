@@ -5,8 +5,9 @@ from __future__ import annotations
 import argparse
 import time
 
-from sljax import machine, tune
 from sljax.errors import SljaxError, require
+from sljax.nets.workload import workload
+from sljax.runtime import choices, machine
 
 
 def register(subparsers) -> None:
@@ -14,13 +15,13 @@ def register(subparsers) -> None:
   p = subparsers.add_parser(
       "tune",
       description="Compiles PSMNet as a forward-only and as a training program with XLA:CPU's "
-                  "YNNPACK fusions on and off, times them, prints the table and caches the "
+                  "YNNPACK fusions on and off, times them, prints the table and keeps the "
                   "choice for this CPU kind and jax version, where training (--ynn auto) and "
                   "inference find it. Without it they take the choice measured on this CPU "
-                  "kind before (sljax.tune.KNOWN) or the default for kinds not measured yet; "
+                  "kind before (sljax.runtime.choices.KNOWN) or the default for kinds not measured yet; "
                   "SLJAX_TUNE=0 or --ynn on keeps XLA's defaults.")
   p.add_argument("--show", action="store_true",
-                 help="print the cached choice and its table without measuring")
+                 help="print the measured choice and its table without measuring")
   p.add_argument("--repeats", type=int, default=5,
                  help="interleaved timing rounds (default 5)")
   p.set_defaults(func=run)
@@ -29,48 +30,48 @@ def register(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
   """Measures (or shows) and prints the table."""
   require(args.repeats > 0, f"--repeats must be positive, got {args.repeats}")
-  key, path = tune.cache_key(), tune.cache_path()
-  print(f"{machine.cpu_description()}\ncache: {path} [{key}]")
+  key, path = choices.measurement_key(), choices.measurements_path()
+  print(f"{machine.cpu_description()}\nmeasurements: {path} [{key}]")
   if args.show:
-    entry = tune.read_cache().get(key)
+    entry = choices.read_measurements().get(key)
     if entry is None:
-      best, where = tune.known_choice()
-      print(f"not measured on this machine: runs take {tune.describe(best)}, {where}; "
+      best, where = choices.known_choice()
+      print(f"not measured on this machine: runs take {choices.describe(best)}, {where}; "
             "`sljax tune` measures it")
       return 0
     try:
-      best = tune.KernelChoice(**entry["choice"])
+      best = choices.KernelChoice(**entry["choice"])
     except (KeyError, TypeError, AttributeError):  # an entry edited by hand or by another version
       raise SljaxError(f"{path}: the entry for {key} has no readable choice; run `sljax tune` "
                        "to measure again") from None
     table = entry.get("table") if isinstance(entry.get("table"), list) else []
     others = entry.get("others")
     print(f"measured {entry.get('time', '?')} in {entry.get('seconds', '?')} s"
-          f"{_beside(others)}\n\n{tune.format_table(table, best)}\n\n"
-          f"choice: {tune.describe(best)}")
+          f"{_beside(others)}\n\n{choices.format_table(table, best)}\n\n"
+          f"choice: {choices.describe(best)}")
     _notes(table, others)
     return 0
   t0 = time.perf_counter()
-  best, table, others = tune.tuned(repeats=args.repeats)
+  best, table, others = choices.tuned(workload, repeats=args.repeats)
   seconds = time.perf_counter() - t0
-  print(f"measured in {seconds:.0f} s{_beside(others)}\n\n{tune.format_table(table, best)}\n\n"
-        f"choice: {tune.describe(best)}")
+  print(f"measured in {seconds:.0f} s{_beside(others)}\n\n{choices.format_table(table, best)}\n\n"
+        f"choice: {choices.describe(best)}")
   _notes(table, others)
   try:
-    tune.write_cache(key, best, table, seconds, others=others)
+    choices.write_measurement(key, best, table, seconds, others=others)
   except OSError as e:
-    print(f"not cached ({path}: {e.strerror or e})")
+    print(f"not kept ({path}: {e.strerror or e})")
   return 0
 
 
 def _beside(others) -> str:
   """', other processes using N% of the CPUs meanwhile' where it was recorded."""
-  if not tune.is_share(others):
+  if not choices.is_share(others):
     return ""
   return f", other processes using {others:.0%} of the CPUs meanwhile"
 
 
 def _notes(table: list[dict], others) -> None:
   """Prints why a choice may not be this machine's when idle."""
-  for note in tune.notes(table, others):
+  for note in choices.notes(table, others):
     print(note)

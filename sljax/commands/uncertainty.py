@@ -6,10 +6,10 @@ from pathlib import Path
 
 import numpy as np
 
-from sljax import files
 from sljax.corr import correlation, uncertainty
 from sljax.data.scene import load_scene
 from sljax.errors import SljaxError, require
+from sljax.io import files
 
 HIST_PNG = "uncertainty_hist.png"
 MAPS_PNG = "uncertainty_maps.png"

@@ -13,9 +13,9 @@ import numpy as np
 from matplotlib import colors as mcolors
 from matplotlib.figure import Figure
 
-from sljax import files
 from sljax.errors import require
-from sljax.viz import Panel, save_panels
+from sljax.io import files
+from sljax.io.pictures import Panel, save_panels
 
 
 def view_uncertainty(p: np.ndarray) -> np.ndarray:

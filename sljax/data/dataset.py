@@ -15,12 +15,12 @@ from typing import Any, Protocol
 import cv2
 import numpy as np
 
-from sljax import files
 from sljax.data.scene import Scene, load_scene
-from sljax.images import to_gray
-from sljax.files import read_json_object
 from sljax.errors import SljaxError
-from sljax.sizes import as_size
+from sljax.io import files
+from sljax.io.files import read_json_object
+from sljax.io.images import to_gray
+from sljax.io.sizes import as_size
 
 BATCH_PARTS = ("left", "right", "disp", "disp_right", "sl", "sl_right", "mask")
 DEFAULT_PARTS = ("left", "right", "disp", "sl")

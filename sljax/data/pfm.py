@@ -10,8 +10,8 @@ import re
 
 import numpy as np
 
-from sljax import files
 from sljax.errors import SljaxError
+from sljax.io import files
 
 _HEADER = re.compile(rb"\A(P[fF])\s+(\d+)\s+(\d+)\s+([-+0-9.eE]+)\s")
 

@@ -35,14 +35,14 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from sljax import files
-from sljax.cache import user_cache_dir
-from sljax.data.calib import read_calib
+from sljax.data.camera import read_calib
 from sljax.data.dataset import FolderSource, PART_FIELD
 from sljax.data.pfm import _HEADER as PFM_HEADER
 from sljax.data.scene import _PATTERN_FILE, _RAW_FILE, _numbered_files
-from sljax.files import read_json_object
 from sljax.errors import SljaxError
+from sljax.io import files
+from sljax.io.files import read_json_object
+from sljax.runtime.compile_cache import user_cache_dir
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 CACHE_VERSION = 1
@@ -247,7 +247,7 @@ def _still_valid(scene_dir: Path, entry: dict[str, Any]) -> bool:
 
 
 def cache_dir() -> Path:
-  """Where check results are kept: the user's sljax cache folder (sljax.cache)."""
+  """Where check results are kept: the user's sljax cache folder (sljax.runtime.compile_cache)."""
   return user_cache_dir()
 
 

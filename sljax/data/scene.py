@@ -10,12 +10,12 @@ from typing import Any
 import cv2
 import numpy as np
 
-from sljax import files
-from sljax.data.calib import Calib, calib_text, read_calib
+from sljax.data.camera import Calib, calib_text, read_calib
 from sljax.data.pfm import read_pfm, write_pfm
 from sljax.errors import SljaxError
-from sljax.files import read_json_object
-from sljax.images import png_pixels, read_image
+from sljax.io import files
+from sljax.io.files import read_json_object
+from sljax.io.images import png_pixels, read_image
 
 
 @dataclasses.dataclass

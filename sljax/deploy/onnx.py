@@ -1,6 +1,6 @@
 """`sljax export MODEL OUT.onnx`: the inference function as an ONNX model, checked by ONNX Runtime.
 
-The function is the `.jax` artifact's (`sljax.export.inference_function`: padding or resizing,
+The function is the `.jax` artifact's (`sljax.deploy.stablehlo.inference_function`: padding or resizing,
 disparity, pattern probabilities and confidence, unet-sl's correlation), traced with XLA's
 plain convolutions (conv_impl "lax") whatever the machine's default, and converted by jax2onnx
 (the optional extra `.[onnx]`) at opset OPSET with a symbolic batch. jax2onnx maps only 1D/2D
@@ -35,11 +35,11 @@ from typing import Any, Callable
 import jax
 import numpy as np
 
-from sljax import files
-from sljax.render.synthetic import SynthConfig, render_scene
+from sljax.deploy.stablehlo import check_predictor, check_size, describe, inference_function
 from sljax.errors import SljaxError
-from sljax.export import check_predictor, check_size, describe, inference_function
 from sljax.inference.inputs import convert_channels
+from sljax.io import files
+from sljax.render.synthetic import SynthConfig, render_scene
 
 FORMAT = "sljax-onnx"
 OPSET = 18  # >= 17 as asked; jax2onnx emits ReduceMean with axes as an input (18)

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from sljax.errors import SljaxError
-from sljax.images import to_gray, unit_image
+from sljax.io.images import to_gray, unit_image
 
 
 def short_repr(value: Any) -> str:

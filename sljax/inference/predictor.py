@@ -22,7 +22,6 @@ from typing import Any
 import jax
 import numpy as np
 
-from sljax import tune
 from sljax.corr.correlation import sl_disparity
 from sljax.corr.uncertainty import view_uncertainty
 from sljax.data.dataset import resize_image
@@ -30,9 +29,10 @@ from sljax.errors import SljaxError
 from sljax.inference.inputs import prepare_pair, resize_maps, short_repr
 from sljax.inference.padding import pad_pair, pad_rule
 from sljax.inference.programs import PROGRAMS, forward
+from sljax.io.sizes import as_size
 from sljax.models.load import load_for_inference
 from sljax.nets.model_config import ModelConfig
-from sljax.sizes import as_size
+from sljax.runtime import choices
 
 MODES = ("pad", "resize")
 
@@ -45,21 +45,21 @@ class PredictOptions:
   (resize mode needs it); search_range: unet-sl's correlation search range in the pixels the
   network sees (None: sljax.corr's default); window: unet-sl's correlation window (None: the
   paper's 17); split_twin: psmnet-mtl as two programs (None: when large; programs.py);
-  kernels: XLA's compiler choices (sljax.tune; its forward one applies); name: for messages.
+  kernels: XLA's compiler choices (sljax.runtime.choices; its forward one applies); name: for messages.
   """
   mode: str = "pad"
   train_size: tuple[int, int] | None = None
   search_range: int | None = None
   window: int | None = None
   split_twin: bool | None = None
-  kernels: tune.KernelChoice = tune.DEFAULT
+  kernels: choices.KernelChoice = choices.DEFAULT
   name: str | None = None
 
   def __post_init__(self):
     if self.mode not in MODES:
       raise SljaxError(f"mode must be one of {MODES}, got {self.mode!r}")
-    if not isinstance(self.kernels, tune.KernelChoice):  # else it fails only at the first call
-      raise SljaxError(f"kernels must be a sljax.tune.KernelChoice, got "
+    if not isinstance(self.kernels, choices.KernelChoice):  # else it fails only at the first call
+      raise SljaxError(f"kernels must be a sljax.runtime.choices.KernelChoice, got "
                        f"{short_repr(self.kernels)}")
     object.__setattr__(self, "train_size", as_size(self.train_size, "train_size"))
 
@@ -230,13 +230,13 @@ def _check_range(value: Any, what: str) -> None:
 
 
 def load(checkpoint: str | os.PathLike, mode: str = "pad", maxdisp: int | None = None,
-         tune_kernels: bool | None = None, kernels: tune.KernelChoice | None = None,
+         tune_kernels: bool | None = None, kernels: choices.KernelChoice | None = None,
          conv_impl: str | None = None, search_range: int | None = None) -> Predictor:
   """Predictor from a training workdir, its checkpoints dir, or a converted PSMNet dir.
 
   maxdisp (PSMNets) replaces the cost volume's depth (a multiple of 16; the weights do not
   depend on it). search_range (unet-sl) is the correlation's search range in the pixels the
-  network sees. tune_kernels: use this CPU's compiler choice (sljax.tune: `sljax tune`'s
+  network sees. tune_kernels: use this CPU's compiler choice (sljax.runtime.choices: `sljax tune`'s
   measurement, else its CPU kind's); None follows $SLJAX_TUNE (on unless 0), False keeps XLA's defaults.
   kernels, when given, is the choice itself (e.g. the one a run trained with) and nothing is
   tuned. conv_impl: the convolution kernels (sljax.kernels.IMPLS; None: $SLJAX_CONV3D's).
@@ -248,8 +248,8 @@ def load(checkpoint: str | os.PathLike, mode: str = "pad", maxdisp: int | None =
     raise SljaxError(f"mode must be one of {MODES}, got {mode!r}")
   if tune_kernels is not None and not isinstance(tune_kernels, (bool, np.bool_)):
     raise SljaxError(f"tune_kernels must be True, False or None, got {tune_kernels!r}")
-  if kernels is not None and not isinstance(kernels, tune.KernelChoice):
-    raise SljaxError("kernels must be a sljax.tune.KernelChoice or None, got "
+  if kernels is not None and not isinstance(kernels, choices.KernelChoice):
+    raise SljaxError("kernels must be a sljax.runtime.choices.KernelChoice or None, got "
                      f"{short_repr(kernels)}")
   for value, what in ((maxdisp, "maxdisp"), (search_range, "search_range")):
     if value is not None:
@@ -273,7 +273,7 @@ def load(checkpoint: str | os.PathLike, mode: str = "pad", maxdisp: int | None =
                                if "maxdisp" in spec.options else ""))
   options = PredictOptions(mode=mode, train_size=saved.get("size"),
                            search_range=search_range, window=saved.get("corr_window"),
-                           kernels=kernels or tune.choice(tune_kernels), name=path)
+                           kernels=kernels or choices.choice(tune_kernels), name=path)
   predictor = Predictor(config, variables, options)
   predictor.train_config = saved
   return predictor

@@ -5,7 +5,7 @@ function per program kind, XLA:CPU YNNPACK choice and equal model (flax modules 
 their fields), so jax keeps one compilation per model and input shape.
 Both resolution modes, or several checkpoints of one configuration, share it (in resize mode
 the input is always the training size). Where a command line keeps compiled programs on disk
-(`sljax.executables`: `sljax predict`, `evaluate`, ...), each program is kept whole, keyed by
+(`sljax.runtime.kept_programs`: `sljax predict`, `evaluate`, ...), each program is kept whole, keyed by
 its kind, the model's fields and the compiler options, so a second command neither traces,
 lowers nor compiles it (a warm `sljax predict` of one 256x256 pair with the twin: 3.1 s
 instead of 4.4 s on a 2-core Zen 5).
@@ -22,10 +22,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sljax import executables, tune
 from sljax.nets.model_config import ModelConfig
 from sljax.nets.psmnet import PSMNet
 from sljax.nets.psmnet_mtl import SLOnly, detach_sl
+from sljax.runtime import choices, kept_programs
 
 # The twin runs as two programs when its cost volume would exceed this many bytes; the two 3D
 # stacks are then never alive together (1024x1280, maxdisp 192: peak 9.2 -> 6.2 GiB with the
@@ -59,13 +59,13 @@ class Programs:
   """The jitted inference programs of this process, shared by every predictor.
 
   `run(kind, ynn, model, ...)` calls the jitted KINDS[kind] with XLA:CPU's YNNPACK fusions on
-  or off (sljax.tune's forward choice); `traces(model)` says how often a model was traced
+  or off (sljax.runtime.choices's forward choice); `traces(model)` says how often a model was traced
   (compiled) here; `variable_shapes` keeps the last SHAPE_CACHE abstract initialisations
   (tracing a PSMNet takes seconds).
   """
 
   def __init__(self):
-    self._programs: dict[tuple[str, bool, Any], executables.Program] = {}
+    self._programs: dict[tuple[str, bool, Any], kept_programs.Program] = {}
     self._traces: collections.Counter = collections.Counter()
     self._shapes: collections.OrderedDict = collections.OrderedDict()
 
@@ -77,7 +77,7 @@ class Programs:
     """The compiled program of `kind` applied to prepared inputs."""
     return self._program(kind, bool(ynn), model)(variables, left, right)
 
-  def _program(self, kind: str, ynn: bool, model) -> executables.Program:
+  def _program(self, kind: str, ynn: bool, model) -> kept_programs.Program:
     """The program of `kind` for `model` (one per equal model): jitted, and kept on disk
     where a command line keeps compiled programs."""
     key = (kind, ynn, model)
@@ -85,8 +85,8 @@ class Programs:
       def counted(variables, left, right, fn=KINDS[kind]):
         self._traces[model] += 1  # runs only while tracing: counts compilations
         return fn(model, variables, left, right)
-      options = tune.KernelChoice(forward_ynn=ynn).compiler_options("forward")
-      self._programs[key] = executables.Program(jax.jit(counted, compiler_options=options),
+      options = choices.KernelChoice(forward_ynn=ynn).compiler_options("forward")
+      self._programs[key] = kept_programs.Program(jax.jit(counted, compiler_options=options),
                                                 f"inference-{kind}", (repr(model), options))
     return self._programs[key]
 

@@ -22,7 +22,7 @@ BLOCK_VALUES = 1 << 17
 
 # The blocks of the kernel gradients (fold_kernel_grad, conv2d's), where a program sets them:
 # None takes the layer's `block_values`. Which size is fastest depends on the library XLA
-# hands the convolutions to, i.e. on the compiler choice (sljax.tune.grad_blocks_for): with
+# hands the convolutions to, i.e. on the compiler choice (sljax.runtime.choices.grad_blocks_for): with
 # YNNPACK's fusions off, Zen 5 ran PSMNet's kernel gradients 2-3x faster in 1 Mi-value blocks
 # than in 128 Ki ones, while YNNPACK's were slower in them. Blocking never changes a value
 # beyond float rounding (the sums' order), so this only selects the speed of a trace.

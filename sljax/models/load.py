@@ -7,7 +7,7 @@ from pathlib import Path
 from typing import Any
 
 from sljax.errors import require
-from sljax.files import read_json_object
+from sljax.io.files import read_json_object
 from sljax.losses.weighting import UNCERTAINTY_KEY
 from sljax.models.checkpoint import CHECKPOINT_DIR, CONFIG_FILE, make_manager, restore
 from sljax.nets import convert

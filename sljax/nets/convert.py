@@ -32,9 +32,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sljax import files
-from sljax.files import read_json_object
 from sljax.errors import SljaxError, require
+from sljax.io import files
+from sljax.io.files import read_json_object
 from sljax.kernels import ConvTranspose3D
 from sljax.nets.psmnet import PSMNet, reference_key
 

@@ -18,11 +18,11 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from sljax import executables
 from sljax.errors import SljaxError
 from sljax.kernels.impl import conv_impl as resolve_conv_impl
 from sljax.nets.draws import batched_draws
 from sljax.nets.registry import NetSpec, check_maxdisp, model_kwargs_for, spec
+from sljax.runtime import kept_programs
 
 # Computation dtypes of --precision; parameters, optimiser state and losses stay float32.
 COMPUTE_DTYPES = {"fp32": jnp.float32, "bf16": jnp.bfloat16}
@@ -153,7 +153,7 @@ def _init_fn(model: nn.Module, height: int, width: int, channels: int,
   def init(key):
     return model.init(key, x, x, train=False)
 
-  return executables.Program(jax.jit(init, compiler_options=INIT_COMPILER_OPTIONS),
+  return kept_programs.Program(jax.jit(init, compiler_options=INIT_COMPILER_OPTIONS),
                              "init", (repr(model), height, width, channels),
                              device=device).prefetch()
 

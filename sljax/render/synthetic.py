@@ -52,15 +52,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sljax import executables
+from sljax.data.camera import Calib
+from sljax.data.scene import Scene
+from sljax.errors import require
 from sljax.render import synth_geometry as geo
 from sljax.render import synth_scenes as scenes
 from sljax.render import synth_sensor as sensor
 from sljax.render import synth_surface as surface
-from sljax.data.calib import Calib
-from sljax.data.scene import Scene
 from sljax.render.synth_config import SynthConfig, check_seed_index
-from sljax.errors import require
+from sljax.runtime import kept_programs
 
 ROOM_LO = (-0.5, -0.5, 0.0)
 ROOM_HI = (0.5, 0.5, 1.0)
@@ -288,9 +288,9 @@ def _stage_raw(rig, base, lit_bits, cfg: SynthConfig):
 @functools.lru_cache(maxsize=None)
 def _stage(fn, cfg: SynthConfig):
   """fn jitted for one (resolved) configuration: compiled once per config and input shapes,
-  and kept whole where a command line keeps programs (sljax.executables: a later run neither
+  and kept whole where a command line keeps programs (sljax.runtime.kept_programs: a later run neither
   traces nor lowers the renderer)."""
-  return executables.Program(jax.jit(functools.partial(fn, cfg=cfg)),
+  return kept_programs.Program(jax.jit(functools.partial(fn, cfg=cfg)),
                              f"render-{fn.__name__.strip('_')}", repr(cfg)).prefetch()
 
 

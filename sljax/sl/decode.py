@@ -15,8 +15,8 @@ from typing import Any
 
 import numpy as np
 
-from sljax.images import unit_image
 from sljax.errors import SljaxError, require
+from sljax.io.images import unit_image
 from sljax.sl import codes
 
 

@@ -7,11 +7,11 @@ from pathlib import Path
 
 import jax
 
-from sljax.cache import enable_compile_cache
 from sljax.errors import SljaxError, run_command
-from sljax.quiet import quiet_libraries
 from sljax.models import checkpoint as ckpt
 from sljax.models import load as trained
+from sljax.runtime.compile_cache import enable_compile_cache
+from sljax.runtime.quiet import quiet_libraries
 from sljax.train.config import FIELDS, PRESETS, TrainConfig, config_from_json, preset_config
 from sljax.train.loop import default_workdir, train
 from sljax.train.workdir import check_config_kept

@@ -10,12 +10,12 @@ import json
 from pathlib import Path
 from typing import Any
 
-from sljax.render.synth_config import DOMAINS
-from sljax import sizes
 from sljax.errors import SljaxError, require
+from sljax.io import sizes
 from sljax.losses.disparity import DISP_LOSSES
 from sljax.losses.weighting import STRATEGIES
 from sljax.nets import registry
+from sljax.render.synth_config import DOMAINS
 from sljax.train import tensorboard
 
 MODELS = registry.MODELS

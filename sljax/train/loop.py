@@ -32,12 +32,12 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
-from sljax import executables, tune
 from sljax.errors import SljaxError, require
 from sljax.losses import weighting
+from sljax.models import checkpoint as ckpt
 from sljax.nets import registry
 from sljax.nets.model_config import ModelConfig, init_variables
-from sljax.models import checkpoint as ckpt
+from sljax.runtime import choices, kept_programs
 from sljax.train import state as st
 from sljax.train import step as stp
 from sljax.train.config import TrainConfig, with_absolute_paths
@@ -69,26 +69,26 @@ def compiled_steps(model_config: ModelConfig, disp_loss: str, lr: float,
   """(model, optimiser, train step, eval step), memoised so runs in one process share the
   compiled steps (tests, notebooks, experiment grids, a resume in the same process); the key
   holds everything that changes a program (the model config with its kernels, and `ynn`, the
-  resolved --ynn: sljax.tune's XLA compiler options)."""
+  resolved --ynn: sljax.runtime.choices's XLA compiler options)."""
   model = model_config.build()
-  choice = tune.KernelChoice.from_name(ynn)
+  choice = choices.KernelChoice.from_name(ynn)
   # Where a command line turned it on, a later run loads the compiled steps instead of
-  # tracing, lowering and compiling them (sljax.executables); each description holds what
+  # tracing, lowering and compiling them (sljax.runtime.kept_programs); each description holds what
   # changes its program beyond the arguments' shapes.
-  grad_block_values = tune.grad_blocks_for(choice)
+  grad_block_values = choices.grad_blocks_for(choice)
   train = (model_config, disp_loss, lr, lr_drop_step, choice.compiler_options("train"),
            grad_block_values, repr(mesh))
   tx = st.make_optimizer(lr, lr_drop_step)
   # One program for the optimiser's zeros: run op by op it dispatched (and compiled) a
   # zeros_like per parameter leaf, about 1.5 s of a warm start on a 2-core CPU.
-  tx = tx._replace(init=executables.Program(jax.jit(tx.init), "optimizer-init",
+  tx = tx._replace(init=kept_programs.Program(jax.jit(tx.init), "optimizer-init",
                                             (lr, lr_drop_step)))
   return (model, tx,
-          executables.Program(stp.make_train_step(
+          kept_programs.Program(stp.make_train_step(
               model, model_config, disp_loss=disp_loss, tx=tx, mesh=mesh,
               compiler_options=choice.compiler_options("train"),
               grad_block_values=grad_block_values), "train-step", train).prefetch(),
-          executables.Program(stp.make_eval_step(
+          kept_programs.Program(stp.make_eval_step(
               model, model_config, mesh=mesh, compiler_options=choice.compiler_options("forward")),
               "eval-step", (model_config, choice.compiler_options("forward"), repr(mesh))))
 

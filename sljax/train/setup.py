@@ -11,14 +11,14 @@ import jax.numpy as jnp
 import numpy as np
 from flax import traverse_util
 
-from sljax import tune
 from sljax.data import preflight
 from sljax.data.dataset import split_indices, take_fraction
 from sljax.errors import SljaxError, require
-from sljax.nets import detach_sl, registry
-from sljax.nets.model_config import ModelConfig
 from sljax.models import checkpoint as ckpt
 from sljax.models import load as trained
+from sljax.nets import detach_sl, registry
+from sljax.nets.model_config import ModelConfig
+from sljax.runtime import choices
 from sljax.train.config import TrainConfig, validate
 from sljax.train.feed import DataInfo, batch_parts, check_source, open_source
 from sljax.train.workdir import prepare_workdir
@@ -108,7 +108,7 @@ def resolve_ynn(config: TrainConfig, workdir: Path, resume: bool, overwrite: boo
     return config
   if resume and not overwrite and (workdir / ckpt.CONFIG_FILE).is_file():
     return dataclasses.replace(config, ynn=trained.read_config(workdir).get("ynn", "on"))
-  return dataclasses.replace(config, ynn=tune.choice(log=log).name)
+  return dataclasses.replace(config, ynn=choices.choice(log=log).name)
 
 
 def _why_no_held_out(source: Any) -> str:

@@ -7,8 +7,8 @@ import numpy as np
 from jax.experimental import multihost_utils
 
 from sljax.corr.correlation import sl_disparity
+from sljax.evaluation.metrics import DisparityAccumulator
 from sljax.losses.sl import sl_loss
-from sljax.metrics import DisparityAccumulator
 from sljax.train import step as stp
 from sljax.train.config import TrainConfig
 from sljax.train.feed import RowCache, prefetch

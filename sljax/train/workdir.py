@@ -20,12 +20,12 @@ import jax
 import numpy as np
 from jax.experimental import multihost_utils
 
-from sljax import files
 from sljax.errors import SljaxError
-from sljax.nets import registry
+from sljax.io import files
 from sljax.models.checkpoint import CHECKPOINT_DIR, CONFIG_FILE
 from sljax.models.failures import storage_guard
 from sljax.models.load import read_config
+from sljax.nets import registry
 from sljax.train.config import PATH_FIELDS, TrainConfig, diff_configs, dumps
 from sljax.train.tensorboard import TensorBoardWriter
 
@@ -55,7 +55,7 @@ def sync(name: str) -> None:
 
 @contextlib.contextmanager
 def held(workdir: Path, what: str) -> Iterator[None]:
-  """The workdir held for one run (sljax.files.exclusive on the main process): a second run
+  """The workdir held for one run (sljax.io.files.exclusive on the main process): a second run
   there stops with one line naming the first, on every process of a multi-process run (the
   others would otherwise wait for the main one at the next sync until the coordinator gave
   up)."""

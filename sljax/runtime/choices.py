@@ -1,0 +1,397 @@
+"""Compiler choices per CPU kind: a table of the kinds measured, and `sljax tune` to measure.
+
+What is chosen. XLA:CPU can hand convolutions and their neighbours to YNNPACK fusions or
+compile them itself ("off" keeps YNNPACK for reductions only, where XLA's own are ~10x
+slower); which is faster depends on the CPU (AVX-512 or not, cache sizes), on the XLA version
+and on the program: on an AVX-512 Zen 5 turning the fusions off made PSMNet's
+forward 1.2x faster and its training step 5-30% slower, on an AVX2 Zen 3 the forward was
+slower without them. So the choice is made per program kind: forward-only programs
+(inference, validation, evaluation) and training steps. Both settings compute the same
+function (only float rounding differs), and the choice is an explicit argument of the programs
+that use it (`KernelChoice.compiler_options(kind)`, passed to `jax.jit`), never process state.
+The convolution kernels themselves are not tuned, because measuring them found no CPU that
+disagrees: the folded kernels train 3x faster than `lax` on Zen 3 (the main job) and were made
+because `lax` was several times slower on Zen 5, and block sizes of 16 Ki to 1 Mi values are
+within the noise on both (docs/benchmarks.md). They are chosen where
+the model is built (its `conv_impl`, `sljax.kernels`).
+
+Where a choice comes from. A run never measures: on a fresh 2-core Zen 3 the measurement
+took 106 s, more than the compile it tunes, and measured beside other work it chose wrongly.
+It takes, in order: this machine's own measurement (`sljax tune`), else `KNOWN`, the choice
+`sljax tune` made on an idle machine of the same CPU kind (`sljax.runtime.machine.cpu_key`), else
+`UNKNOWN` for kinds not measured yet (one line says so and how to measure). `SLJAX_TUNE=0`
+(or `--ynn on`) keeps XLA's defaults. Off the CPU nothing is chosen.
+
+How `sljax tune` measures. `measure` compiles PSMNet itself (128x128, maxdisp 48, batch 1: the
+real mix of 2D and 3D convolutions) as a forward and as a training program, with the fusions
+on and off, and times them in interleaved rounds: about a minute on a 2-core CPU, most of it
+compiling. A setting replaces XLA's default only when it was faster in every round and by more
+than `MARGIN` in the median round (two tunings on a busy Zen 3 once disagreed when one fastest
+call decided); when the median says faster but a round disagrees, a fresh batch of rounds
+decides (up to `RETRIES`). Load that lasts the whole measurement can turn the choice around
+with every round agreeing: on a 2-core Zen 4 beside a training run every training round said
+the fusions win (off/on 1.13-1.74), where idle every round said they lose (0.79-1.00). So
+`tuned` also records the share of the usable cores' time other processes used meanwhile
+(`sljax.runtime.machine.others_share`); above `BUSY` the choice is provisional: it serves only while
+the machine stays busy. The winner is kept in a JSON file of measurements in the user's cache directory
+(`$SLJAX_CACHE_DIR`, else `$XDG_CACHE_HOME/sljax`, else `~/.cache/sljax`), keyed by the CPU
+kind and the jax and jaxlib versions.
+"""
+
+import dataclasses
+import json
+import os
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import jax
+import jaxlib
+import numpy as np
+
+from sljax.io import files
+from sljax.kernels import grad_blocks
+from sljax.runtime import compile_cache, machine
+
+ENV_TUNE = "SLJAX_TUNE"
+# "off" keeps one kind of YNNPACK fusion: reductions. Without it XLA:CPU rewrites each large
+# reduction (BatchNorm's statistics and their gradients) into a reduce-window of its own
+# loop emitter, 9-14x slower than YNNPACK's (a [2, 24, 64, 64, C] -> [C] sum: 2.4 ms against
+# 0.27 ms at C = 32 on Zen 5); PSMNet's training step took 3.26-3.55 s with against 3.53-3.81 s
+# without (5 alternating rounds), and the main job's step compiled 1 s faster. Convolutions,
+# dots and elementwise fusions stay XLA's (with elementwise fusions too the step took 5 s).
+YNN_OFF = {"xla_cpu_experimental_ynn_fusion_type": "LIBRARY_FUSION_TYPE_REDUCE"}
+MARGIN = 0.05  # a setting replaces XLA's default only when it is this much faster
+RETRIES = 3  # fresh batches of rounds for a kind whose rounds disagreed
+# The decision rule's version: choices measured under another rule are measured again (3: the
+# load beside the measurement is recorded; older entries may have been measured on a busy machine;
+# 4: the training probe runs with the kernel-gradient blocks of GRAD_BLOCKS; 5: "off" keeps
+# YNNPACK's reductions).
+RULE = 5
+BUSY = 0.1  # other processes' share of the CPUs above which a measurement is provisional
+
+
+# The choice per CPU kind (machine.cpu_key) measured on an idle machine of that kind, with
+# where: a first run takes it instead of measuring (issue 49: on a fresh 2-core Zen 3 the
+# measurement took 106 s of the 251 s before the first step). A kind not listed takes UNKNOWN:
+# off on every kind measured so far; without the fusions programs also load about 3x faster
+# (docs/benchmarks.md, "The first run").
+KNOWN = {
+    "amd-epyc-f25-m1-avx2": ("off", "Zen 3, `sljax tune` idle, 2026-11-27"),
+    "amd-epyc-f25-m17-avx2": ("off", "Zen 4 showing AVX2 only, `sljax tune` idle, 2026-11-27"),
+    # `sljax tune`'s probe (128x128, batch 1) kept the fusions in training (off/on 1.03-1.10),
+    # but at the main job's preset the step without them was 5% faster (0.79-0.83 s against
+    # 0.84-0.93 s) and loaded from the cache in 3.0 s against 9.6-10.0 s. Since RULE 5 (the
+    # reductions kept) the probe chooses off for both as well (training off/on 0.81-0.86,
+    # forward 0.67-0.80, idle, 2026-11-28): a measured entry no longer disagrees with this one.
+    "amd-epyc-f26-m2-avx512": ("off", "Zen 5, the main job's step and start-up, 2026-11-27"),
+}
+UNKNOWN = "off"
+
+# The kernel gradients' block size (sljax.kernels.grad_blocks) per CPU kind and --ynn value of
+# the training programs, measured idle; elsewhere each layer's BLOCK_VALUES (128 Ki values,
+# chosen with the fusions on). Without YNNPACK's fusions XLA hands the gradients' blocked
+# convolutions to another library, which wants larger blocks: on Zen 5, PSMNet's training step
+# at 256x256, batch 2 took 3.58-3.59 s in 1 Mi-value blocks against 4.73-4.92 s (fusions on:
+# 3.48-3.71 s), and the main job's step the same 0.74-0.77 s with 2 s less compile. Not yet
+# measured on Zen 3 or Zen 4 (benchmarks/bench_nets.py --part micro --grad-blocks).
+GRAD_BLOCKS = {
+    ("amd-epyc-f26-m2-avx512", False): (1 << 20, "Zen 5, bench_nets.py, 2026-11-28"),
+}
+
+KINDS = ("forward", "train")  # the program kinds a choice is made for
+# () -> ({kind: f(*args)}, args): the programs a measurement times (sljax.nets.workload)
+Workload = Callable[[], tuple[dict[str, Callable], tuple]]
+NAMES = {(True, True): "on", (False, False): "off", (False, True): "forward-off",
+         (True, False): "train-off"}  # (forward_ynn, train_ynn) -> the --ynn value
+
+
+@dataclasses.dataclass(frozen=True)
+class KernelChoice:
+  """The compiler choices of forward-only and training programs; defaults are XLA's."""
+  forward_ynn: bool = True           # XLA:CPU YNNPACK fusions in forward-only programs
+  train_ynn: bool = True             # ... and in training steps
+
+  @property
+  def name(self) -> str:
+    """'on', 'off', 'forward-off' or 'train-off' (the training option --ynn)."""
+    return NAMES[(self.forward_ynn, self.train_ynn)]
+
+  @classmethod
+  def from_name(cls, name: str) -> "KernelChoice":
+    """The choice a --ynn value names."""
+    fwd, train = next(k for k, v in NAMES.items() if v == name)
+    return cls(forward_ynn=fwd, train_ynn=train)
+
+  def compiler_options(self, kind: str) -> dict[str, str] | None:
+    """XLA compiler options for a 'forward' or 'train' program (None: XLA's defaults)."""
+    ynn = {"forward": self.forward_ynn, "train": self.train_ynn}[kind]
+    return None if ynn else dict(YNN_OFF)
+
+
+DEFAULT = KernelChoice()
+
+
+def enabled(flag: bool | None = None) -> bool:
+  """Whether to tune: an explicit flag wins, else $SLJAX_TUNE (on unless 0/off/false/no)."""
+  if flag is not None:
+    return flag
+  return os.environ.get(ENV_TUNE, "1").strip().lower() not in ("0", "off", "false", "no")
+
+
+def measurements_path() -> Path:
+  """The file of this user's measurements, in sljax's cache directory
+  (sljax.runtime.compile_cache.user_cache_dir)."""
+  return compile_cache.user_cache_dir() / "tune.json"
+
+
+def measurement_key() -> str:
+  """What a measurement depends on: the CPU kind and the jax / jaxlib versions."""
+  return f"{machine.cpu_key()} jax-{jax.__version__} jaxlib-{jaxlib.__version__}"
+
+
+def read_measurements(path: Path | None = None) -> dict:
+  """The measurements by key ({} when absent or unreadable: `sljax tune` can measure again)."""
+  path = path or measurements_path()
+  try:
+    data = json.loads(path.read_text(encoding="utf-8"))
+  except (OSError, ValueError):
+    return {}
+  return data if isinstance(data, dict) else {}
+
+
+def write_measurement(key: str, choice: KernelChoice, table: list[dict], seconds: float,
+                      path: Path | None = None, others: float | None = None) -> Path:
+  """Stores one key's choice, its measurements and the share of the CPUs other processes used
+  meanwhile (None: unknown) atomically: write, then rename."""
+  path = path or measurements_path()
+  data = read_measurements(path)
+  data[key] = {"choice": dataclasses.asdict(choice), "rule": RULE, "table": table,
+               "seconds": round(seconds, 1), "cpu": machine.cpu_description(),
+               "others": None if others is None else round(others, 3),
+               "time": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+  path.parent.mkdir(parents=True, exist_ok=True)
+  files.write_text(path, json.dumps(data, indent=1))
+  return path
+
+
+def is_share(others: Any) -> bool:
+  """Whether a recorded share of the CPUs is one (a number in [0, 1]; not None, which means
+  unknown, nor what a hand edit made of it)."""
+  return isinstance(others, (int, float)) and not isinstance(others, bool) and 0 <= others <= 1
+
+
+def busy(others: Any) -> bool:
+  """Whether a recorded share of the CPUs used by other processes makes a measurement
+  provisional (unknown, where /proc/stat is absent, does not)."""
+  return is_share(others) and others > BUSY
+
+
+def measured_choice(path: Path | None = None) -> KernelChoice | None:
+  """This machine's measured choice, or None: none measured, or a provisional one (measured on a
+  busy machine) while the machine is quiet now."""
+  entry = read_measurements(path).get(measurement_key())
+  if not entry or entry.get("rule") != RULE:
+    return None
+  try:
+    found = KernelChoice(**entry["choice"])
+  except (KeyError, TypeError):
+    return None  # written by another version of this module: measure again
+  if busy(entry.get("others")) and not busy(machine.others_now()):
+    return None
+  return found
+
+
+def tuned(workload: Workload, repeats: int = 5
+          ) -> tuple[KernelChoice, list[dict], float | None]:
+  """`measure`, and the share of the CPUs other processes used meanwhile (None: unknown)."""
+  before = machine.cpu_snapshot()
+  best, table = measure(workload, repeats=repeats)
+  return best, table, machine.others_share(before, machine.cpu_snapshot())
+
+
+def busy_note(others: float | None) -> str:
+  """A sentence for a measurement taken beside other work, else ''."""
+  if not busy(others):
+    return ""
+  return (f"other processes used {others:.0%} of the CPUs while it measured, which can turn the "
+          "choice around: it is provisional, serving runs only while the machine stays busy "
+          "(then the CPU kind's table serves); `sljax tune` on an idle machine measures again")
+
+
+def known_choice(key: str | None = None) -> tuple[KernelChoice, str]:
+  """(the choice for a CPU kind, where it comes from): the table of kinds measured idle, else
+  `UNKNOWN`."""
+  key = key or machine.cpu_key()
+  if key in KNOWN:
+    return KernelChoice.from_name(KNOWN[key][0]), f"measured on this CPU kind ({KNOWN[key][1]})"
+  return KernelChoice.from_name(UNKNOWN), "the default for CPU kinds not measured yet"
+
+
+def grad_blocks_for(kernels: "KernelChoice", key: str | None = None) -> int | None:
+  """The kernel gradients' block size for training programs compiled with `kernels` on this
+  CPU kind (`GRAD_BLOCKS`), or None: each layer's own. Off the CPU the fast kernels do not run."""
+  if jax.default_backend() != "cpu":
+    return None
+  entry = GRAD_BLOCKS.get((key or machine.cpu_key(), bool(kernels.train_ynn)))
+  return entry[0] if entry else None
+
+
+def choice(tune: bool | None = None, log: Callable[[str], None] = print) -> KernelChoice:
+  """The kernel choice for this process, never measured here: XLA's defaults off the CPU or
+  with tuning off; else this machine's `sljax tune` entry (a provisional one only while the
+  machine is still busy), else the table of CPU kinds (`known_choice`)."""
+  if jax.default_backend() != "cpu" or not enabled(tune):
+    return DEFAULT
+  found = measured_choice()
+  if found is not None:
+    return found
+  best, where = known_choice()
+  log(f"XLA's settings for this CPU: {describe(best)}, {where}; `sljax tune` measures this "
+      "machine (about a minute) and its choice wins from then on")
+  return best
+
+
+def notes(table: list[dict], others: Any) -> list[str]:
+  """Why a choice may not be what this machine would choose idle: rounds that disagreed, load
+  beside the measurement."""
+  return [n for n in (undecided_note(table), busy_note(others)) if n]
+
+
+def describe(c: KernelChoice) -> str:
+  """One line: 'YNNPACK fusions off in forward programs, on in training (--ynn forward-off)'."""
+  ynn = lambda on: "on" if on else "off"
+  return (f"YNNPACK fusions {ynn(c.forward_ynn)} in forward programs, {ynn(c.train_ynn)} in "
+          f"training (--ynn {c.name})")
+
+
+# ----------------------------------------------------------------------------- measurement
+
+
+def _compiled(fns, args, kind: str, ynn: bool):
+  """One program kind compiled with YNNPACK fusions on or off; training with the kernel
+  gradients' blocks that training takes with that choice here (`grad_blocks_for`)."""
+  kernels = KernelChoice(forward_ynn=ynn, train_ynn=ynn)
+  blocks = grad_blocks_for(kernels) if kind == "train" else None
+
+  def program(*a):
+    with grad_blocks(blocks):
+      return fns[kind](*a)
+  return jax.jit(program, compiler_options=kernels.compiler_options(kind)).lower(*args).compile()
+
+
+def measure(workload: Workload | None = None, repeats: int = 5,
+            clock: Callable[[], float] = time.perf_counter,
+            timings: Callable[[str, bool], float] | None = None
+            ) -> tuple[KernelChoice, list[dict]]:
+  """Times each program kind of `workload()` with YNNPACK fusions on and off in `repeats`
+  interleaved rounds, and a kind whose rounds disagreed again (up to `RETRIES` fresh batches);
+  returns the choice and the table. `timings(kind, ynn) -> seconds` replaces one timed call
+  (tests)."""
+  keys = [(kind, ynn) for kind in KINDS for ynn in (True, False)]
+  if timings is None:
+    fns, args = workload()
+    programs = {k: _compiled(fns, args, *k) for k in keys}
+    for k in keys:
+      jax.block_until_ready(programs[k](*args))  # warm-up
+
+    def timings(kind, ynn):
+      t0 = clock()
+      jax.block_until_ready(programs[(kind, ynn)](*args))
+      return clock() - t0
+  samples = _rounds(timings, keys, repeats)
+  batches = dict.fromkeys(KINDS, 1)
+  for _ in range(RETRIES):
+    # A burst of load that hits one setting of a round makes the rounds disagree; a fresh
+    # batch decides instead of caching XLA's default for good (a busy Zen 4 once kept
+    # fusions on in forward programs that run 1.4x faster without them).
+    again = [kind for kind in KINDS if verdict(_ratios(samples, kind)) == "undecided"]
+    if not again:
+      break
+    samples.update(_rounds(timings, [(kind, ynn) for kind in again for ynn in (True, False)],
+                           repeats))
+    for kind in again:
+      batches[kind] += 1
+  best = choose(samples)
+  table = [{"kind": kind, "ynn": ynn, "seconds": round(float(np.median(samples[(kind, ynn)])), 5),
+            "off_vs_on": [round(r, 3) for r in _ratios(samples, kind)],
+            "batches": batches[kind], "verdict": verdict(_ratios(samples, kind))}
+           for kind, ynn in keys]
+  return best, table
+
+
+def _rounds(timings: Callable[[str, bool], float], keys: list[tuple[str, bool]],
+            repeats: int) -> dict[tuple[str, bool], list[float]]:
+  """`repeats` rounds over `keys`, interleaved so that a burst of load hits every setting alike."""
+  samples = {k: [] for k in keys}
+  for _ in range(repeats):
+    for k in keys:
+      samples[k].append(timings(*k))
+  return samples
+
+
+def _ratios(samples: dict[tuple[str, bool], list[float]], kind: str) -> list[float]:
+  """Per round, the time with the fusions off over the time with them on (< 1: off faster)."""
+  return [off / on for off, on in zip(samples[(kind, False)], samples[(kind, True)])]
+
+
+def verdict(ratios: list[float], margin: float = MARGIN) -> str:
+  """'off' when off was faster in every round and by more than `margin` in the median round,
+  'undecided' when the median round says off but another round disagrees, else 'on'."""
+  if float(np.median(ratios)) >= 1.0 - margin:
+    return "on"
+  return "off" if max(ratios) < 1.0 else "undecided"
+
+
+def choose(samples: dict[tuple[str, bool], list[float]],
+           margin: float = MARGIN) -> KernelChoice:
+  """Per kind, fusions off only on the verdict 'off': XLA's default stays unless the evidence
+  is consistent, so the noise of a shared machine does not flip the choice from one tuning to
+  the next."""
+  off = lambda kind: verdict(_ratios(samples, kind), margin) == "off"
+  return KernelChoice(forward_ynn=not off("forward"), train_ynn=not off("train"))
+
+
+def undecided_note(table: list[dict]) -> str:
+  """A sentence for a tuning whose rounds still disagreed after every retry, else ''."""
+  kinds = sorted({str(r.get("kind")) for r in table
+                  if isinstance(r, dict) and r.get("verdict") == "undecided"})
+  if not kinds:
+    return ""
+  return (f"{' and '.join(kinds)}: the rounds disagreed in every batch, so XLA's default stays "
+          "(a busy machine?); run `sljax tune` on an idle machine to measure again")
+
+
+def _positive_number(x: Any) -> bool:
+  return isinstance(x, (int, float)) and not isinstance(x, bool) and x > 0
+
+
+def format_table(table: list[dict], best: KernelChoice) -> str:
+  """The measurements as a Markdown table: each program's median time relative to the chosen
+  setting, and with the fusions off the per-round off/on ratios' range. Rows that are no
+  measurement (an entry written by hand: {"note": ...}) are shown as their note."""
+  chosen = {"forward": best.forward_ynn, "train": best.train_ynn}
+  # A row edited by hand into something that is no measurement is shown as itself, a note.
+  rows = [r for r in table if isinstance(r, dict) and r.get("kind") in chosen
+          and isinstance(r.get("ynn"), bool) and _positive_number(r.get("seconds"))]
+  notes = [f"note: {r.get('note', r) if isinstance(r, dict) else r}" for r in table
+           if not any(r is m for m in rows)]
+  if not rows:
+    return "\n".join(notes) or "no measurements recorded"
+  ref = {r["kind"]: r["seconds"] for r in rows if r["ynn"] == chosen[r["kind"]]}
+  lines = ["| program (PSMNet) | YNNPACK fusions | ms | vs chosen | off/on by round |",
+           "| --- | --- | ---: | ---: | --- |"]
+  for r in rows:
+    mark = " (chosen)" if r["ynn"] == chosen[r["kind"]] else ""
+    ratios = r.get("off_vs_on") or []
+    spread = f"{min(ratios):.2f}-{max(ratios):.2f}" if ratios and not r["ynn"] else ""
+    vs = f"{r['seconds'] / ref[r['kind']]:.2f}x" if r["kind"] in ref else "-"
+    lines.append(f"| {r['kind']} | {'on' if r['ynn'] else 'off'} | {r['seconds'] * 1e3:.1f} | "
+                 f"{vs}{mark} | {spread} |")
+  for kind in KINDS:
+    n = max((r.get("batches", 1) for r in rows if r["kind"] == kind), default=1)
+    if n > 1:
+      lines.append(f"\n{kind}: the first rounds disagreed, measured again ({n} batches; the "
+                   "table shows the last)")
+  return "\n".join(lines + (["", *notes] if notes else []))

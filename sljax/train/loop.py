@@ -51,7 +51,8 @@ from sljax.train.setup import Setup, merge_init, model_config, resolve_ynn, setu
 from sljax.train.state import LoopState
 from sljax.train.validate import validate_split
 from sljax.train.workdir import (EPOCHS_FILE, METRICS_FILE, MetricWriter, clear_run,
-                                 default_workdir, held, restart_logs, write_config)
+                                 default_workdir, fresh_start_note, held, restart_logs,
+                                 resume_advice, write_config)
 
 # Re-exported: the loop's public names predate its rooms (tests and benchmarks use them).
 __all__ = ["EPOCHS_FILE", "LOADER_THREADS", "METRICS_FILE", "PREFETCH", "LoopState", "RowCache",
@@ -138,31 +139,6 @@ def restore_checkpoint(manager, state: st.TrainState, sharding) -> tuple[st.Trai
     raise SljaxError(f"{e}; {resume_advice(Path(manager.directory), step)}") from None
   require(loop.step == int(state.step), f"{manager.directory}: checkpoint {step} is inconsistent")
   return state, loop
-
-
-def resume_advice(checkpoints: Path, step: int) -> str:
-  """What a user can do about a damaged latest checkpoint: never a silent fallback (it would
-  quietly repeat steps), but the earlier checkpoints and how to resume from one."""
-  earlier = sorted(int(p.name) for p in checkpoints.iterdir()
-                   if p.name.isdigit() and p.is_dir() and int(p.name) < step)
-  if not earlier:
-    return "no earlier checkpoint exists; start again with --overwrite"
-  return (f"earlier checkpoints: steps {', '.join(map(str, earlier))}; delete the damaged folder "
-          f"{checkpoints / str(step)} to resume from step {earlier[-1]}")
-
-
-def fresh_start_note(workdir: Path) -> str | None:
-  """The line for a --resume that finds config.json but no checkpoint (a run stopped before its
-  first one): it starts from step 0 and replaces the rows written before; None for a new
-  workdir (the experiment runner resumes every cell, new ones too)."""
-  if not (workdir / ckpt.CONFIG_FILE).exists():
-    return None
-  rows = []
-  for name in (METRICS_FILE, EPOCHS_FILE):
-    n = len((workdir / name).read_text().splitlines()) if (workdir / name).exists() else 0
-    rows += [f"{n} row(s) of {name}"] if n else []
-  return (f"--resume: no checkpoint in {workdir / ckpt.CHECKPOINT_DIR} yet; starting from step 0"
-          + (f" (replacing the {' and '.join(rows)} written without one)" if rows else ""))
 
 
 @dataclasses.dataclass(frozen=True)

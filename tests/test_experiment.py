@@ -19,6 +19,7 @@ from sljax.data.dataset import epoch_order
 from sljax.errors import SljaxError
 from sljax.experiment.design import plans
 from sljax.experiment.report import build
+from sljax.experiment import records
 from sljax.experiment.running import runner, workers
 from sljax.nets import build_model, detach_sl
 from sljax.nets.model_config import init_variables
@@ -41,14 +42,14 @@ def smoke_out(tmp_path_factory):
 def test_smoke_plan_runs_end_to_end_and_a_second_run_trains_nothing(smoke_out, capsys):
   plan = plans.build_plan("table1", "smoke", 1)
   for cell in plan.cells:
-    wd = runner.cell_dir(smoke_out, cell.name)
-    assert (wd / runner.DONE_FILE).exists() and (wd / "eval" / "heldout.json").exists()
-    done = json.loads((wd / runner.DONE_FILE).read_text())
+    wd = records.cell_dir(smoke_out, cell.name)
+    assert (wd / records.DONE_FILE).exists() and (wd / "eval" / "heldout.json").exists()
+    done = json.loads((wd / records.DONE_FILE).read_text())
     final = done["step"]
     assert done["machine"] == machine.cpu_description()  # a grid may span CPUs
     assert [p.name for p in (wd / "checkpoints").iterdir() if p.name.isdigit()] == [str(final)]
   # The tissue cells started from the objects cells' final checkpoints.
-  cfg = json.loads((runner.cell_dir(smoke_out, "unet-sl-tissue-ft-s0") / "config.json")
+  cfg = json.loads((records.cell_dir(smoke_out, "unet-sl-tissue-ft-s0") / "config.json")
                    .read_text())
   assert cfg["init_from"].endswith("cells/unet-sl-objects-s0/checkpoints/30")
   assert cfg["domain"] == "tissue" and cfg["synth_t"] == 5
@@ -66,7 +67,7 @@ def test_smoke_plan_runs_end_to_end_and_a_second_run_trains_nothing(smoke_out, c
                    "--seeds", "1", "--no-progress"]) == 0
   assert "trained 0 cell(s), scored 0 set(s)" in capsys.readouterr().out
   after = {p: p.stat().st_mtime_ns for p in smoke_out.rglob("*") if p.is_file()}
-  changed = [p for p in before if after.get(p) != before[p] and p.name != runner.PLAN_FILE]
+  changed = [p for p in before if after.get(p) != before[p] and p.name != records.PLAN_FILE]
   assert not changed, changed
 
 
@@ -109,8 +110,8 @@ def test_killed_runner_continues_to_the_same_report(smoke_out, tmp_path):
                         capture_output=True,
                         text=True, timeout=600)
   assert proc.returncode == -signal.SIGKILL, proc.stderr[-2000:]
-  killed = runner.cell_dir(out, "unet-disp-objects-s0")
-  assert not (killed / runner.DONE_FILE).exists() and (killed / "checkpoints" / "15").is_dir()
+  killed = records.cell_dir(out, "unet-disp-objects-s0")
+  assert not (killed / records.DONE_FILE).exists() and (killed / "checkpoints" / "15").is_dir()
   assert cli.main(["experiment", "run", "table1", str(out), "--scale", "smoke", "--seeds", "1",
                    "--no-progress"]) == 0
   assert cli.main(["experiment", "report", str(out)]) == 0
@@ -123,9 +124,9 @@ def test_killed_runner_continues_to_the_same_report(smoke_out, tmp_path):
 def test_changed_plan_under_an_existing_out_is_refused(smoke_out, capsys, tmp_path):
   out = tmp_path / "out"
   out.mkdir()
-  record = json.loads((smoke_out / runner.PLAN_FILE).read_text())
+  record = json.loads((smoke_out / records.PLAN_FILE).read_text())
   record["cells"]["unet-sl-objects-s0"]["config"]["lr"] = 0.5
-  (out / runner.PLAN_FILE).write_text(json.dumps(record))
+  (out / records.PLAN_FILE).write_text(json.dumps(record))
   code = cli.main(["experiment", "run", "table1", str(out), "--scale", "smoke", "--seeds", "1"])
   err = capsys.readouterr().err
   assert code == 2 and err.count("\n") == 1, err
@@ -154,7 +155,7 @@ def test_bad_plan_arguments(capsys, tmp_path):
                          ids=["empty object", "plans a list", "no seeds"])
 def test_foreign_plan_json_is_one_line_and_left_alone(record, capsys, tmp_path):
   # Another program's plan.json in OUT ended run, status and report in a KeyError traceback.
-  path = tmp_path / runner.PLAN_FILE
+  path = tmp_path / records.PLAN_FILE
   path.write_text(json.dumps(record))
   for argv in (["run", "table2", str(tmp_path), "--scale", "smoke"], ["status", str(tmp_path)],
                ["report", str(tmp_path)]):
@@ -162,7 +163,7 @@ def test_foreign_plan_json_is_one_line_and_left_alone(record, capsys, tmp_path):
     err = capsys.readouterr().err
     assert err.startswith(f"sljax experiment: error: {path}: not an sljax experiment record ("), err
     assert err.count("\n") == 1, err
-  assert json.loads(path.read_text()) == record and os.listdir(tmp_path) == [runner.PLAN_FILE]
+  assert json.loads(path.read_text()) == record and os.listdir(tmp_path) == [records.PLAN_FILE]
 
 
 def test_stl_and_unc_are_paired_within_a_seed(tmp_path):
@@ -240,7 +241,7 @@ def test_every_plan_builds_at_every_scale():
 
 def test_report_of_partial_results_lists_the_missing(tmp_path):
   out = tmp_path / "out"
-  runner.register(out, plans.build_plan("table2", "smoke", 1))
+  records.register(out, plans.build_plan("table2", "smoke", 1))
   path = build.write_report(out)
   md = path.read_text()
   assert "0 of 10 cells trained" in md and "Not scored yet" in md
@@ -258,12 +259,12 @@ def test_v2_plan_reuses_the_v1_cells_and_scores_them_on_the_fixed_test_sets(smok
                    "1", "--no-progress"]) == 0
   assert "trained 0 cell(s), scored 4 set(s)" in capsys.readouterr().out
   for cell in plans.build_plan("table1-v2", "smoke", 1).cells:
-    wd = runner.cell_dir(out, cell.name)
+    wd = records.cell_dir(out, cell.name)
     (evalset,) = cell.evals
     rep = json.loads((wd / "eval" / f"{evalset.name}.json").read_text())
     assert rep["n_scenes"] == 20 and rep["dataset_seed"] == plans.TEST_SEED
     if cell.arm == "unet-sl":
-      windows = json.loads((wd / "eval" / runner.WINDOWS_FILE).read_text())
+      windows = json.loads((wd / "eval" / records.WINDOWS_FILE).read_text())
       maes = windows["validation_mae"]
       assert windows["chosen"] == min((3, 5), key=lambda w: (maes[str(w)], w))
       assert rep["corr_window"] == windows["chosen"]
@@ -282,10 +283,10 @@ def _claims(out, cell):
 def _same_cells(a, b, plan):
   """Every cell of b trained as in a: metrics rows bit for bit, steps, scores."""
   for cell in plan.cells:
-    wa, wb = runner.cell_dir(a, cell.name), runner.cell_dir(b, cell.name)
+    wa, wb = records.cell_dir(a, cell.name), records.cell_dir(b, cell.name)
     assert (wa / "metrics.jsonl").read_text() == (wb / "metrics.jsonl").read_text(), cell.name
-    assert (json.loads((wa / runner.DONE_FILE).read_text())["step"]
-            == json.loads((wb / runner.DONE_FILE).read_text())["step"])
+    assert (json.loads((wa / records.DONE_FILE).read_text())["step"]
+            == json.loads((wb / records.DONE_FILE).read_text())["step"])
     ra, rb = (json.loads((w / "eval" / "heldout.json").read_text())["pooled"] for w in (wa, wb))
     assert ra == rb, cell.name
 
@@ -361,7 +362,7 @@ def test_a_killed_workers_cell_is_finished_by_another_after_the_lease(smoke_out,
   claims = _claims(out, killed)
   assert [c["host"] for c in claims] == ["host-a", workers.host_name(), workers.host_name()]
   assert "over its 2 s lease" in claims[1]["took_over"] and claims[2]["why"] == "finished"
-  log = (runner.cell_dir(out, killed) / runner.LOG_FILE).read_text()
+  log = (records.cell_dir(out, killed) / records.LOG_FILE).read_text()
   assert "resuming from step 15" in log
   _same_cells(smoke_out, out, plans.build_plan("table1", "smoke", 1))
 
@@ -391,13 +392,13 @@ def test_sigterm_mid_cell_saves_its_step_and_releases_the_cell(smoke_out, tmp_pa
   assert proc.returncode == 128 + signal.SIGTERM, proc.stderr[-2000:]
   assert "SIGTERM: stopping after this step" in proc.stderr
   cell = "unet-sl-objects-s0"
-  wd = runner.cell_dir(out, cell)
+  wd = records.cell_dir(out, cell)
   assert {p.name for p in (wd / "checkpoints").iterdir() if p.name.isdigit()} == {"15", "25"}
-  assert not (wd / runner.DONE_FILE).exists()
+  assert not (wd / records.DONE_FILE).exists()
   (claim, release) = _claims(out, cell)
   assert release["why"] == "stopped by SIGTERM" and release["step"] == 25
   rows = (wd / "metrics.jsonl").read_text().splitlines()
-  assert rows == (runner.cell_dir(smoke_out, cell) / "metrics.jsonl").read_text().splitlines()[:25]
+  assert rows == (records.cell_dir(smoke_out, cell) / "metrics.jsonl").read_text().splitlines()[:25]
 
 
 def test_a_cell_scored_on_its_best_checkpoint_keeps_it(tmp_path):
@@ -412,8 +413,8 @@ def test_a_cell_scored_on_its_best_checkpoint_keeps_it(tmp_path):
                              evals=evals, windows=())
   plan = plans.Plan("v3", sc, (0,), (cell,), "unet-disp")
   runner.run(plan, tmp_path, progress=False, log=lambda line: None)
-  wd = runner.cell_dir(tmp_path, cell.name)
-  done = json.loads((wd / runner.DONE_FILE).read_text())
+  wd = records.cell_dir(tmp_path, cell.name)
+  done = json.loads((wd / records.DONE_FILE).read_text())
   rows = [json.loads(l) for l in (wd / "epochs.jsonl").read_text().splitlines()]
   spe = done["step"] // 4
   best = min(rows, key=lambda r: r["val_mae"])
@@ -427,8 +428,8 @@ def test_a_cell_scored_on_its_best_checkpoint_keeps_it(tmp_path):
   if done["best_step"] == done["step"]:
     assert at_best["pooled"]["full"]["mae"] == final["pooled"]["full"]["mae"]
   with pytest.raises(SljaxError, match="kept no best checkpoint"):
-    (wd / runner.DONE_FILE).write_text(json.dumps(dict(done, best_step=None)))
-    runner.final_checkpoint(tmp_path, cell.name, "best")
+    (wd / records.DONE_FILE).write_text(json.dumps(dict(done, best_step=None)))
+    records.final_checkpoint(tmp_path, cell.name, "best")
 
 
 def test_a_cell_validated_by_steps_fine_tunes_and_keeps_its_best(tmp_path):
@@ -447,13 +448,13 @@ def test_a_cell_validated_by_steps_fine_tunes_and_keeps_its_best(tmp_path):
                            evals=evals)
   plan = plans.Plan("v4", sc, (0,), (pre, ft), "unet-disp")
   runner.run(plan, tmp_path, progress=False, log=lambda line: None)
-  wd = runner.cell_dir(tmp_path, ft.name)
-  done = json.loads((wd / runner.DONE_FILE).read_text())
+  wd = records.cell_dir(tmp_path, ft.name)
+  done = json.loads((wd / records.DONE_FILE).read_text())
   assert json.loads((wd / "config.json").read_text())["init_from"] == str(
-      runner.final_checkpoint(tmp_path, pre.name))
+      records.final_checkpoint(tmp_path, pre.name))
   rows = [json.loads(l) for l in (wd / "validation.jsonl").read_text().splitlines()]
   assert [r["step"] for r in rows] == [2, 4] and done["step"] == 4
-  assert runner.curve(tmp_path, ft.name) == [(r["step"], r["val_mae"]) for r in rows]
+  assert records.curve(tmp_path, ft.name) == [(r["step"], r["val_mae"]) for r in rows]
   best = min(rows, key=lambda r: (r["val_mae"], r["step"]))
   assert done["best_step"] == best["step"]
   kept = {int(p.name) for p in (wd / "checkpoints").iterdir() if p.name.isdigit()}

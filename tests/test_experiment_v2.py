@@ -10,6 +10,7 @@ from sljax.data.dataset import split_indices, split_three
 from sljax.errors import SljaxError
 from sljax.experiment.budget import calibrate
 from sljax.experiment.design import plans
+from sljax.experiment import records
 from sljax.experiment.running import runner
 from sljax.render.synthetic import SynthConfig, render_scene
 from sljax.train.loop import open_source
@@ -168,7 +169,7 @@ def test_calibrate_at_a_scale_without_calibration_epochs(plan, capsys):
 def test_a_chosen_window_is_kept_and_a_changed_window_set_refused(tmp_path):
   cell = plans.build_plan("table1-v2", "smoke", 1).cells[0]
   assert cell.arm == "unet-sl" and cell.windows == (3, 5)
-  path = runner.cell_dir(tmp_path, cell.name) / runner.EVAL_DIR / runner.WINDOWS_FILE
+  path = records.cell_dir(tmp_path, cell.name) / records.EVAL_DIR / records.WINDOWS_FILE
   path.parent.mkdir(parents=True)
   path.write_text('{"candidates": [3, 5], "chosen": 5}')
   assert runner.choose_window(tmp_path, cell) == 5  # kept: nothing re-scored

@@ -10,6 +10,7 @@ from sljax.errors import SljaxError
 from sljax.experiment.budget import regime
 from sljax.experiment.design import plans
 from sljax.experiment.report import stats
+from sljax.experiment import records
 from sljax.experiment.running import runner
 
 
@@ -67,11 +68,11 @@ def test_regime_rule_by_hand():
 
 
 def _fake_cell(out, name, curve):
-  wd = runner.cell_dir(out, name)
+  wd = records.cell_dir(out, name)
   wd.mkdir(parents=True)
   (wd / "epochs.jsonl").write_text("".join(
       json.dumps({"epoch": e, "val_mae": v}) + "\n" for e, v in curve))
-  (wd / runner.DONE_FILE).write_text(json.dumps({"step": 1}))
+  (wd / records.DONE_FILE).write_text(json.dumps({"step": 1}))
 
 
 def test_regime_reads_the_pilot_records_and_waits_for_every_cell(tmp_path):
@@ -143,14 +144,14 @@ def test_v3_claims_on_fake_records(tmp_path):
   curve; hand-computed differences; epr is in the tables but not a claim."""
   from sljax.experiment.report import build, paper_claims
   plan = plans.build_plan("v3", "smoke", 3)
-  runner.register(tmp_path, plan)
+  records.register(tmp_path, plan)
   mae = {"stl": [1.0, 1.2, 1.1], "unc": [0.9, 1.0, 1.05], "epr": [1.0, 1.1, 1.2]}
   rise = {"stl": [0.3, 0.2, 0.4], "unc": [0.1, 0.1, 0.2], "epr": [0.3, 0.3, 0.3]}
   for cell in plan.cells:
     k = cell.seed
     _fake_cell(tmp_path, cell.name, [(2, 1.0), (4, 0.5), (6, 0.5 + rise[cell.arm][k])])
     for e in cell.evals:
-      path = runner.cell_dir(tmp_path, cell.name) / "eval" / f"{e.name}.json"
+      path = records.cell_dir(tmp_path, cell.name) / "eval" / f"{e.name}.json"
       path.parent.mkdir(exist_ok=True)
       path.write_text(json.dumps({"pooled": {"full": {"mae": mae[cell.arm][k]}}}))
   agg = build.aggregate(tmp_path, plan)

@@ -7,6 +7,7 @@ import pytest
 
 from sljax.data.dataset import split_indices, take_fraction
 from sljax.errors import SljaxError
+from sljax.experiment import records
 from sljax.experiment.budget import regime
 from sljax.experiment.design import plans
 from sljax.train.feed import open_source
@@ -98,11 +99,12 @@ def test_v3_rule_on_steps_by_hand():
 
 def _fake(out, name, points):
   import json  # pylint: disable=import-outside-toplevel
+  from sljax.experiment import records
   from sljax.experiment.running import runner  # pylint: disable=import-outside-toplevel
-  wd = runner.cell_dir(out, name)
+  wd = records.cell_dir(out, name)
   wd.mkdir(parents=True)
   (wd / "validation.jsonl").write_text("".join(json.dumps(r) + "\n" for r in _rows(points)))
-  (wd / runner.DONE_FILE).write_text(json.dumps({"step": points[-1][0]}))
+  (wd / records.DONE_FILE).write_text(json.dumps({"step": points[-1][0]}))
 
 
 RISING = [(2, 1.0, 5), (4, 0.6, 3), (6, 0.6, 2), (8, 0.9, 1), (10, 1.0, 0.5), (12, 1.1, 0.2)]
@@ -116,7 +118,7 @@ def test_the_grid_setting_by_the_rule(tmp_path, scratch, finetune, grid):
   """Both settings overfit: fine-tuning; one: that one; none: no grid. Waits for every cell."""
   from sljax.experiment.running import runner  # pylint: disable=import-outside-toplevel
   plan = plans.build_plan("v4-pilot", "smoke", 1)
-  runner.register(tmp_path, plan)
+  records.register(tmp_path, plan)
   for cell in plan.cells:
     setting = dict(cell.factors)["setting"]
     _fake(tmp_path, cell.name, {"scratch": scratch, "finetune": finetune}.get(setting, FLAT))
@@ -128,7 +130,7 @@ def test_the_grid_setting_by_the_rule(tmp_path, scratch, finetune, grid):
                                                   "min_step": 8}
   assert (tmp_path / "regime.md").exists() and (tmp_path / "figures" / "v4-pilot_curves.png")
   # One cell missing: no decision yet.
-  (runner.cell_dir(tmp_path, plan.cells[0].name) / runner.DONE_FILE).unlink()
+  (records.cell_dir(tmp_path, plan.cells[0].name) / records.DONE_FILE).unlink()
   assert regime.v4(tmp_path, "smoke", 1)["grid_setting"] is None
   assert regime.v4(tmp_path, "smoke", 1)["missing"] == [plan.cells[0].name]
   md = regime.markdown_v4(regime.v4(tmp_path, "smoke", 1))
@@ -271,7 +273,7 @@ def test_the_pilot_outcome_names_n_when_measured(tmp_path, monkeypatch):
   from sljax.experiment.running import runner  # pylint: disable=import-outside-toplevel
   _measured(monkeypatch, 1.0)
   plan = plans.build_plan("v4-pilot", "smoke", 1)
-  runner.register(tmp_path, plan)
+  records.register(tmp_path, plan)
   for cell in plan.cells:
     _fake(tmp_path, cell.name, RISING if dict(cell.factors)["setting"] == "finetune" else FLAT)
   result = regime.write(tmp_path, "smoke", 1)
@@ -288,7 +290,7 @@ def test_grid_claims_on_fake_records(tmp_path):
   from sljax.experiment.report import build, paper_claims, stats  # pylint: disable=import-outside-toplevel
   from sljax.experiment.running import runner
   plan = plans.build_plan("v4", "smoke", 3)
-  runner.register(tmp_path, plan)
+  records.register(tmp_path, plan)
   mae = {"stl": [1.0, 1.2, 1.1], "unc": [0.9, 1.0, 1.05], "epr": [1.0, 1.1, 1.2]}
   rise = {"stl": [0.3, 0.2, 0.4], "unc": [0.1, 0.1, 0.2], "epr": [0.3, 0.3, 0.3]}
   for cell in plan.cells:
@@ -298,7 +300,7 @@ def test_grid_claims_on_fake_records(tmp_path):
       continue
     _fake(tmp_path, cell.name, [(2, 1.0, 3 + k), (4, 0.5, 2), (6, 0.5 + rise[cell.arm][k], 1)])
     for e in cell.evals:
-      path = runner.cell_dir(tmp_path, cell.name) / "eval" / f"{e.name}.json"
+      path = records.cell_dir(tmp_path, cell.name) / "eval" / f"{e.name}.json"
       path.parent.mkdir(exist_ok=True)
       path.write_text(json.dumps({"pooled": {"full": {"mae": mae[cell.arm][k]}}}))
   agg = build.aggregate(tmp_path, plan)
@@ -322,7 +324,7 @@ def test_grid_claims_on_fake_records(tmp_path):
   # A diverged cell (a NaN validation) is named: its rise counts the finite values only.
   name = plan.cells_of(setting="finetune")[0].name
   import shutil  # pylint: disable=import-outside-toplevel
-  shutil.rmtree(runner.cell_dir(tmp_path, name))
+  shutil.rmtree(records.cell_dir(tmp_path, name))
   _fake(tmp_path, name, [(2, 1.0, 3), (4, 0.5, 2), (6, float("nan"), 1)])
   md = build.write_report(tmp_path).read_text()
   assert f"(diverged; the rise above is over the finite values only, so it understates theirs): " \
@@ -363,7 +365,7 @@ def test_a_diverged_grid_cell_is_left_out_and_the_grid_goes_on(tmp_path, monkeyp
   def fake_train(out, cell, bar, weight, on_step=None, stop=None):  # pylint: disable=unused-argument
     trained.append(cell.name)
     if cell.name in blows_up:  # one validation before the loss went NaN
-      wd = runner.cell_dir(out, cell.name)
+      wd = records.cell_dir(out, cell.name)
       wd.mkdir(parents=True)
       (wd / "validation.jsonl").write_text(json.dumps(_rows([(2, 1.0, 3)])[0]) + "\n")
       raise TrainingDiverged(f"non-finite loss (nan) at step 3 in {cell.name}")
@@ -373,7 +375,7 @@ def test_a_diverged_grid_cell_is_left_out_and_the_grid_goes_on(tmp_path, monkeyp
   def fake_evaluate(out, cell, evalset):
     rep = {"pooled": {"full": {"mae": 1.0 + 0.1 * (cell.seed - 300)
                                - 0.2 * (cell.arm != "stl")}}}
-    path = runner.cell_dir(out, cell.name) / "eval" / f"{evalset.name}.json"
+    path = records.cell_dir(out, cell.name) / "eval" / f"{evalset.name}.json"
     path.parent.mkdir(exist_ok=True)
     path.write_text(json.dumps(rep))
     return rep
@@ -387,10 +389,10 @@ def test_a_diverged_grid_cell_is_left_out_and_the_grid_goes_on(tmp_path, monkeyp
                                     "which diverged"
   assert stl_ft not in trained and res["trained"] == len(plan.cells) - 3
   for name in blows_up:
-    rec = json.loads((runner.cell_dir(tmp_path, name) / runner.DIVERGED_FILE).read_text())
+    rec = json.loads((records.cell_dir(tmp_path, name) / records.DIVERGED_FILE).read_text())
     assert name in rec["message"] and "machine" in rec
-    assert not (runner.cell_dir(tmp_path, name) / runner.DONE_FILE).exists()
-  assert not (runner.cell_dir(tmp_path, stl_ft) / runner.DIVERGED_FILE).exists()
+    assert not (records.cell_dir(tmp_path, name) / records.DONE_FILE).exists()
+  assert not (records.cell_dir(tmp_path, stl_ft) / records.DIVERGED_FILE).exists()
   # Run again: nothing to do, the same three left out.
   trained.clear()
   again = runner.run(plan, tmp_path, progress=False, log=lambda _: None)
@@ -423,12 +425,12 @@ def test_a_nan_score_leaves_its_seed_out_of_that_pair_only(tmp_path):
   from sljax.experiment.report import build, paper_claims  # pylint: disable=import-outside-toplevel
   from sljax.experiment.running import runner
   plan = plans.build_plan("v4", "smoke", 3)
-  runner.register(tmp_path, plan)
+  records.register(tmp_path, plan)
   mae = {"stl": [1.0, 1.2, None], "unc": [0.9, 1.0, 1.05], "epr": [1.0, 1.1, 1.2]}
   for cell in plan.cells:
     _fake(tmp_path, cell.name, [(2, 1.0, 3), (4, 0.5, 2), (6, 0.6, 1)])
     for e in cell.evals:
-      path = runner.cell_dir(tmp_path, cell.name) / "eval" / f"{e.name}.json"
+      path = records.cell_dir(tmp_path, cell.name) / "eval" / f"{e.name}.json"
       path.parent.mkdir(exist_ok=True)
       path.write_text(json.dumps({"pooled": {"full": {
           "mae": mae[cell.arm][cell.seed - 300], "bad_2": 0.1}}}))

@@ -11,6 +11,7 @@ import pytest
 from sljax import cli
 from sljax.experiment.design import plans
 from sljax.experiment.report import build, stats
+from sljax.experiment import records
 from sljax.experiment.running import runner
 
 T975_DF2 = 4.302653  # Student t, 0.975 quantile, 2 degrees of freedom
@@ -28,10 +29,10 @@ def _write_eval(out, cell, set_name, mae, pattern_acc=None):
             "seg": {"mae": 2 * mae}}
   if pattern_acc is not None:
     pooled["patterns_left"] = {"pattern_acc": pattern_acc, "pattern_n_pixels": 100}
-  path = runner.cell_dir(out, cell.name) / runner.EVAL_DIR / f"{set_name}.json"
+  path = records.cell_dir(out, cell.name) / records.EVAL_DIR / f"{set_name}.json"
   path.parent.mkdir(parents=True, exist_ok=True)
   path.write_text(json.dumps({"pooled": pooled}))
-  (runner.cell_dir(out, cell.name) / runner.DONE_FILE).write_text(json.dumps({"step": 1}))
+  (records.cell_dir(out, cell.name) / records.DONE_FILE).write_text(json.dumps({"step": 1}))
 
 
 @pytest.fixture()
@@ -39,7 +40,7 @@ def fake(tmp_path):
   """table2-v2 at the smoke scale, 3 seeds, every cell 'scored' with the values above."""
   plan = plans.build_plan("table2-v2", "smoke", 3)
   out = tmp_path / "out"
-  runner.register(out, plan)
+  records.register(out, plan)
   for cell in plan.cells:
     mae = STL[cell.seed] + OFFSETS[cell.arm][cell.seed]
     _write_eval(out, cell, "test-objects", mae, PATTERN_ACC.get(cell.arm))
@@ -148,7 +149,7 @@ def test_a_partial_table_says_its_holm_family_is_interim(tmp_path):
   adjusted p are interim; the complete table names its whole family."""
   plan = plans.build_plan("table2-v2", "smoke", 3)
   out = tmp_path / "out"
-  runner.register(out, plan)
+  records.register(out, plan)
   for cell in plan.cells:
     if cell.arm in ("stl", "cg_a"):  # 2 of the family's 8 claims can be tested
       _write_eval(out, cell, "test-objects", STL[cell.seed] + OFFSETS[cell.arm][cell.seed])
@@ -189,7 +190,7 @@ def test_a_misfiled_seed_is_caught(fake):
 def test_table3_claims_only_on_other_domains(tmp_path):
   plan = plans.build_plan("table3-v2", "smoke", 2)
   out = tmp_path / "out"
-  runner.register(out, plan)
+  records.register(out, plan)
   for cell in plan.cells:
     for e in cell.evals:
       _write_eval(out, cell, e.name, 1.0 + 0.1 * cell.seed + (0.05 if cell.arm == "stl" else 0))
@@ -226,11 +227,11 @@ def test_paper_sized_gain_is_exploratory_and_computed_by_hand(fake):
 def test_window_chosen_at_the_edge_is_noted(tmp_path):
   plan = plans.build_plan("table1-v2", "smoke", 1)
   out = tmp_path / "out"
-  runner.register(out, plan)
+  records.register(out, plan)
   sl = [c for c in plan.cells if c.windows]
   assert len(sl) == 2 and sl[0].windows == (3, 5)
   for cell, chosen in zip(sl, (5, 3)):  # the largest candidate once, the smallest once
-    path = runner.cell_dir(out, cell.name) / runner.EVAL_DIR / runner.WINDOWS_FILE
+    path = records.cell_dir(out, cell.name) / records.EVAL_DIR / records.WINDOWS_FILE
     path.parent.mkdir(parents=True)
     path.write_text(json.dumps({"candidates": [3, 5], "chosen": chosen}))
   assert build.window_edges(out, plan) == (1, 2)
@@ -246,10 +247,10 @@ def test_training_time_per_arm_and_cpu_by_hand(fake):
       done = {"step": 1, "train_seconds": 60 * minutes[cell.seed]}
       if cell.seed != 2:
         done["machine"] = "CPU A"
-      (runner.cell_dir(out, cell.name) / runner.DONE_FILE).write_text(json.dumps(done))
+      (records.cell_dir(out, cell.name) / records.DONE_FILE).write_text(json.dumps(done))
       ynn = {0: "on", 1: "forward-off"}.get(cell.seed)
       if ynn:
-        (runner.cell_dir(out, cell.name) / "config.json").write_text(json.dumps({"ynn": ynn}))
+        (records.cell_dir(out, cell.name) / "config.json").write_text(json.dumps({"ynn": ynn}))
   times = build.cell_times(out, plan)
   assert set(times) == {("stl", "1/16", "CPU A"), ("stl", "1/16", "not recorded"),
                         ("unc", "1/16", "CPU A"), ("unc", "1/16", "not recorded")}
@@ -268,7 +269,7 @@ def test_report_of_named_plans_only(fake, capsys):
   """`report --plans table2-v2` leaves out a plan that runs in the same folder (fig7-v2 here,
   registered, nothing finished); a plan not run there is refused, naming those that were."""
   out, _ = fake
-  runner.register(out, plans.build_plan("fig7-v2", "smoke", 1))
+  records.register(out, plans.build_plan("fig7-v2", "smoke", 1))
   assert cli.main(["experiment", "report", str(out)]) == 0
   both = (out / "report.md").read_text()
   assert build.TITLES["table2-v2"] in both and build.TITLES["fig7-v2"] in both

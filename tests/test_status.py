@@ -9,23 +9,24 @@ import pytest
 
 from sljax import cli
 from sljax.experiment.design import plans
+from sljax.experiment import records
 from sljax.experiment.running import runner, status, workers
 
 X, Y = "CPU X", "CPU Y"
 
 
 def _done(out, name, seconds, machine, scored=True, evals=("heldout",)):
-  wd = runner.cell_dir(out, name)
-  (wd / runner.EVAL_DIR).mkdir(parents=True)
-  runner.write_json(wd / runner.DONE_FILE, {"step": 4, "train_seconds": seconds,
+  wd = records.cell_dir(out, name)
+  (wd / records.EVAL_DIR).mkdir(parents=True)
+  records.write_json(wd / records.DONE_FILE, {"step": 4, "train_seconds": seconds,
                                             "machine": machine})
   if scored:
     for e in evals:
-      runner.write_json(wd / runner.EVAL_DIR / f"{e}.json", {"pooled": {}})
+      records.write_json(wd / records.EVAL_DIR / f"{e}.json", {"pooled": {}})
 
 
 def _training(out, name, epoch):
-  wd = runner.cell_dir(out, name)
+  wd = records.cell_dir(out, name)
   wd.mkdir(parents=True)
   lines = [json.dumps({"epoch": k, "loss": 1.0}) for k in range(1, epoch + 1)]
   (wd / "epochs.jsonl").write_text("\n".join(lines) + "\n{\"epoch\": ", encoding="utf-8")
@@ -35,7 +36,7 @@ def _training(out, name, epoch):
 def grid(tmp_path):
   """table2 at the smoke scale (2 epochs a cell), 3 seeds, in every state."""
   out = tmp_path / "grid"
-  runner.register(out, plans.build_plan("table2", "smoke", 2))  # the target is passed later
+  records.register(out, plans.build_plan("table2", "smoke", 2))  # the target is passed later
   _done(out, "psmnet-stl-objects-s0", 600.0, X)
   _done(out, "psmnet-stl-objects-s1", 1200.0, Y)
   _training(out, "psmnet-stl-objects-s2", 1)          # half its 2 epochs
@@ -84,7 +85,7 @@ def test_not_an_experiment_folder_is_one_line(tmp_path, capsys):
 
 def test_edge_cases_of_the_files(grid):
   plan = plans.build_plan("table2", "smoke", 2)
-  wd = runner.cell_dir(grid, "psmnet-cg_a-objects-s0")
+  wd = records.cell_dir(grid, "psmnet-cg_a-objects-s0")
   (wd / "checkpoints").mkdir(parents=True)            # started, no epoch logged yet
   (wd / "epochs.jsonl").write_text("", encoding="utf-8")
   s = status.cell_state(grid, plan.cells[1])
@@ -98,9 +99,9 @@ def test_edge_cases_of_the_files(grid):
 
 
 def test_fewer_seeds_than_were_run_keep_every_cell(grid, capsys):
-  runner.register(grid, plans.build_plan("table2", "smoke", 3))
-  assert len(runner.registered_plans(grid, 1)[0].cells) == 30  # never shrinks the plan
-  assert len(runner.registered_plans(grid, 4)[0].cells) == 40
+  records.register(grid, plans.build_plan("table2", "smoke", 3))
+  assert len(records.registered_plans(grid, 1)[0].cells) == 30  # never shrinks the plan
+  assert len(records.registered_plans(grid, 4)[0].cells) == 40
   assert cli.main(["experiment", "status", str(grid), "--seeds", "0"]) == 2
   assert "--seeds 0: at least 1" in capsys.readouterr().err
 
@@ -137,9 +138,9 @@ def test_says_who_holds_which_cell_since_when_and_its_last_step(grid, capsys):
   assert ", log /logs/123_4_0_log.out" in text and "No worker holds" not in text
   plan = plans.build_plan("table2", "smoke", 2)  # the seeds registered
   for cell in plan.cells:  # every cell finished: nothing to say about workers
-    if not (runner.cell_dir(grid, cell.name) / runner.DONE_FILE).exists():
+    if not (records.cell_dir(grid, cell.name) / records.DONE_FILE).exists():
       _done(grid, cell.name, 60.0, X)
-    runner.write_json(runner.cell_dir(grid, cell.name) / runner.EVAL_DIR / "heldout.json", {})
+    records.write_json(records.cell_dir(grid, cell.name) / records.EVAL_DIR / "heldout.json", {})
     workers.create_exclusive(workers.claim_path(grid, cell.name, 1), {"kind": workers.RELEASE})
   assert cli.main(["experiment", "status", str(grid)]) == 0
   text = capsys.readouterr().out
@@ -152,7 +153,7 @@ def test_cells_budgeted_in_steps_are_estimated_at_the_arms_seconds_a_step(tmp_pa
   fine-tuning cells' own group has no finished cell."""
   plan = plans.build_plan("v4-pilot", "cpu", 2)
   out = tmp_path / "v4"
-  runner.register(out, plan)
+  records.register(out, plan)
   first = plan.cells[0]
   _done(out, first.name, 2700.0, X, evals=())
   states = status.plan_status(out, plan)

@@ -20,6 +20,7 @@ import pytest
 from sljax import cli
 from sljax.errors import SljaxError
 from sljax.experiment.design import plans
+from sljax.experiment import records
 from sljax.experiment.running import runner, submit, workers
 
 import claim_race
@@ -154,20 +155,20 @@ def _fake_cells(out, started, lock):
     with lock:
       started.append((cell.name, "start", time.monotonic()))
     if cell.init_cell is not None:
-      runner.final_checkpoint(out_, cell.init_cell)  # the base must be done
+      records.final_checkpoint(out_, cell.init_cell)  # the base must be done
     time.sleep(0.3)
     on_step(1)
     done = {"step": 1}
-    runner.cell_dir(out_, cell.name).mkdir(parents=True, exist_ok=True)
-    runner.write_json(runner.cell_dir(out_, cell.name) / runner.DONE_FILE, done)
+    records.cell_dir(out_, cell.name).mkdir(parents=True, exist_ok=True)
+    records.write_json(records.cell_dir(out_, cell.name) / records.DONE_FILE, done)
     with lock:
       started.append((cell.name, "end", time.monotonic()))
     return done
 
   def evaluate_cell(out_, cell, evalset):
-    path = runner.cell_dir(out_, cell.name) / runner.EVAL_DIR / f"{evalset.name}.json"
+    path = records.cell_dir(out_, cell.name) / records.EVAL_DIR / f"{evalset.name}.json"
     path.parent.mkdir(parents=True, exist_ok=True)
-    runner.write_json(path, {"pooled": {}})
+    records.write_json(path, {"pooled": {}})
     return {"pooled": {}}
   return train_cell, evaluate_cell
 
@@ -199,14 +200,14 @@ def test_a_fine_tuning_cell_never_starts_before_its_base(tmp_path, monkeypatch):
 
 def test_a_worker_with_another_plan_is_refused_in_one_line(tmp_path, capsys):
   out = tmp_path / "out"
-  runner.register(out, plans.build_plan("table1", "smoke", 1))
+  records.register(out, plans.build_plan("table1", "smoke", 1))
   with workers.Worker(out, workers.identity(2.0)) as other:  # a live worker holds a cell
     assert other.claim("unet-sl-objects-s0")
     assert cli.main(["experiment", "run", "table1", str(out), "--scale", "cpu",
                      "--no-progress"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "another configuration" in err and str(out) in err, err
-    record = json.loads((out / runner.PLAN_FILE).read_text())
+    record = json.loads((out / records.PLAN_FILE).read_text())
     assert record["plans"]["table1"]["scale"] == "smoke"  # the plan stays as written once
     assert [p.name for p in (out / workers.WORKERS_DIR).iterdir()] == [other.file.name]
 
@@ -264,7 +265,7 @@ def test_the_slurm_job_array_from_a_command_line(tmp_path, capsys, fake_slurm):
   assert isinstance(job, submit.WorkerJob) and job.entry is cli.main
   assert job.argv == ["experiment", "run", "table1", str(out.absolute()), "--scale", "smoke",
                       "--seeds", "1", "--no-progress", "--lease", "600"]
-  assert json.loads((out / runner.PLAN_FILE).read_text())["plans"]["table1"]["scale"] == "smoke"
+  assert json.loads((out / records.PLAN_FILE).read_text())["plans"]["table1"]["scale"] == "smoke"
 
 
 def test_time_and_sbatch_options_are_parsed_or_refused_in_one_line(capsys, tmp_path):
@@ -368,13 +369,13 @@ def test_a_worker_with_nothing_to_claim_says_what_is_left_and_who_holds_it(tmp_p
   another host: nothing can come to this worker, so it exits at once and names the holder."""
   out = tmp_path / "out"
   plan = plans.build_plan("table1", "smoke", 1)
-  runner.register(out, plan)
+  records.register(out, plan)
   for cell in plan.cells:
-    wd = runner.cell_dir(out, cell.name)
+    wd = records.cell_dir(out, cell.name)
     if cell.init_cell is None:
-      (wd / runner.EVAL_DIR).mkdir(parents=True)
-      runner.write_json(wd / runner.DONE_FILE, {"step": 30})
-      runner.write_json(wd / runner.EVAL_DIR / "heldout.json", {"pooled": {}})
+      (wd / records.EVAL_DIR).mkdir(parents=True)
+      records.write_json(wd / records.DONE_FILE, {"step": 30})
+      records.write_json(wd / records.EVAL_DIR / "heldout.json", {"pooled": {}})
     else:
       path = workers.claim_path(out, cell.name, 0)
       workers.create_exclusive(path, dict(token="t", host="node-3", pid=77, started=None,

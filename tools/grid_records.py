@@ -15,22 +15,29 @@ running grid: it reads finished cells only.
 
 import argparse
 import json
+import lzma
 import shutil
 import subprocess
 import sys
 from pathlib import Path
 
+from sljax.experiment import records
 from sljax.experiment.running import runner
 from sljax.runtime.machine import cpu_description
 
 KEPT = ("config.json", "epochs.jsonl", "validation.jsonl", "train.log", "notes.txt")
+# Training logs are most of a cell's bytes after its evaluation reports: kept compressed, as
+# the runner writes the reports (every reader takes NAME or NAME.xz; sljax.experiment.records).
+COMPRESSED = ("epochs.jsonl", "validation.jsonl")
 
 
 def _copy_kept(s: Path, d: Path, names: tuple[str, ...]) -> None:
-  """Copies those of `names` that cell folder s holds into d."""
+  """Copies those of `names` that cell folder s holds into d (training logs compressed)."""
   d.mkdir(parents=True, exist_ok=True)
   for name in names:
-    if (s / name).exists():
+    if (s / name).exists() and name in COMPRESSED:
+      (d / (name + records.COMPRESSED)).write_bytes(lzma.compress((s / name).read_bytes()))
+    elif (s / name).exists():
       shutil.copy(s / name, d / name)
 
 
@@ -39,35 +46,35 @@ def copy_finished(src: Path, dst: Path) -> list[str]:
   'cell' (a new cell) or 'cell: eval/x.json' (new scores of a copied cell) per change."""
   changes = []
   dst.mkdir(parents=True, exist_ok=True)
-  shutil.copy(src / runner.PLAN_FILE, dst / runner.PLAN_FILE)
+  shutil.copy(src / records.PLAN_FILE, dst / records.PLAN_FILE)
   seen = set()
-  for plan in runner.registered_plans(src):
+  for plan in records.registered_plans(src):
     left_out = runner.diverged(src, plan)
     waiting = {cell.name for cell, _, _ in runner.pending(src, plan, left_out)}
     for cell in plan.cells:
-      s, d = runner.cell_dir(src, cell.name), runner.cell_dir(dst, cell.name)
-      if (s / runner.DIVERGED_FILE).exists() and not (d / runner.DIVERGED_FILE).exists():
+      s, d = records.cell_dir(src, cell.name), records.cell_dir(dst, cell.name)
+      if (s / records.DIVERGED_FILE).exists() and not (d / records.DIVERGED_FILE).exists():
         # The report written from the records must name it, as it would from the grid's folder.
-        _copy_kept(s, d, KEPT + (runner.DIVERGED_FILE,))
+        _copy_kept(s, d, KEPT + (records.DIVERGED_FILE,))
         changes.append(f"{cell.name}: diverged")
         continue
-      if cell.name in seen or cell.name in waiting or not (s / runner.DONE_FILE).exists():
+      if cell.name in seen or cell.name in waiting or not (s / records.DONE_FILE).exists():
         continue
       seen.add(cell.name)
-      if not (d / runner.DONE_FILE).exists():
+      if not (d / records.DONE_FILE).exists():
         _copy_kept(s, d, KEPT)
-        done = json.loads((s / runner.DONE_FILE).read_text())
+        done = json.loads((s / records.DONE_FILE).read_text())
         if not done.get("machine"):
           done["machine"] = cpu_description()
-          (s / runner.DONE_FILE).write_text(json.dumps(done, indent=1))
-        (d / runner.DONE_FILE).write_text(json.dumps(done, indent=1))
+          (s / records.DONE_FILE).write_text(json.dumps(done, indent=1))
+        (d / records.DONE_FILE).write_text(json.dumps(done, indent=1))
         changes.append(cell.name)
-      (d / runner.EVAL_DIR).mkdir(exist_ok=True)
-      for f in sorted((s / runner.EVAL_DIR).glob("*.json")):
-        if not (d / runner.EVAL_DIR / f.name).exists():
-          shutil.copy(f, d / runner.EVAL_DIR / f.name)
+      (d / records.EVAL_DIR).mkdir(exist_ok=True)
+      for f in sorted((s / records.EVAL_DIR).glob("*.json*")):  # reports: SET.json.xz
+        if not (d / records.EVAL_DIR / f.name).exists():
+          shutil.copy(f, d / records.EVAL_DIR / f.name)
           if changes[-1:] != [cell.name]:
-            changes.append(f"{cell.name}: {runner.EVAL_DIR}/{f.name}")
+            changes.append(f"{cell.name}: {records.EVAL_DIR}/{f.name}")
   return changes
 
 

@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from sljax.experiment.design import plans
+from sljax.experiment import records
 from sljax.experiment.running import runner
 
 PLATEAU_TOL = 0.05
@@ -57,14 +58,14 @@ def budgets(out: Path, plan: plans.Plan) -> dict[str, Any]:
   """The rule applied to every finished calibration cell of a plan (missing ones listed)."""
   rows, missing = {}, []
   for cell in plan.cells:
-    if not (runner.cell_dir(out, cell.name) / runner.DONE_FILE).exists():
+    if not (records.cell_dir(out, cell.name) / records.DONE_FILE).exists():
       missing.append(cell.name)
       continue
     phase = plans.phase_of(cell)
-    res = plateau(runner.curve(out, cell.name), cell.config.epochs,
+    res = plateau(records.curve(out, cell.name), cell.config.epochs,
                   drop=plan.scale.lr_drop and phase != "finetune")
     rows[cell.name] = dict(res, arm=cell.arm, phase=phase, epochs=cell.config.epochs,
-                           curve=runner.curve(out, cell.name))
+                           curve=records.curve(out, cell.name))
   return {"plan": plan.name, "scale": plan.scale.name, "tolerance": PLATEAU_TOL,
           "smooth": SMOOTH, "cells": rows, "missing": missing,
           "budgets": [[r["arm"], r["phase"], r["budget"]] for r in rows.values()]}
@@ -78,7 +79,7 @@ def calibrate(name: str, scale: str, out: str | Path, *, progress: bool = True,
   plan = plans.calibration_plan(name, scale)
   runner.run(plan, out, progress=progress, log=log)
   result = budgets(out, plan)
-  runner.write_json(out / f"calibration-{name}.json", result)
+  records.write_json(out / f"calibration-{name}.json", result)
   return result
 
 

@@ -29,6 +29,7 @@ from matplotlib.figure import Figure
 from sljax.errors import require
 from sljax.experiment.budget.calibrate import SMOOTH, plateau, smooth
 from sljax.experiment.design import plans
+from sljax.experiment import records
 from sljax.experiment.running import runner
 from sljax.io import files
 
@@ -83,11 +84,11 @@ def regime(out: str | Path, scale: str = "cpu", seeds: int = 2) -> dict[str, Any
   rows, missing = {}, []
   for fraction in design.fractions:
     cells = plan.cells_of(data=fraction)
-    done = [c for c in cells if (runner.cell_dir(out, c.name) / runner.DONE_FILE).exists()]
+    done = [c for c in cells if (records.cell_dir(out, c.name) / records.DONE_FILE).exists()]
     missing += [c.name for c in cells if c not in done]
     if len(done) < len(cells):
       continue
-    curves = {c.name: runner.curve(out, c.name) for c in done}
+    curves = {c.name: records.curve(out, c.name) for c in done}
     mean = mean_curve(list(curves.values()))
     rows[fraction] = dict(fraction_rise(mean), curves={k: [list(p) for p in v]
                                                        for k, v in curves.items()},
@@ -148,7 +149,7 @@ def v4(out: str | Path, scale: str = "cpu", seeds: int = 2) -> dict[str, Any]:
   out = Path(out)
   plan = plans.build_plan(plans.V4_PILOT, scale, seeds)
   design = plan.scale.v4
-  done = {c.name for c in plan.cells if (runner.cell_dir(out, c.name) / runner.DONE_FILE).exists()}
+  done = {c.name for c in plan.cells if (records.cell_dir(out, c.name) / records.DONE_FILE).exists()}
   missing = [c.name for c in plan.cells if c.name not in done]
   settings = {}
   for setting, fractions in zip(V4_SETTINGS, (design.scratch_fractions,
@@ -157,13 +158,13 @@ def v4(out: str | Path, scale: str = "cpu", seeds: int = 2) -> dict[str, Any]:
     for fraction in fractions:
       cells = plan.cells_of(setting=setting, data=fraction)
       if all(c.name in done for c in cells):
-        curves[fraction] = {c.name: runner.step_curve(out, c.name) for c in cells}
+        curves[fraction] = {c.name: records.step_curve(out, c.name) for c in cells}
     settings[setting] = v4_setting(curves, fractions, design.val_every)
     settings[setting]["curves"] = curves
   pretrain = {}
   for c in plan.cells_of(setting="pretrain"):
     if c.name in done:
-      pts = [(r["step"], r["val_mae"]) for r in runner.step_curve(out, c.name)]
+      pts = [(r["step"], r["val_mae"]) for r in records.step_curve(out, c.name)]
       pretrain[c.name] = dict(plateau(pts, design.pretrain_steps, drop=False), curve=pts)
   both = all(settings[s]["regime"]["fraction"] is not None for s in V4_SETTINGS)
   grid = None
@@ -360,15 +361,15 @@ def write(out: str | Path, scale: str = "cpu", seeds: int = 2) -> dict[str, Any]
   """Writes OUT/regime.json, OUT/regime.md and the figure (v3's pilot, or v4's when OUT holds
   the v4 pilot); returns the result."""
   out = Path(out)
-  record = runner.read_record(out) or {"plans": {}}
+  record = records.read_record(out) or {"plans": {}}
   if plans.V4_PILOT in record["plans"]:
     result = v4(out, scale, seeds)
-    runner.write_json(out / "regime.json", result)
+    records.write_json(out / "regime.json", result)
     files.write_text(out / "regime.md", "\n".join(markdown_v4(result)))
     figure_v4(result, out / "figures" / "v4-pilot_curves.png")
     return result
   result = regime(out, scale, seeds)
-  runner.write_json(out / "regime.json", result)
+  records.write_json(out / "regime.json", result)
   files.write_text(out / "regime.md", "\n".join(markdown(result)))
   if result["fractions"]:
     figure(result, out / "figures" / "v3-pilot_curves.png")

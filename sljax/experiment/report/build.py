@@ -33,10 +33,11 @@ from sljax.evaluation.scoring import json_safe
 from sljax.experiment.design.plans import FIXED, HELDOUT, PLANS, TEST_SEED, Cell, Plan
 from sljax.experiment.report import stats
 from sljax.experiment.report.paper_claims import ALPHA, CURVE_SET, PAPER, POWER, claims
+from sljax.experiment.records import (DONE_FILE, EVAL_DIR, WINDOWS_FILE, cell_dir, curve,
+                                      plan_args, read_eval, read_json, registered_plans,
+                                      train_curve)
+from sljax.experiment.running.runner import diverged
 from sljax.io import files, tables
-from sljax.experiment.running.runner import (DONE_FILE, EVAL_DIR, WINDOWS_FILE, cell_dir,
-                                     curve, diverged, plan_args, read_json, registered_plans,
-                                     train_curve)
 from sljax.train.config import dumps
 
 # (key, header) of the metrics every table shows; lower is better except HIGHER_BETTER.
@@ -92,7 +93,7 @@ def cell_metrics(out: Path, name: str, set_name: str) -> dict[str, float] | None
   None when not scored yet."""
   if set_name == CURVE_SET:
     return curve_metrics(out, name)
-  rep = read_json(cell_dir(out, name) / EVAL_DIR / f"{set_name}.json")
+  rep = read_eval(out, name, set_name)
   if rep is None:
     return None
   pooled = rep["pooled"]

@@ -1,20 +1,6 @@
 """The experiment runner: trains and scores every cell of a plan under OUT, resumably.
 
-OUT/plan.json            the plans run here and the spec of every cell (see Cell.spec)
-OUT/claims/, workers/   which worker holds which cell: any number of runners (workers) share
-                         OUT, on one host or many (sljax.experiment.running.workers)
-OUT/cells/NAME/          the cell's training workdir (config.json, checkpoints/, *.jsonl)
-OUT/cells/NAME/train.log its training output
-OUT/cells/NAME/done.json written once training finished: final step (and best step, where the
-                         plan scores the best checkpoint), seconds, the CPU
-OUT/cells/NAME/eval/SET.json  the final (or best) checkpoint's evaluation report on that set
-OUT/cells/NAME/eval/windows.json  v2 unet-sl: validation MAE per candidate correlation window
-                         and the window chosen (the lowest; ties: the smaller)
-OUT/cells/NAME/diverged.json  written when the cell's training loss went NaN or infinite: the
-                         trainer's message and the CPU. The runner goes on without the cell and
-                         without the cells fine-tuned from it; deleting the file trains it again
-
-Idempotent and resumable: a cell with done.json is not trained again, one with checkpoints
+What it writes where: sljax.experiment.records. Idempotent and resumable: a cell with done.json is not trained again, one with checkpoints
 continues exactly (train's --resume), an evaluation already written is not redone. A cell
 whose spec changed under an existing OUT is refused, never mixed in. Cells are scored with
 their final checkpoint (the last step), not the best by validation: in v1 validation uses the
@@ -39,159 +25,19 @@ from tqdm import tqdm
 
 from sljax import inference
 from sljax.data.dataset import FolderSource, parse_fraction, split_indices
-from sljax.errors import SljaxError, require
+from sljax.errors import require
 from sljax.evaluation.scoring import evaluate, json_safe
+from sljax.experiment.design.plans import FIXED, HELDOUT, TEST_SEED, Cell, EvalSet, Plan, describe
+from sljax.experiment.records import (DIVERGED_FILE, DONE_FILE, EVAL_DIR, LOG_FILE, WINDOWS_FILE,
+                                      cell_dir, eval_record, final_checkpoint, read_json,
+                                      register, write_eval, write_json)
 from sljax.experiment.running import workers
-from sljax.io import files
-from sljax.io.files import read_json_object
-from sljax.render.synthetic import SynthConfig, SyntheticSource
-from sljax.runtime import choices, machine
-from sljax.experiment.design.plans import (FIXED, HELDOUT, TEST_SEED, Cell, EvalSet, Plan, build_plan,
-                                    check_unique, describe)
 from sljax.models import checkpoint as ckpt
 from sljax.models import load as trained
-from sljax.train.config import config_from_json, dumps
+from sljax.render.synthetic import SynthConfig, SyntheticSource
+from sljax.runtime import choices, machine
+from sljax.train.config import config_from_json
 from sljax.train.loop import TrainingDiverged, open_source, train
-from sljax.train.workdir import VALIDATION_FILE
-
-PLAN_FILE = "plan.json"
-CELLS_DIR = "cells"
-DONE_FILE = "done.json"
-EVAL_DIR = "eval"
-WINDOWS_FILE = "windows.json"
-LOG_FILE = "train.log"
-DIVERGED_FILE = "diverged.json"
-FORMAT_VERSION = 1
-
-
-def cell_dir(out: Path, name: str) -> Path:
-  """The workdir of a cell."""
-  return out / CELLS_DIR / name
-
-
-def read_json(path: Path) -> dict[str, Any] | None:
-  """A JSON object file, or None when absent."""
-  if not path.exists():
-    return None
-  return read_json_object(path, str(path))
-
-
-def write_json(path: Path, obj: Any) -> None:
-  """Writes whole (a killed runner never leaves half a file; sljax.io.files)."""
-  files.write_text(path, dumps(obj) + "\n")
-
-
-def plan_args(plan: Plan) -> dict[str, Any]:
-  """What rebuilds the plan (build_plan's arguments)."""
-  return {"scale": plan.scale.name, "seeds": len(plan.seeds), "data": plan.data,
-          "eval_data": list(plan.eval_data)}
-
-
-def read_record(out: Path) -> dict[str, Any] | None:
-  """OUT/plan.json as register writes it (plans by name with scale and seeds, cells by name), or
-  None when absent; SljaxError naming the file for any other JSON object."""
-  path = out / PLAN_FILE
-  record = read_json(path)
-  if record is None:
-    return None
-  by_plan, cells = record.get("plans"), record.get("cells")
-  # Another program's plan.json (or an edited one) would otherwise end in a KeyError.
-  ok = isinstance(by_plan, dict) and isinstance(cells, dict) and all(
-      isinstance(a, dict) and isinstance(a.get("scale"), str) and type(a.get("seeds")) is int
-      for a in by_plan.values())
-  require(ok, f"{path}: not an sljax experiment record (expected {{\"plans\": {{PLAN: "
-          f"{{\"scale\": ..., \"seeds\": N}}}}, \"cells\": {{...}}}}); use another OUT")
-  return record
-
-
-def register(out: Path, plan: Plan) -> dict[str, Any]:
-  """Records the plan in OUT/plan.json; SljaxError when a cell's spec differs from the one
-  already recorded there (a changed plan under an existing OUT)."""
-  check_unique(plan)
-  out.mkdir(parents=True, exist_ok=True)
-  record = read_record(out) or {"version": FORMAT_VERSION, "plans": {}, "cells": {}}
-  for cell in plan.cells:
-    old, new = record["cells"].get(cell.name), cell.spec()
-    if old is not None and old != new:
-      diff = _first_difference(old, new)
-      raise SljaxError(f"{out}: cell {cell.name} was run with another configuration ({diff}); "
-                       "use another OUT for the changed plan")
-  previous = record["plans"].get(plan.name)
-  if previous is not None and previous["scale"] != plan.scale.name:
-    raise SljaxError(f"{out}: plan {plan.name} was run at scale {previous['scale']}, not "
-                     f"{plan.scale.name}; use another OUT")
-  args = plan_args(plan)
-  if previous is not None:  # more seeds or evaluation folders extend a plan; fewer keep it
-    args["seeds"] = max(args["seeds"], previous["seeds"])
-    args["eval_data"] = sorted(set(args["eval_data"]) | set(previous.get("eval_data", [])))
-  before = json.dumps(record, sort_keys=True)
-  record["plans"][plan.name] = args
-  record["cells"].update({c.name: c.spec() for c in plan.cells})
-  if json.dumps(record, sort_keys=True) != before:  # written once: the workers of a grid agree
-    write_json(out / PLAN_FILE, record)
-  return record
-
-
-def registered_plans(out: Path, seeds: int | None = None) -> list[Plan]:
-  """The plans recorded in OUT/plan.json, rebuilt (with `seeds` seeds where more than were run,
-  e.g. a grid's target while it runs seed by seed); SljaxError when OUT is not an experiment
-  folder."""
-  record = read_record(out)
-  require(record is not None, f"{out}: no {PLAN_FILE} (not an experiment folder; run "
-          "`sljax experiment run PLAN OUT` first)")
-  require(seeds is None or seeds >= 1, f"--seeds {seeds}: at least 1")
-  return [build_plan(name, args["scale"], max(seeds or 0, args["seeds"]), args.get("data"),
-                     tuple(args.get("eval_data", ())))
-          for name, args in record["plans"].items()]
-
-
-def _first_difference(old: Any, new: Any, path: str = "") -> str:
-  if isinstance(old, dict) and isinstance(new, dict):
-    for k in sorted(set(old) | set(new)):
-      if old.get(k) != new.get(k):
-        return _first_difference(old.get(k), new.get(k), f"{path}{k}.")
-  return f"{path.rstrip('.')}: {old!r} -> {new!r}"
-
-
-def curve(out: Path, name: str) -> list[tuple[int, float]]:
-  """(epoch, validation MAE) of a cell's training log, or (step, ...) if it validated by steps."""
-  if (cell_dir(out, name) / VALIDATION_FILE).exists():
-    return [(r["step"], r["val_mae"]) for r in step_curve(out, name)
-            if r.get("val_mae") is not None]
-  path = cell_dir(out, name) / "epochs.jsonl"
-  if not path.exists():
-    return []
-  recs = [json.loads(l) for l in path.read_text().splitlines() if l.strip()]
-  return [(r["epoch"], r["val_mae"]) for r in recs if r.get("val_mae") is not None]
-
-
-def train_curve(out: Path, name: str) -> list[tuple[int, float]]:
-  """(step, mean training L_disp since the previous validation) of a cell validated by steps."""
-  return [(r["step"], r["train_loss_disp"]) for r in step_curve(out, name)
-          if r.get("train_loss_disp") is not None]
-
-
-def step_curve(out: Path, name: str) -> list[dict[str, Any]]:
-  """The rows of a cell's validation.jsonl (validation by steps): step, validation MAE and the
-  mean training losses since the previous validation."""
-  path = cell_dir(out, name) / VALIDATION_FILE
-  if not path.exists():
-    return []
-  return [json.loads(l) for l in path.read_text().splitlines() if l.strip()]
-
-
-def final_checkpoint(out: Path, name: str, which: str = "final") -> Path:
-  """The checkpoint folder of a finished cell's last step, or of its best by validation MAE
-  (which="best"; kept and recorded in done.json when the plan scores it)."""
-  done = read_json(cell_dir(out, name) / DONE_FILE)
-  require(done is not None, f"{cell_dir(out, name)}: cell {name} has not finished training")
-  if which == "best":
-    require(done.get("best_step") is not None,
-            f"{cell_dir(out, name)}: cell {name} kept no best checkpoint (it finished under a "
-            "plan that scores the final one only)")
-    return cell_dir(out, name) / ckpt.CHECKPOINT_DIR / str(done["best_step"])
-  return cell_dir(out, name) / ckpt.CHECKPOINT_DIR / str(done["step"])
-
 
 # ----------------------------------------------------------------------------- cost estimates
 
@@ -336,9 +182,7 @@ def evaluate_cell(out: Path, cell: Cell, evalset: EvalSet) -> dict[str, Any]:
   if evalset.kind == FIXED:
     info["dataset_seed"] = TEST_SEED
   report = evaluate(predictor, source, indices, progress=False, info=info)
-  path = cell_dir(out, cell.name) / EVAL_DIR / f"{evalset.name}.json"
-  path.parent.mkdir(parents=True, exist_ok=True)
-  write_json(path, json_safe(report))
+  write_eval(out, cell.name, evalset.name, json_safe(report))
   return report
 
 
@@ -419,7 +263,7 @@ def pending(out: Path, plan: Plan,
       continue
     wd = cell_dir(out, cell.name)
     trained = (wd / DONE_FILE).exists()
-    evals = [e for e in cell.evals if not (wd / EVAL_DIR / f"{e.name}.json").exists()]
+    evals = [e for e in cell.evals if eval_record(out, cell.name, e.name) is None]
     if not trained or evals:
       todo.append((cell, not trained, evals))
   return todo
@@ -455,7 +299,7 @@ def _left_to_do(out: Path, cell: Cell) -> tuple[bool, list[EvalSet]] | None:
   """(needs training, evaluation sets to score) of a cell as its files show it now; None when
   it is finished or left out (diverged)."""
   wd = cell_dir(out, cell.name)
-  evals = [e for e in cell.evals if not (wd / EVAL_DIR / f"{e.name}.json").exists()]
+  evals = [e for e in cell.evals if eval_record(out, cell.name, e.name) is None]
   needs = not (wd / DONE_FILE).exists()
   return None if (wd / DIVERGED_FILE).exists() or not (needs or evals) else (needs, evals)
 

@@ -13,11 +13,12 @@ import json
 from pathlib import Path
 
 from sljax.experiment.design.plans import Cell, Plan
+from sljax.experiment.records import (DONE_FILE, cell_dir, eval_record, read_json, read_text,
+                                      registered_plans)
 from sljax.experiment.running import workers
-from sljax.runtime import machine
-from sljax.experiment.running.runner import (DONE_FILE, EVAL_DIR, cell_dir, diverged, read_json,
-                                     registered_plans)
+from sljax.experiment.running.runner import diverged
 from sljax.models.checkpoint import CHECKPOINT_DIR
+from sljax.runtime import machine
 from sljax.train.workdir import EPOCHS_FILE
 
 DONE, SCORING, TRAINING, WAITING = "finished", "trained, not scored", "training", "waiting"
@@ -55,10 +56,10 @@ class CellState:
 
 def last_epoch(workdir: Path) -> tuple[int, int]:
   """The last (epoch, step) in the workdir's epochs.jsonl ((0, 0) when none)."""
-  path = workdir / EPOCHS_FILE
-  if not path.exists():
+  text = read_text(workdir / EPOCHS_FILE)
+  if text is None:
     return 0, 0
-  lines = [line for line in path.read_text(encoding="utf-8").splitlines() if line.strip()]
+  lines = [line for line in text.splitlines() if line.strip()]
   for line in reversed(lines[-2:]):  # the last may be being written right now
     try:
       row = json.loads(line)
@@ -76,7 +77,7 @@ def cell_state(out: Path, cell: Cell) -> CellState:
     epoch, step = last_epoch(wd)
     return CellState(cell, TRAINING if epoch or (wd / CHECKPOINT_DIR).exists() else WAITING,
                      epoch=epoch, step=step)
-  scored = all((wd / EVAL_DIR / f"{e.name}.json").exists() for e in cell.evals)
+  scored = all(eval_record(out, cell.name, e.name) is not None for e in cell.evals)
   seconds = done.get("train_seconds")
   return CellState(cell, DONE if scored else SCORING, epoch=cell.config.epochs,
                    step=cell.config.steps or 0,

@@ -22,6 +22,7 @@ from typing import Any
 
 from sljax.errors import SljaxError, require
 from sljax.experiment.design.plans import Plan
+from sljax.experiment import records
 from sljax.experiment.running import runner, workers
 
 LOGS_DIR = "submitit"   # OUT/submitit/: submitit's job files and each worker's log
@@ -258,7 +259,7 @@ def submit_grid(plan: Plan, out: Path, res: Resources, *, local: bool, wait: boo
   in N job logs) and submits res.workers workers of it (see `submit`)."""
   check_available(local)
   with workers.plan_lock(out):
-    runner.register(out, plan)
+    records.register(out, plan)
   argv = worker_argv(plan.name, out, plan.scale.name, len(plan.seeds), plan.data,
                      list(plan.eval_data), lease)
   submit(WorkerJob(argv, entry), out, res, local, wait, f"sljax-{plan.name}", log)

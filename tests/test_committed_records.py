@@ -5,12 +5,14 @@ the report read the records as another plan), that every committed cell is compl
 main writes the committed reports (which docs/results.md quotes) byte for byte."""
 
 import json
+import lzma
 import shutil
 from pathlib import Path
 
 import pytest
 
 from sljax.experiment.design.plans import build_plan
+from sljax.experiment.budget import regime
 from sljax.experiment.report import build
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -42,7 +44,7 @@ def test_every_committed_cell_is_complete_and_named_by_its_plan(grid):
     assert done["machine"] and done["step"] > 0, cell  # the CPU is named beside the times
     config = json.loads((cell / "config.json").read_text())
     assert config["seed"] == record["cells"][cell.name]["config"]["seed"], cell
-    assert cell.name not in scored or list((cell / "eval").glob("*.json")), cell  # scored
+    assert cell.name not in scored or list((cell / "eval").glob("*.json*")), cell  # scored
 
 
 @pytest.mark.parametrize("grid", [g for g in GRIDS if (g / "report.json").exists()],
@@ -56,4 +58,42 @@ def test_main_writes_the_committed_report_byte_for_byte(grid, tmp_path):
   plans = list(json.loads((grid / "report.json").read_text()))
   build.write_report(out, plans)
   for name in ("report.md", "report.json"):
+    assert (out / name).read_bytes() == (grid / name).read_bytes(), (grid.name, name)
+
+
+def test_the_committed_grids_fit_in_a_clone():
+  """The committed records stay small enough for every clone to carry (issue 60: <= 20 MB);
+  the per-scene evaluation reports and the training logs are kept compressed."""
+  tree = ROOT / "docs" / "results"
+  size = sum(p.stat().st_size for p in tree.rglob("*") if p.is_file())
+  assert size <= 20e6, f"docs/results holds {size / 1e6:.1f} MB"
+  plain = [p for g in GRIDS for p in g.glob("cells/*/eval/*.json") if p.name != "windows.json"]
+  assert not plain, f"uncompressed evaluation reports: {plain[:3]}"
+
+
+@pytest.mark.parametrize("grid", [g for g in GRIDS if (g / "report.json").exists()][:1],
+                         ids=lambda p: p.name)
+def test_an_uncompressed_folder_gives_the_same_report(grid, tmp_path):
+  """Folders written before the records were compressed (SET.json, epochs.jsonl) still read:
+  the grid decompressed in place reports byte for byte as committed."""
+  out = tmp_path / grid.name
+  shutil.copytree(grid, out, ignore=shutil.ignore_patterns("figures"))
+  for xz in out.glob("cells/**/*.xz"):
+    xz.with_name(xz.name[:-len(".xz")]).write_bytes(lzma.decompress(xz.read_bytes()))
+    xz.unlink()
+  plans = list(json.loads((grid / "report.json").read_text()))
+  build.write_report(out, plans)
+  for name in ("report.md", "report.json"):
+    assert (out / name).read_bytes() == (grid / name).read_bytes(), (grid.name, name)
+
+
+@pytest.mark.parametrize("grid", [g for g in GRIDS if (g / "regime.json").exists()],
+                         ids=lambda p: p.name)
+def test_main_writes_the_committed_regime_byte_for_byte(grid, tmp_path):
+  """The pilots' regime reports (docs/plan-v3.md, plan-v4.md) rebuild from the committed,
+  compressed training logs as committed."""
+  out = tmp_path / grid.name
+  shutil.copytree(grid, out, ignore=shutil.ignore_patterns("figures"))
+  regime.write(out, "cpu", 2)
+  for name in ("regime.md", "regime.json"):
     assert (out / name).read_bytes() == (grid / name).read_bytes(), (grid.name, name)

@@ -21,7 +21,7 @@ the caller's) and returns a dict of float32 arrays. It is lowered for CPU and CU
 (`PLATFORMS`, and for the maker's platform where that is another) wherever it is made, so an
 artifact written on a GPU machine runs on a laptop and the reverse (one made for the maker's
 platform alone failed there, seen on an H100). On an NVIDIA GPU it runs at XLA's default
-precision, which lets convolutions use TF32 (docs/benchmarks.md). Loading it
+precision, which lets convolutions use TF32 (docs/benchmarks/gpu.md). Loading it
 needs only jax (and numpy for the data):
 
   exp = jax.export.deserialize(open("model.jax", "rb").read())

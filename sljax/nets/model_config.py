@@ -164,7 +164,7 @@ def init_variables(model: nn.Module, seed: int, height: int, width: int,
   model and shape in a process), computed on the host's CPU and placed on the default device."""
   # The forward is dead code in init; what is left is the random values of every parameter,
   # about 1500 small fusions for the twin, which XLA:GPU compiles kernel by kernel: about 33 s
-  # of the paper preset's start on an H200, 7.8 s on its host's CPU (docs/benchmarks.md,
+  # of the paper preset's start on an H200, 7.8 s on its host's CPU (docs/benchmarks/gpu.md,
   # "NVIDIA H200"). Drawn once per shape (`batched_draws`) XLA:CPU compiles it in half the time.
   host = _host_device()
   if host is None or host == _default_device():

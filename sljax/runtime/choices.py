@@ -12,7 +12,7 @@ that use it (`KernelChoice.compiler_options(kind)`, passed to `jax.jit`), never 
 The convolution kernels themselves are not tuned, because measuring them found no CPU that
 disagrees: the folded kernels train 3x faster than `lax` on Zen 3 (the main job) and were made
 because `lax` was several times slower on Zen 5, and block sizes of 16 Ki to 1 Mi values are
-within the noise on both (docs/benchmarks.md). They are chosen where
+within the noise on both (docs/benchmarks/cpu-kernels.md). They are chosen where
 the model is built (its `conv_impl`, `sljax.kernels`).
 
 Where a choice comes from. A run never measures: on a fresh 2-core Zen 3 the measurement
@@ -76,7 +76,7 @@ BUSY = 0.1  # other processes' share of the CPUs above which a measurement is pr
 # where: a first run takes it instead of measuring (issue 49: on a fresh 2-core Zen 3 the
 # measurement took 106 s of the 251 s before the first step). A kind not listed takes UNKNOWN:
 # off on every kind measured so far; without the fusions programs also load about 3x faster
-# (docs/benchmarks.md, "The first run").
+# (docs/benchmarks/first-run.md).
 KNOWN = {
     "amd-epyc-f25-m1-avx2": ("off", "Zen 3, `sljax tune` idle, 2026-11-27"),
     "amd-epyc-f25-m17-avx2": ("off", "Zen 4 showing AVX2 only, `sljax tune` idle, 2026-11-27"),

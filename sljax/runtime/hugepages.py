@@ -8,7 +8,7 @@ working set in again in 4 KiB pages: 630,000 page faults and about 1 s of kernel
 3.3 s step on a 2-core Zen 5. With the tunable, malloc asks the kernel for transparent huge
 pages (2 MiB; madvise) where the system offers them on request, as most distributions do
 (`/sys/kernel/mm/transparent_hugepage/enabled` reads `[madvise]`): 2,000-5,000 faults a
-step, and the step 0.86-0.88x (docs/benchmarks.md, "Page faults"). glibc reads its tunables
+step, and the step 0.86-0.88x (docs/benchmarks/huge-pages.md). glibc reads its tunables
 only when a process starts, so a command line that wants them starts again, once, before it
 imports jax (the same process id, arguments and interpreter flags).
 

@@ -33,7 +33,7 @@ def make_optimizer(lr: float, drop_step: int | None = None) -> optax.GradientTra
   to trace), but unraveling a flat vector into the twin's 339 leaves is 339 slices that XLA:CPU
   compiles one by one: the update and its application compiled in 8.6 s against 1.5 s leaf
   by leaf and ran in 51 ms against 9 ms, and the training step compiled 6-7 s faster with
-  steps as fast (Zen 5, 2026-11-28; docs/benchmarks.md, "The first run").
+  steps as fast (Zen 5, 2026-11-28; docs/benchmarks/first-run.md).
   """
   if drop_step is not None:
     lr = optax.piecewise_constant_schedule(lr, {int(drop_step): LR_DROP})

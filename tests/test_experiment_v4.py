@@ -8,7 +8,7 @@ import pytest
 from sljax.data.dataset import split_indices, take_fraction
 from sljax.errors import SljaxError
 from sljax.experiment.budget import regime
-from sljax.experiment.design import plans
+from sljax.experiment.design import cells, plans
 from sljax.train.feed import open_source
 
 
@@ -173,7 +173,7 @@ def test_grid_cells_in_the_finetune_regime():
       # The pilot's pretraining with the arm's strategy and the grid's seed, nothing else.
       mine = cell.spec()["config"]
       pilot = dataclasses.replace(pilot_pre.config, strategy=arm, seed=seed)
-      assert mine == plans.Cell("x", arm, (), seed, pilot).spec()["config"]
+      assert mine == cells.Cell("x", arm, (), seed, pilot).spec()["config"]
       continue
     assert cell.init_cell == by[(arm, "pretrain", seed)].name
     assert (c.domain, c.fraction, c.lr, c.steps, c.val_every_steps) == (

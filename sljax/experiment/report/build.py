@@ -30,7 +30,8 @@ from matplotlib.figure import Figure
 
 from sljax.errors import SljaxError
 from sljax.evaluation.scoring import json_safe
-from sljax.experiment.design.plans import FIXED, HELDOUT, PLANS, TEST_SEED, Cell, Plan
+from sljax.experiment.design.cells import FIXED, HELDOUT, TEST_SEED, Cell, Plan
+from sljax.experiment.design.plans import PLANS
 from sljax.experiment.report import stats
 from sljax.experiment.report.paper_claims import ALPHA, CURVE_SET, PAPER, POWER, claims
 from sljax.io import files, tables

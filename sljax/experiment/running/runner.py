@@ -46,8 +46,8 @@ from sljax.io import files
 from sljax.io.files import read_json_object
 from sljax.render.synthetic import SynthConfig, SyntheticSource
 from sljax.runtime import choices, machine
-from sljax.experiment.design.plans import (FIXED, HELDOUT, TEST_SEED, Cell, EvalSet, Plan, build_plan,
-                                    check_unique, describe)
+from sljax.experiment.design.cells import FIXED, HELDOUT, TEST_SEED, Cell, EvalSet, Plan
+from sljax.experiment.design.plans import build_plan, check_unique, describe
 from sljax.models import checkpoint as ckpt
 from sljax.models import load as trained
 from sljax.train.config import config_from_json, dumps

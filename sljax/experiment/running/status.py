@@ -12,7 +12,7 @@ import dataclasses
 import json
 from pathlib import Path
 
-from sljax.experiment.design.plans import Cell, Plan
+from sljax.experiment.design.cells import Cell, Plan
 from sljax.experiment.running import workers
 from sljax.runtime import machine
 from sljax.experiment.running.runner import (DONE_FILE, EVAL_DIR, cell_dir, diverged, read_json,

@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from sljax.errors import SljaxError, require
-from sljax.experiment.design.plans import Plan
+from sljax.experiment.design.cells import Plan
 from sljax.experiment.running import runner, workers
 
 LOGS_DIR = "submitit"   # OUT/submitit/: submitit's job files and each worker's log

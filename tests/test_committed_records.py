@@ -11,8 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from sljax.experiment.design.plans import build_plan
 from sljax.experiment.budget import regime
+from sljax.experiment.design.plans import build_plan
 from sljax.experiment.report import build
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -17,10 +17,10 @@ import pytest
 from sljax import cli
 from sljax.data.dataset import epoch_order
 from sljax.errors import SljaxError
-from sljax.experiment.design import plans
-from sljax.experiment.report import build
 from sljax.experiment import records
-from sljax.experiment.running import runner, workers
+from sljax.experiment.design import cells, plans
+from sljax.experiment.report import build
+from sljax.experiment.running import claims, runner, workers
 from sljax.nets import build_model, detach_sl
 from sljax.nets.model_config import init_variables
 from sljax.runtime import machine
@@ -262,7 +262,7 @@ def test_v2_plan_reuses_the_v1_cells_and_scores_them_on_the_fixed_test_sets(smok
     wd = records.cell_dir(out, cell.name)
     (evalset,) = cell.evals
     rep = json.loads((wd / "eval" / f"{evalset.name}.json").read_text())
-    assert rep["n_scenes"] == 20 and rep["dataset_seed"] == plans.TEST_SEED
+    assert rep["n_scenes"] == 20 and rep["dataset_seed"] == cells.TEST_SEED
     if cell.arm == "unet-sl":
       windows = json.loads((wd / "eval" / records.WINDOWS_FILE).read_text())
       maes = windows["validation_mae"]
@@ -277,7 +277,7 @@ def test_v2_plan_reuses_the_v1_cells_and_scores_them_on_the_fixed_test_sets(smok
 def _claims(out, cell):
   """The records of a cell's claim files, in order."""
   return [json.loads(p.read_text())
-          for p in sorted(workers.claims_dir(out, cell).glob("[0-9]*.json"))]
+          for p in sorted(claims.claims_dir(out, cell).glob("[0-9]*.json"))]
 
 
 def _same_cells(a, b, plan):
@@ -408,10 +408,10 @@ def test_a_cell_scored_on_its_best_checkpoint_keeps_it(tmp_path):
   sc = plans.SCALES["smoke"]
   base = plans.build_plan("table1", "smoke", 1).cells[0]  # unet-sl on objects: compiled above
   config = dataclasses.replace(base.config, model="unet-disp", epochs=4, val_every=1)
-  evals = (plans.test_set("objects", sc), plans.test_set("objects", sc, "best"))
+  evals = (cells.test_set("objects", sc), cells.test_set("objects", sc, "best"))
   cell = dataclasses.replace(base, name="unet-disp-best-s0", arm="unet-disp", config=config,
                              evals=evals, windows=())
-  plan = plans.Plan("v3", sc, (0,), (cell,), "unet-disp")
+  plan = cells.Plan("v3", sc, (0,), (cell,), "unet-disp")
   runner.run(plan, tmp_path, progress=False, log=lambda line: None)
   wd = records.cell_dir(tmp_path, cell.name)
   done = json.loads((wd / records.DONE_FILE).read_text())
@@ -443,10 +443,10 @@ def test_a_cell_validated_by_steps_fine_tunes_and_keeps_its_best(tmp_path):
                             evals=(), windows=())
   ft_config = dataclasses.replace(pre_config, domain="tissue", synth_n=sc.tissue_n, lr=1e-4,
                                   steps=4)
-  evals = (plans.test_set("tissue", sc), plans.test_set("tissue", sc, "best"))
+  evals = (cells.test_set("tissue", sc), cells.test_set("tissue", sc, "best"))
   ft = dataclasses.replace(pre, name="unet-disp-ft-s0", config=ft_config, init_cell=pre.name,
                            evals=evals)
-  plan = plans.Plan("v4", sc, (0,), (pre, ft), "unet-disp")
+  plan = cells.Plan("v4", sc, (0,), (pre, ft), "unet-disp")
   runner.run(plan, tmp_path, progress=False, log=lambda line: None)
   wd = records.cell_dir(tmp_path, ft.name)
   done = json.loads((wd / records.DONE_FILE).read_text())

@@ -8,9 +8,9 @@ import pytest
 
 from sljax.data.dataset import split_indices, split_three
 from sljax.errors import SljaxError
-from sljax.experiment.budget import calibrate
-from sljax.experiment.design import plans
 from sljax.experiment import records
+from sljax.experiment.budget import calibrate
+from sljax.experiment.design import cells, plans
 from sljax.experiment.running import runner
 from sljax.render.synthetic import SynthConfig, render_scene
 from sljax.train.loop import open_source
@@ -63,7 +63,7 @@ def test_v2_test_sets_are_the_same_for_every_seed_and_arm_and_disjoint_from_trai
   for cell in plan.cells:
     for e in cell.evals:
       source, idx = runner._eval_source(cell, e)  # pylint: disable=protected-access
-      assert e.kind == plans.FIXED and source.seed == plans.TEST_SEED
+      assert e.kind == cells.FIXED and source.seed == cells.TEST_SEED
       assert idx == list(range(plan.scale.v2.test_n))
       by_set.setdefault(e.name, set()).add((source.seed, source.config, tuple(idx)))
       test_groups = {source.group(i) for i in idx}

@@ -7,11 +7,10 @@ import numpy as np
 import pytest
 
 from sljax.errors import SljaxError
+from sljax.experiment import records
 from sljax.experiment.budget import regime
 from sljax.experiment.design import plans
 from sljax.experiment.report import stats
-from sljax.experiment import records
-from sljax.experiment.running import runner
 
 
 def test_pilot_cells_at_the_cpu_scale():

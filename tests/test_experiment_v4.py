@@ -9,7 +9,7 @@ from sljax.data.dataset import split_indices, take_fraction
 from sljax.errors import SljaxError
 from sljax.experiment import records
 from sljax.experiment.budget import regime
-from sljax.experiment.design import plans
+from sljax.experiment.design import cells, plans
 from sljax.train.feed import open_source
 
 
@@ -100,7 +100,6 @@ def test_v3_rule_on_steps_by_hand():
 def _fake(out, name, points):
   import json  # pylint: disable=import-outside-toplevel
   from sljax.experiment import records
-  from sljax.experiment.running import runner  # pylint: disable=import-outside-toplevel
   wd = records.cell_dir(out, name)
   wd.mkdir(parents=True)
   (wd / "validation.jsonl").write_text("".join(json.dumps(r) + "\n" for r in _rows(points)))
@@ -116,7 +115,6 @@ FLAT = [(2, 1.0, 5), (4, 0.9, 3), (6, 0.9, 2), (8, 0.9, 2)]
     (FLAT, FLAT, None)])
 def test_the_grid_setting_by_the_rule(tmp_path, scratch, finetune, grid):
   """Both settings overfit: fine-tuning; one: that one; none: no grid. Waits for every cell."""
-  from sljax.experiment.running import runner  # pylint: disable=import-outside-toplevel
   plan = plans.build_plan("v4-pilot", "smoke", 1)
   records.register(tmp_path, plan)
   for cell in plan.cells:
@@ -175,7 +173,7 @@ def test_grid_cells_in_the_finetune_regime():
       # The pilot's pretraining with the arm's strategy and the grid's seed, nothing else.
       mine = cell.spec()["config"]
       pilot = dataclasses.replace(pilot_pre.config, strategy=arm, seed=seed)
-      assert mine == plans.Cell("x", arm, (), seed, pilot).spec()["config"]
+      assert mine == cells.Cell("x", arm, (), seed, pilot).spec()["config"]
       continue
     assert cell.init_cell == by[(arm, "pretrain", seed)].name
     assert (c.domain, c.fraction, c.lr, c.steps, c.val_every_steps) == (
@@ -270,7 +268,6 @@ def test_the_seed_rule_in_between(monkeypatch):
 
 
 def test_the_pilot_outcome_names_n_when_measured(tmp_path, monkeypatch):
-  from sljax.experiment.running import runner  # pylint: disable=import-outside-toplevel
   _measured(monkeypatch, 1.0)
   plan = plans.build_plan("v4-pilot", "smoke", 1)
   records.register(tmp_path, plan)
@@ -288,7 +285,6 @@ def test_grid_claims_on_fake_records(tmp_path):
   import json  # pylint: disable=import-outside-toplevel
   import numpy as np  # pylint: disable=import-outside-toplevel
   from sljax.experiment.report import build, paper_claims, stats  # pylint: disable=import-outside-toplevel
-  from sljax.experiment.running import runner
   plan = plans.build_plan("v4", "smoke", 3)
   records.register(tmp_path, plan)
   mae = {"stl": [1.0, 1.2, 1.1], "unc": [0.9, 1.0, 1.05], "epr": [1.0, 1.1, 1.2]}
@@ -423,7 +419,6 @@ def test_a_nan_score_leaves_its_seed_out_of_that_pair_only(tmp_path):
   that metric's pair; the claim is still computed over the other seeds."""
   import json  # pylint: disable=import-outside-toplevel
   from sljax.experiment.report import build, paper_claims  # pylint: disable=import-outside-toplevel
-  from sljax.experiment.running import runner
   plan = plans.build_plan("v4", "smoke", 3)
   records.register(tmp_path, plan)
   mae = {"stl": [1.0, 1.2, None], "unc": [0.9, 1.0, 1.05], "epr": [1.0, 1.1, 1.2]}

@@ -9,10 +9,9 @@ import math
 import pytest
 
 from sljax import cli
+from sljax.experiment import records
 from sljax.experiment.design import plans
 from sljax.experiment.report import build, stats
-from sljax.experiment import records
-from sljax.experiment.running import runner
 
 T975_DF2 = 4.302653  # Student t, 0.975 quantile, 2 degrees of freedom
 STL = [1.0, 2.0, 3.0]  # stl's test MAE for seeds 0, 1, 2

@@ -8,9 +8,9 @@ import time
 import pytest
 
 from sljax import cli
-from sljax.experiment.design import plans
 from sljax.experiment import records
-from sljax.experiment.running import runner, status, workers
+from sljax.experiment.design import plans
+from sljax.experiment.running import claims, status, workers
 
 X, Y = "CPU X", "CPU Y"
 
@@ -118,13 +118,13 @@ def test_says_who_holds_which_cell_since_when_and_its_last_step(grid, capsys):
   since = time.mktime((2026, 11, 27, 9, 30, 0, 0, 0, -1))
   for cell, host, job, step, age in (("psmnet-stl-objects-s2", "node-7", "123_4", 7, 0),
                                      ("psmnet-cg_a-objects-s0", "node-9", "123_5", 0, 250)):
-    path = workers.claim_path(grid, cell, 0)
-    assert workers.create_exclusive(path, dict(token=job, host=host, pid=4242, started=None,
-                                               job=job, lease=300.0, since=since,
-                                               kind=workers.CLAIM))
-    workers.beat_path(path).write_text(json.dumps({"step": step, "token": job}))
+    path = claims.claim_path(grid, cell, 0)
+    assert claims.create_exclusive(path, dict(token=job, host=host, pid=4242, started=None,
+                                              job=job, lease=300.0, since=since,
+                                              kind=claims.CLAIM))
+    claims.beat_path(path).write_text(json.dumps({"step": step, "token": job}))
     t = time.time() - age
-    os.utime(workers.beat_path(path), (t, t))
+    os.utime(claims.beat_path(path), (t, t))
   me = workers.Worker(grid, workers.identity(300.0), log_path="/logs/123_4_0_log.out")
   with me:
     assert cli.main(["experiment", "status", str(grid), "--seeds", "3"]) == 0
@@ -141,7 +141,7 @@ def test_says_who_holds_which_cell_since_when_and_its_last_step(grid, capsys):
     if not (records.cell_dir(grid, cell.name) / records.DONE_FILE).exists():
       _done(grid, cell.name, 60.0, X)
     records.write_json(records.cell_dir(grid, cell.name) / records.EVAL_DIR / "heldout.json", {})
-    workers.create_exclusive(workers.claim_path(grid, cell.name, 1), {"kind": workers.RELEASE})
+    claims.create_exclusive(claims.claim_path(grid, cell.name, 1), {"kind": claims.RELEASE})
   assert cli.main(["experiment", "status", str(grid)]) == 0
   text = capsys.readouterr().out
   assert "held by" not in text and "No worker" not in text and "Workers" not in text

@@ -6,8 +6,8 @@ import os
 import sys
 from pathlib import Path
 
-from sljax.experiment.design import plans
 from sljax.experiment import records
+from sljax.experiment.design import plans
 from sljax.experiment.running import runner
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))

@@ -19,9 +19,9 @@ import pytest
 
 from sljax import cli
 from sljax.errors import SljaxError
-from sljax.experiment.design import plans
 from sljax.experiment import records
-from sljax.experiment.running import runner, submit, workers
+from sljax.experiment.design import plans
+from sljax.experiment.running import claims, runner, submit, workers
 
 import claim_race
 import toys
@@ -47,17 +47,17 @@ def test_workers_started_at_the_same_instant_never_claim_the_same_cell(tmp_path)
     claimed = [cell for r, cells_won in won if r == round_ for cell in cells_won]
     assert sorted(claimed) == sorted(cells), (round_, won)  # each cell exactly once
     for cell in cells:  # one claim file each, the winner's
-      folder = workers.claims_dir(tmp_path / f"round{round_}", cell)
+      folder = claims.claims_dir(tmp_path / f"round{round_}", cell)
       assert [p.name for p in folder.glob("*.json")] == ["0000.json"]
 
 
 def _claim(out: Path, host: str, job: str | None = None, lease: float = 2.0,
            pid: int = 1) -> Path:
   """A claim of cell "c" as another worker's."""
-  path = workers.claim_path(out, "c", workers.top(out, "c").number + 1)
+  path = claims.claim_path(out, "c", claims.top(out, "c").number + 1)
   record = dict(token="other", host=host, pid=pid, started=None, job=job, lease=lease,
-                since=time.time(), kind=workers.CLAIM)
-  assert workers.create_exclusive(path, record)
+                since=time.time(), kind=claims.CLAIM)
+  assert claims.create_exclusive(path, record)
   return path
 
 
@@ -81,31 +81,31 @@ def test_a_claim_on_another_host_is_taken_over_after_its_lease_only(tmp_path, me
   assert workers.late_holders(tmp_path, ["c"], me.clock()) == ["c"]
   _backdate(claim, 2.5)
   assert me.claim("c")                  # over the lease: taken over, the next number
-  rec = workers.read_claim(workers.claim_path(tmp_path, "c", 1))
+  rec = claims.read_claim(claims.claim_path(tmp_path, "c", 1))
   assert rec["token"] == me.me.token and "over its 2 s lease" in rec["took_over"]
-  assert workers.top(tmp_path, "c").record["token"] == me.me.token
+  assert claims.top(tmp_path, "c").record["token"] == me.me.token
 
 
 def test_a_heartbeat_keeps_a_claim_and_a_dead_pid_loses_it_at_once(tmp_path, me):
   claim = _claim(tmp_path, "elsewhere")
   _backdate(claim, 10)
-  workers.beat_path(claim).write_text("{}")  # the holder's heartbeat file renewed just now
+  claims.beat_path(claim).write_text("{}")  # the holder's heartbeat file renewed just now
   assert not me.claim("c")
   # This host: a pid that ended is gone at once, whatever its heartbeat; a live one is not.
   proc = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
   try:
     live = tmp_path / "live"
-    path = workers.claim_path(live, "c", 0)
-    workers.create_exclusive(path, dict(token="t", host=workers.host_name(), pid=proc.pid,
-                                        started=workers.process_started(proc.pid),
-                                        job=None, lease=2.0, since=0, kind=workers.CLAIM))
+    path = claims.claim_path(live, "c", 0)
+    claims.create_exclusive(path, dict(token="t", host=workers.host_name(), pid=proc.pid,
+                                       started=workers.process_started(proc.pid),
+                                       job=None, lease=2.0, since=0, kind=claims.CLAIM))
     _backdate(path, 100)
     with workers.Worker(live, workers.identity(2.0)) as other:
       assert not other.claim("c")
       proc.kill()
       proc.wait()
       assert other.claim("c")
-      assert "has ended" in workers.read_claim(workers.claim_path(live, "c", 1))["took_over"]
+      assert "has ended" in claims.read_claim(claims.claim_path(live, "c", 1))["took_over"]
   finally:
     proc.kill()
 
@@ -132,17 +132,17 @@ def test_a_superseded_holder_gives_its_cell_up_and_release_lets_the_next_claim(t
     a._renew()  # pylint: disable=protected-access
     assert a.lost
     a.release("finished")               # not its claim any more: nothing written
-    assert workers.top(tmp_path, "c").record["host"] == "elsewhere"
+    assert claims.top(tmp_path, "c").record["host"] == "elsewhere"
   with workers.Worker(tmp_path / "b", workers.identity(2.0)) as b:
     assert b.claim("c")
     b.release("stopped by SIGTERM")
-    top = workers.top(tmp_path / "b", "c")
+    top = claims.top(tmp_path / "b", "c")
     assert top.number == 1 and top.record["why"] == "stopped by SIGTERM" and not top.held
-    assert b.claim("c") and workers.top(tmp_path / "b", "c").number == 2
+    assert b.claim("c") and claims.top(tmp_path / "b", "c").number == 2
 
 
 def test_a_foreign_claim_file_is_one_line(tmp_path, me):
-  path = workers.claim_path(tmp_path, "c", 0)
+  path = claims.claim_path(tmp_path, "c", 0)
   path.parent.mkdir(parents=True)
   path.write_text("hello")
   with pytest.raises(SljaxError, match=f"{path}: not an sljax claim"):
@@ -318,9 +318,9 @@ def test_sigterm_releases_the_claim_and_the_command_says_so(tmp_path, monkeypatc
   out = tmp_path / "out"
   res = _stopping_run(out, monkeypatch, signal.SIGTERM)
   assert res["stopped"] == "SIGTERM" and res["trained"] == 0
-  top = workers.top(out, "unet-sl-objects-s0")
+  top = claims.top(out, "unet-sl-objects-s0")
   assert top.record["why"] == "stopped by SIGTERM" and top.record["step"] == 4
-  assert not any(workers.top(out, c).number >= 0 for c in ("unet-disp-objects-s0",))
+  assert not any(claims.top(out, c).number >= 0 for c in ("unet-disp-objects-s0",))
   assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL  # put back
   assert not list((out / workers.WORKERS_DIR).iterdir())
   assert "SIGTERM: stopping after this step" in capfd.readouterr().err
@@ -331,7 +331,7 @@ def test_sigterm_releases_the_claim_and_the_command_says_so(tmp_path, monkeypatc
   assert "unet-sl-objects-s0: stopped by SIGTERM; its checkpoint is kept and its claim " \
       "released" in said
   assert said.rstrip().endswith("stopped by SIGTERM: run the same command to go on"), said
-  assert workers.top(out, "unet-sl-objects-s0").number == 3  # claimed and released again
+  assert claims.top(out, "unet-sl-objects-s0").number == 3  # claimed and released again
 
 
 def test_slurms_warning_checkpoints_through_submitit_and_requeues(tmp_path, monkeypatch):
@@ -356,7 +356,7 @@ def test_slurms_warning_checkpoints_through_submitit_and_requeues(tmp_path, monk
   finally:
     signal.signal(signal.SIGUSR2, previous)
   assert exit_.value.code == local.LOCAL_REQUEUE_RETURN_CODE
-  top = workers.top(tmp_path / "out", "unet-sl-objects-s0")
+  top = claims.top(tmp_path / "out", "unet-sl-objects-s0")
   assert top.record["why"] == "stopped by SIGUSR2"  # released before the requeue
   requeued = utils.DelayedSubmission.load(paths.submitted_pickle)
   assert isinstance(requeued.function, submit.WorkerJob) and requeued.function.argv == argv
@@ -377,10 +377,10 @@ def test_a_worker_with_nothing_to_claim_says_what_is_left_and_who_holds_it(tmp_p
       records.write_json(wd / records.DONE_FILE, {"step": 30})
       records.write_json(wd / records.EVAL_DIR / "heldout.json", {"pooled": {}})
     else:
-      path = workers.claim_path(out, cell.name, 0)
-      workers.create_exclusive(path, dict(token="t", host="node-3", pid=77, started=None,
-                                          job="9_1", lease=300.0, since=0, kind=workers.CLAIM))
-      workers.beat_path(path).write_text(json.dumps({"step": 5, "token": "t"}))
+      path = claims.claim_path(out, cell.name, 0)
+      claims.create_exclusive(path, dict(token="t", host="node-3", pid=77, started=None,
+                                         job="9_1", lease=300.0, since=0, kind=claims.CLAIM))
+      claims.beat_path(path).write_text(json.dumps({"step": 5, "token": "t"}))
   monkeypatch.setattr(runner.time, "sleep", lambda s: pytest.fail("waited"))
   res = runner.run(plan, out, progress=False, log=lambda line: None, lease=300.0)
   assert res["trained"] == 0 and set(res["left"]) == {"unet-sl-tissue-ft-s0",
@@ -399,8 +399,8 @@ def test_ctrl_c_releases_the_claim_too(tmp_path, monkeypatch):
   monkeypatch.setattr(runner, "train_cell", interrupted)
   with pytest.raises(KeyboardInterrupt):
     runner.run(plan, out, progress=False, log=lambda line: None, lease=2.0)
-  top = workers.top(out, "unet-sl-objects-s0")
-  assert top.record["kind"] == workers.RELEASE and top.record["why"] == "interrupted"
+  top = claims.top(out, "unet-sl-objects-s0")
+  assert top.record["kind"] == claims.RELEASE and top.record["why"] == "interrupted"
   assert top.record["step"] == 3 and not list((out / workers.WORKERS_DIR).iterdir())
 
 
@@ -427,17 +427,17 @@ def test_a_worker_that_lost_its_cell_stops_training_it_and_goes_on(tmp_path, mon
   res = runner.run(plan, out, progress=False, log=lambda line: None, lease=0.6)
   assert res["trained"] == 3 and set(res["left"]) == {taken}
   assert res["left"][taken].startswith("held by elsewhere pid 1")
-  claims = [json.loads(p.read_text()) for p in
-            sorted(workers.claims_dir(out, taken).glob("*.json"))]
-  assert [c["host"] for c in claims] == [workers.host_name(), "elsewhere"]  # not released
+  records = [json.loads(p.read_text()) for p in
+             sorted(claims.claims_dir(out, taken).glob("*.json"))]
+  assert [c["host"] for c in records] == [workers.host_name(), "elsewhere"]  # not released
 
 
 def _claim_as(out: Path, cell: str, host: str) -> None:
   """The next claim of a cell, by a live worker on another host (lease 300 s)."""
-  path = workers.claim_path(out, cell, workers.top(out, cell).number + 1)
-  assert workers.create_exclusive(path, dict(token="other", host=host, pid=1, started=None,
-                                             job=None, lease=300.0, since=time.time(),
-                                             kind=workers.CLAIM))
+  path = claims.claim_path(out, cell, claims.top(out, cell).number + 1)
+  assert claims.create_exclusive(path, dict(token="other", host=host, pid=1, started=None,
+                                            job=None, lease=300.0, since=time.time(),
+                                            kind=claims.CLAIM))
 
 
 def test_local_workers_get_one_gpu_each_where_there_are_several():

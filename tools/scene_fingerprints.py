@@ -68,7 +68,8 @@ def scenes() -> Iterator[tuple[dict[str, Any], Any]]:
   """(where, scene) for a few scenes of every grid's plans: the first training scene of each
   plan's first and last cell (with its split), and the first and last scene of each fixed test
   set."""
-  from sljax.experiment.design.plans import FIXED, build_plan
+  from sljax.experiment.design.cells import FIXED
+  from sljax.experiment.design.plans import build_plan
   from sljax.experiment.running import runner
   from sljax.train.loop import open_source
 

@@ -173,7 +173,7 @@ def calibrate(args: argparse.Namespace) -> int:
   """Runs the calibration and prints the budgets by the plateau rule."""
   result = cal.calibrate(args.plan, args.scale, args.out, progress=not args.no_progress)
   print(f"budgets for scale {args.scale} by the plateau rule (commit them into "
-        "sljax/experiment/design/plans.py, SCALES[...].budgets):")
+        "sljax/experiment/design/scales.py, SCALES[...].budgets):")
   for line in cal.budget_lines(result):
     print("  " + line)
   if result["missing"]:

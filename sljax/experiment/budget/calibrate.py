@@ -24,8 +24,9 @@ from typing import Any
 
 import numpy as np
 
-from sljax.experiment.design import plans
 from sljax.experiment import records
+from sljax.experiment.design import plans
+from sljax.experiment.design.cells import Plan
 from sljax.experiment.running import runner
 
 PLATEAU_TOL = 0.05
@@ -54,7 +55,7 @@ def plateau(curve: Sequence[tuple[int, float]], epochs: int, drop: bool) -> dict
           "smoothed": [[e, s] for (e, _), s in zip(pts, smoothed)]}
 
 
-def budgets(out: Path, plan: plans.Plan) -> dict[str, Any]:
+def budgets(out: Path, plan: Plan) -> dict[str, Any]:
   """The rule applied to every finished calibration cell of a plan (missing ones listed)."""
   rows, missing = {}, []
   for cell in plan.cells:

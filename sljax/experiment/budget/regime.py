@@ -27,9 +27,10 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from sljax.errors import require
+from sljax.experiment import records
 from sljax.experiment.budget.calibrate import SMOOTH, plateau, smooth
 from sljax.experiment.design import plans
-from sljax.experiment import records
+from sljax.experiment.design.cells import Cell, Seeded
 from sljax.experiment.running import runner
 from sljax.io import files
 
@@ -181,13 +182,13 @@ def v4(out: str | Path, scale: str = "cpu", seeds: int = 2) -> dict[str, Any]:
           "grid_setting": grid, "both_overfit": both, "grid_seeds": seeds_rule}
 
 
-def _grid_cells(scale: str, regime_: tuple[str, str, int]) -> list[plans.Cell]:
+def _grid_cells(scale: str, regime_: tuple[str, str, int]) -> list[Cell]:
   """One seed's cells of the v4 grid at a scale, were the rule to choose regime_."""
   sc = plans.SCALES[scale]
   sc = dataclasses.replace(sc, v4=dataclasses.replace(sc.v4, regime=regime_))
   # The builder itself, not build_plan: n is what build_plan would refuse without.
   build = plans.BUILDERS[plans.V4][0]
-  return build(plans.Seeded(sc, sc.v4.grid_first_seed, None, (), sc.budget))
+  return build(Seeded(sc, sc.v4.grid_first_seed, None, (), sc.budget))
 
 
 def grid_seeds(scale: str, regime_: tuple[str, str, int]) -> dict[str, Any]:

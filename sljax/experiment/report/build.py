@@ -29,7 +29,8 @@ import numpy as np
 
 from sljax.errors import SljaxError
 from sljax.evaluation.scoring import json_safe
-from sljax.experiment.design.plans import FIXED, HELDOUT, PLANS, TEST_SEED, Cell, Plan
+from sljax.experiment.design.cells import FIXED, HELDOUT, TEST_SEED, Cell, Plan
+from sljax.experiment.design.plans import PLANS
 from sljax.experiment.report import figures, stats
 from sljax.experiment.report.paper_claims import ALPHA, CURVE_SET, PAPER, POWER, claims
 from sljax.experiment.records import (DONE_FILE, EVAL_DIR, WINDOWS_FILE, cell_dir, curve,

@@ -11,7 +11,7 @@ difference its test had POWER to detect, whether the paper itself found a gain, 
 import math
 from typing import Any
 
-from sljax.experiment.design.plans import HELDOUT, Plan
+from sljax.experiment.design.cells import HELDOUT, Plan
 from sljax.experiment.report import stats
 from sljax.losses.weighting import MULTI_TASK
 

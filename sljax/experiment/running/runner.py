@@ -27,7 +27,8 @@ from sljax import inference
 from sljax.data.dataset import FolderSource, parse_fraction, split_indices
 from sljax.errors import require
 from sljax.evaluation.scoring import evaluate, json_safe
-from sljax.experiment.design.plans import FIXED, HELDOUT, TEST_SEED, Cell, EvalSet, Plan, describe
+from sljax.experiment.design.cells import FIXED, HELDOUT, TEST_SEED, Cell, EvalSet, Plan
+from sljax.experiment.design.plans import describe
 from sljax.experiment.records import (DIVERGED_FILE, DONE_FILE, EVAL_DIR, LOG_FILE, WINDOWS_FILE,
                                       cell_dir, eval_record, final_checkpoint, read_json,
                                       register, write_eval, write_json)

@@ -1,9 +1,9 @@
 """Where a grid stands: which cells are finished, training or waiting, how long the finished
 ones took, and about how long the rest will take.
 
-Reads only what the workers write (plan.json, each cell's done.json, eval/ and epochs.jsonl,
-their claims and heartbeats: sljax.experiment.running.workers), so it can be run beside a grid that is
-training, from any host that sees the folder. Estimates come from finished cells of the same
+Reads only what the workers write (plan.json, each cell's done.json, eval/ and epochs.jsonl:
+sljax.experiment.records; their claims and heartbeats: sljax.experiment.running.claims and
+workers), so it can be run beside a grid that is training, from any host that sees the folder. Estimates come from finished cells of the same
 arm and factors, preferring those finished on this CPU kind (a mean over two CPUs times
 neither); a group with no finished cell has no estimate and is counted as such.
 """
@@ -12,7 +12,7 @@ import dataclasses
 import json
 from pathlib import Path
 
-from sljax.experiment.design.plans import Cell, Plan
+from sljax.experiment.design.cells import Cell, Plan
 from sljax.experiment.records import (DONE_FILE, cell_dir, eval_record, read_json, read_text,
                                       registered_plans)
 from sljax.experiment.running import workers

@@ -21,9 +21,9 @@ from pathlib import Path
 from typing import Any
 
 from sljax.errors import SljaxError, require
-from sljax.experiment.design.plans import Plan
 from sljax.experiment import records
-from sljax.experiment.running import runner, workers
+from sljax.experiment.design.cells import Plan
+from sljax.experiment.running import workers
 
 LOGS_DIR = "submitit"   # OUT/submitit/: submitit's job files and each worker's log
 LOG_LEVEL = "SUBMITIT_LOG_LEVEL"

@@ -1,14 +1,8 @@
-"""Workers sharing one experiment folder: claims on cells, their leases, and the take-over of a
-dead worker's cell.
+"""Workers sharing one experiment folder: who a worker is, when a cell's holder is gone and its
+claim may be taken over, the worker itself (its claims and the heartbeat that renews them),
+who holds what for `experiment status`, and the signals that stop a worker.
 
-OUT/claims/CELL/NNNN.json   the cell's claims, in order: each one created exclusively (a hard
-                            link of a complete file, which no two processes can both make, on
-                            a local disk or NFS), never rewritten. The highest holds the cell:
-                            {"kind": "claim", the worker's host, pid, job, token, since, lease}
-                            or {"kind": "release", ...} once its holder let go (done, stopped,
-                            diverged). A dead holder's claim is superseded by the next number.
-OUT/claims/CELL/NNNN.beat   the holder's heartbeat: its mtime is renewed every lease/3 s, and it
-                            holds the cell's last training step (for `experiment status`)
+OUT/claims/CELL/...         the cells' claims and heartbeats (sljax.experiment.running.claims)
 OUT/workers/ID.json         a live worker: host, pid, job, since, its log; its mtime is the
                             worker's clock on the shared file system, removed when it ends
 
@@ -22,7 +16,6 @@ later claim superseded its own (a worker stalled past its lease) and then gives 
 
 import contextlib
 import dataclasses
-import errno
 import json
 import os
 import secrets
@@ -34,7 +27,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from sljax.errors import SljaxError
+from sljax.experiment.running import claims
 from sljax.io import files
 
 try:
@@ -42,11 +35,9 @@ try:
 except ImportError:  # Windows: plan.json is registered unlocked (see plan_lock)
   fcntl = None
 
-CLAIMS_DIR = "claims"
 WORKERS_DIR = "workers"
 LEASE_S = 300.0
 HOST_ENV = "SLJAX_WORKER_HOST"   # a host name for claims (containers that share a hostname)
-CLAIM, RELEASE = "claim", "release"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -118,98 +109,10 @@ def pid_alive(pid: int, started: str | None) -> bool:
   return started is None or now is None or now == started
 
 
-# ----------------------------------------------------------------------------- claim files
+# ----------------------------------------------------------------------------- take-over
 
 
-def claims_dir(out: Path, cell: str) -> Path:
-  """The folder of a cell's claims."""
-  return out / CLAIMS_DIR / cell
-
-
-def claim_path(out: Path, cell: str, number: int) -> Path:
-  """The claim file number `number` of a cell."""
-  return claims_dir(out, cell) / f"{number:04d}.json"
-
-
-def beat_path(claim: Path) -> Path:
-  """The heartbeat file of a claim."""
-  return claim.with_suffix(".beat")
-
-
-def create_exclusive(path: Path, record: dict[str, Any]) -> bool:
-  """Creates path holding record, complete, unless it exists; True when this call made it.
-  Written to a unique file and hard-linked into place: link() fails when the name exists, on
-  NFS too, and the link count tells whether ours won even where a retried link() reports
-  EEXIST for its own success (open(2), O_EXCL)."""
-  path.parent.mkdir(parents=True, exist_ok=True)
-  tmp = path.with_name(f".{path.name}.{secrets.token_hex(6)}.tmp")
-  tmp.write_text(json.dumps(record) + "\n", encoding="utf-8")
-  try:
-    try:
-      os.link(tmp, path)
-    except FileExistsError:
-      pass
-    return os.stat(tmp).st_nlink == 2
-  finally:
-    tmp.unlink(missing_ok=True)
-
-
-def read_claim(path: Path) -> dict[str, Any] | None:
-  """A claim file's record (None when absent); a file that is not a JSON object is an error
-  naming it."""
-  try:
-    text = path.read_text(encoding="utf-8")
-  except FileNotFoundError:
-    return None
-  try:
-    rec = json.loads(text)
-  except ValueError:
-    rec = None
-  if not isinstance(rec, dict) or rec.get("kind") not in (CLAIM, RELEASE):
-    raise SljaxError(f"{path}: not an sljax claim (delete it if nothing else wrote it)")
-  return rec
-
-
-@dataclasses.dataclass(frozen=True)
-class Top:
-  """A cell's latest claim: its number, record and heartbeat mtime (number -1: none yet)."""
-  number: int
-  record: dict[str, Any] | None
-  beat: float | None
-
-  @property
-  def held(self) -> bool:
-    """Whether a worker claims the cell (alive or not)."""
-    return self.record is not None and self.record["kind"] == CLAIM
-
-
-def top(out: Path, cell: str) -> Top:
-  """The latest claim of a cell."""
-  folder = claims_dir(out, cell)
-  numbers = sorted(int(p.stem) for p in folder.glob("[0-9][0-9][0-9][0-9].json")) \
-      if folder.is_dir() else []
-  number = numbers[-1] if numbers else -1
-  # The listing may be stale (NFS caches folders); names are probed upwards until absent.
-  while claim_path(out, cell, number + 1).exists():
-    number += 1
-  if number < 0:
-    return Top(-1, None, None)
-  path = claim_path(out, cell, number)
-  rec = read_claim(path)
-  return Top(number, rec, beat_mtime(path))
-
-
-def beat_mtime(claim: Path) -> float | None:
-  """When a claim's holder last showed life: its heartbeat file's mtime, else the claim's."""
-  for path in (beat_path(claim), claim):
-    try:
-      return path.stat().st_mtime
-    except FileNotFoundError:
-      continue
-  return None
-
-
-def gone(t: Top, me: Identity, now: float) -> str | None:
+def gone(t: claims.Top, me: Identity, now: float) -> str | None:
   """Why the holder of a claimed cell is gone (its claim may be taken over), or None while it
   may live. now: the shared file system's time (Worker.clock)."""
   rec = t.record
@@ -227,9 +130,12 @@ def gone(t: Top, me: Identity, now: float) -> str | None:
   return None
 
 
-def late(t: Top, now: float) -> bool:
+def late(t: claims.Top, now: float) -> bool:
   """Whether a held claim missed two heartbeats (its holder may be dead; the lease decides)."""
   return t.held and now - (t.beat or 0.0) > 2 * float(t.record.get("lease", LEASE_S)) / 3
+
+
+# ----------------------------------------------------------------------------- plan.json
 
 
 @contextlib.contextmanager
@@ -302,13 +208,13 @@ class Worker:
     """Claims a cell (free, released, or held by a worker that is gone); False when another
     worker holds it or claimed it first."""
     assert self.held is None, "one cell at a time"
-    t = top(self.out, cell)
+    t = claims.top(self.out, cell)
     why = gone(t, self.me, self.clock()) if t.held else None
     if t.held and why is None:
       return False
-    path = claim_path(self.out, cell, t.number + 1)
-    record = dict(self.me.record(), kind=CLAIM, since=time.time(), took_over=why)
-    if not create_exclusive(path, record):
+    path = claims.claim_path(self.out, cell, t.number + 1)
+    record = dict(self.me.record(), kind=claims.CLAIM, since=time.time(), took_over=why)
+    if not claims.create_exclusive(path, record):
       return False
     with self._lock:
       self.held = Held(cell, path)
@@ -321,10 +227,10 @@ class Worker:
       held, self.held = self.held, None
     if held is None or not self._owns(held):
       return
-    create_exclusive(held.path.with_name(f"{int(held.path.stem) + 1:04d}.json"),
-                     {"kind": RELEASE, "token": self.me.token, "host": self.me.host,
-                      "pid": self.me.pid, "job": self.me.job, "why": why, "step": held.step,
-                      "at": time.time()})
+    claims.create_exclusive(held.path.with_name(f"{int(held.path.stem) + 1:04d}.json"),
+                            {"kind": claims.RELEASE, "token": self.me.token,
+                             "host": self.me.host, "pid": self.me.pid, "job": self.me.job,
+                             "why": why, "step": held.step, "at": time.time()})
 
   def progress(self, step: int) -> None:
     """The held cell's training reached step (shown by `experiment status`)."""
@@ -353,8 +259,8 @@ class Worker:
       if not self._owns(held):
         held.lost = True
         return
-      files.write_text(beat_path(held.path), json.dumps({"step": held.step,
-                                                          "token": self.me.token}) + "\n")
+      files.write_text(claims.beat_path(held.path),
+                       json.dumps({"step": held.step, "token": self.me.token}) + "\n")
 
   def _beat_loop(self) -> None:
     """Renews every lease/3 s until the worker ends (a failed write is retried next time)."""
@@ -365,23 +271,17 @@ class Worker:
         pass
 
 
-def read_beat(claim: Path) -> dict[str, Any]:
-  """A claim's heartbeat record ({} when absent or being replaced)."""
-  try:
-    rec = json.loads(beat_path(claim).read_text(encoding="utf-8"))
-  except (OSError, ValueError):
-    return {}
-  return rec if isinstance(rec, dict) else {}
+# ----------------------------------------------------------------------------- who holds what
 
 
 def holders(out: Path, cells: list[str]) -> dict[str, tuple[dict[str, Any], int | None, float]]:
   """{cell: (claim record, last step, seconds since its heartbeat)} of the claimed cells among
   cells, ages by the shared file system's clock (a probe file touched now)."""
-  tops = {cell: t for cell in cells if (t := top(out, cell)).held}
-  now = fs_now(out) if tops else 0.0
+  tops = {cell: t for cell in cells if (t := claims.top(out, cell)).held}
+  now = claims.fs_now(out) if tops else 0.0
   found = {}
   for cell, t in tops.items():
-    beat = read_beat(claim_path(out, cell, t.number))
+    beat = claims.read_beat(claims.claim_path(out, cell, t.number))
     step = beat.get("step") if beat.get("token") == t.record.get("token") else None
     found[cell] = (t.record, step, now - (t.beat or now))
   return found
@@ -393,7 +293,7 @@ def live_workers(out: Path) -> list[str]:
   found = sorted((out / WORKERS_DIR).glob("*.json"))
   if not found:
     return []
-  now, said = fs_now(out), []
+  now, said = claims.fs_now(out), []
   for path in found:
     try:
       rec, age = json.loads(path.read_text(encoding="utf-8")), now - path.stat().st_mtime
@@ -411,7 +311,7 @@ def live_workers(out: Path) -> list[str]:
 
 def late_holders(out: Path, cells: list[str], now: float) -> list[str]:
   """The cells among cells whose holder missed two heartbeats (`late`)."""
-  return [cell for cell in cells if late(top(out, cell), now)]
+  return [cell for cell in cells if late(claims.top(out, cell), now)]
 
 
 def held_by(out: Path, cells: list[str]) -> dict[str, str]:
@@ -431,23 +331,6 @@ def held_by(out: Path, cells: list[str]) -> dict[str, str]:
 def when(stamp: float | None) -> str:
   """A claim's time, local, to the minute."""
   return "?" if stamp is None else time.strftime("%Y-%m-%d %H:%M", time.localtime(stamp))
-
-
-def fs_now(out: Path) -> float:
-  """Now on the file system holding OUT (a probe file's mtime, in the claims' folder that the
-  workers made), for readers that are no worker (`experiment status`); the local clock where
-  that folder cannot be written."""
-  probe = out / CLAIMS_DIR / f".clock-{os.getpid()}"
-  try:
-    probe.touch()
-    try:
-      return probe.stat().st_mtime
-    finally:
-      probe.unlink(missing_ok=True)
-  except OSError as e:
-    if e.errno not in (errno.EACCES, errno.EROFS, errno.EPERM, errno.ENOENT):
-      raise
-    return time.time()
 
 
 # ----------------------------------------------------------------------------- stopping

@@ -120,22 +120,61 @@ def create_train_state(run: Setup, model, tx) -> st.TrainState:
   return st.create_state(variables, tx)
 
 
-def restore_checkpoint(manager, state: st.TrainState, sharding) -> tuple[st.TrainState,
-                                                                           LoopState]:
-  """The TrainState and LoopState of the manager's latest checkpoint."""
-  step = manager.latest_step()
+def restore_checkpoint(manager, state: st.TrainState, sharding, skip_damaged: bool = False,
+                       log: Callable[[str], None] = print) -> tuple[st.TrainState, LoopState]:
+  """The TrainState and LoopState of the newest checkpoint; a damaged one is refused, or with
+  skip_damaged moved aside (to N.damaged, named in a line) for the newest intact earlier one."""
+  checkpoints = Path(manager.directory)
   abstract = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding),
                           state)
-  try:
-    state, meta = ckpt.restore(manager, step, abstract)
+  skipped = []
+  # Every step entry, not orbax's list: orbax passes over a file or an emptied folder in
+  # silence, and resuming from the step before it would quietly repeat steps.
+  for step in reversed(ckpt.step_entries(checkpoints)):
     try:
-      loop = LoopState.from_meta(meta)
-    except (KeyError, TypeError, ValueError) as e:
-      raise ckpt.unreadable(manager.directory, step, e) from None
-  except ckpt.CheckpointUnreadable as e:
-    if not e.damaged:  # a permission problem: deleting the checkpoint is not the remedy
-      raise
-    raise SljaxError(f"{e}; {resume_advice(Path(manager.directory), step)}") from None
+      state, loop = _restore_step(manager, step, abstract, log)
+      break
+    except ckpt.CheckpointUnreadable as e:
+      if not e.damaged:  # a permission problem: deleting the checkpoint is not the remedy
+        raise
+      if not skip_damaged:
+        raise SljaxError(f"{e}; {resume_advice(checkpoints, step)}") from None
+      skipped.append((step, e))
+  else:
+    raise SljaxError(f"{skipped[-1][1]}; no intact checkpoint is left; start again with "
+                     "--overwrite")
+  for bad, e in skipped:
+    aside = checkpoints / f"{bad}.damaged"
+    if jax.process_index() == 0:  # kept for a look, out of orbax's way (a save reuses N)
+      (checkpoints / str(bad)).rename(aside)
+    log(f"--resume-skip-damaged: skipped {e} (moved to {aside.name})")
+  if skipped:
+    manager.reload()  # orbax listed the moved steps when it opened the folder
+  return state, loop
+
+
+def open_manager(checkpoints: Path, keep: int, skip_damaged: bool, log: Callable[[str], None]):
+  """The run's checkpoint manager; a step whose orbax metadata is damaged (orbax reads them all
+  on opening) is refused with the resume advice, or with skip_damaged moved aside."""
+  while True:
+    try:
+      return ckpt.make_manager(checkpoints, keep=keep)
+    except ckpt.CheckpointUnreadable as e:
+      if not skip_damaged:
+        raise SljaxError(f"{e}; {resume_advice(checkpoints, e.step)}") from None
+      aside = checkpoints / f"{e.step}.damaged"
+      (checkpoints / str(e.step)).rename(aside)
+      log(f"--resume-skip-damaged: skipped {e} (moved to {aside.name})")
+
+
+def _restore_step(manager, step: int, abstract, log: Callable[[str], None]
+                  ) -> tuple[st.TrainState, LoopState]:
+  """The TrainState and LoopState of one step's checkpoint (CheckpointUnreadable if damaged)."""
+  state, meta = ckpt.restore(manager, step, abstract, note=log)
+  try:
+    loop = LoopState.from_meta(meta)
+  except (KeyError, TypeError, ValueError) as e:
+    raise ckpt.unreadable(manager.directory, step, e) from None
   require(loop.step == int(state.step), f"{manager.directory}: checkpoint {step} is inconsistent")
   return state, loop
 
@@ -148,7 +187,8 @@ def resume_advice(checkpoints: Path, step: int) -> str:
   if not earlier:
     return "no earlier checkpoint exists; start again with --overwrite"
   return (f"earlier checkpoints: steps {', '.join(map(str, earlier))}; delete the damaged folder "
-          f"{checkpoints / str(step)} to resume from step {earlier[-1]}")
+          f"{checkpoints / str(step)} to resume from step {earlier[-1]}, or pass "
+          "--resume-skip-damaged to move it aside and do so")
 
 
 def fresh_start_note(workdir: Path) -> str | None:
@@ -185,7 +225,7 @@ def train(config: TrainConfig, workdir: str | os.PathLike | None = None, *, resu
           overwrite: bool = False, stop_after: int | None = None, preset_note: str = "",
           profile_dir: str | None = None, log: Callable[[str], None] = functools.partial(
               print, flush=True), progress: bool | Any | None = None,
-          stop: Callable[[], bool] | None = None) -> RunResult:
+          stop: Callable[[], bool] | None = None, skip_damaged: bool = False) -> RunResult:
   """Runs (or resumes) training; every bad input raises SljaxError before any compilation.
 
   stop_after: stop once the global step reaches this value (the last checkpoint is the one
@@ -194,19 +234,22 @@ def train(config: TrainConfig, workdir: str | os.PathLike | None = None, *, resu
   checkpoint at that step, as a Ctrl-C does, and returns with `stopped` set.
   progress: None (a bar on the main process), True/False, or a bar to drive: an object with
   tqdm's update(steps), set_postfix(**kw) and write(line), e.g. the experiment runner's.
+  skip_damaged: a resume whose newest checkpoint is damaged moves it aside (WORKDIR/
+  checkpoints/N.damaged, said in a line) and resumes from the newest intact one; without it
+  a damaged checkpoint is refused (SljaxError naming it).
   """
   workdir = Path(workdir if workdir is not None else default_workdir(config)).absolute()
   # One run per workdir: a second process (the run started again while it still goes on)
   # would interleave the logs and checkpoints of both.
   with held(workdir, f"sljax train ({config.net})"):
     return _train(config, workdir, resume, overwrite, stop_after, preset_note, profile_dir, log,
-                  progress, stop)
+                  progress, stop, skip_damaged)
 
 
 def _train(config: TrainConfig, workdir: Path, resume: bool, overwrite: bool,
            stop_after: int | None, preset_note: str, profile_dir: str | None,
            log: Callable[[str], None], progress: bool | Any | None,
-           stop: Callable[[], bool] | None) -> RunResult:
+           stop: Callable[[], bool] | None, skip_damaged: bool = False) -> RunResult:
   """train() once its workdir is held."""
   config = with_absolute_paths(config)  # config.json names the folders from anywhere
   check_profile_dir(profile_dir)
@@ -223,10 +266,11 @@ def _train(config: TrainConfig, workdir: Path, resume: bool, overwrite: bool,
   model, tx, train_step, eval_step = compiled_steps(run.model, config.disp_loss, config.lr,
                                                     drop, mesh, run.config.ynn)
   state = create_train_state(run, model, tx)
-  manager = ckpt.make_manager(workdir / ckpt.CHECKPOINT_DIR, keep=config.keep)
+  manager = open_manager(workdir / ckpt.CHECKPOINT_DIR, config.keep, run.resume and skip_damaged,
+                         log)
   loop = LoopState()
   if run.resume:
-    state, loop = restore_checkpoint(manager, state, repl)
+    state, loop = restore_checkpoint(manager, state, repl, skip_damaged, log)
     log(f"resuming from step {loop.step} (epoch {loop.step // spe + 1})")
   elif resume and not overwrite and fresh_start_note(workdir):
     log(fresh_start_note(workdir))

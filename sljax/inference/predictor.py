@@ -255,7 +255,7 @@ def load(checkpoint: str | os.PathLike, mode: str = "pad", maxdisp: int | None =
     if value is not None:
       _check_range(value, what)
   path = os.fspath(checkpoint)
-  model_name, model_kwargs, variables, saved = load_for_inference(path)
+  model_name, model_kwargs, variables, saved = load_for_inference(path, fallback=True)
   saved = dict(saved or {})
   config = model_config(model_name, model_kwargs, saved.get("gray"), conv_impl)
   spec = config.spec

@@ -14,11 +14,22 @@ unwritable workdir, a killed process) leaves a tmp folder that a resume ignores,
 previous checkpoints stay (old ones are deleted only after a save is finalised). A failure
 becomes one SljaxError line naming what failed, where, and the last good checkpoint
 (sljax.models.failures).
+
+Digests: each step folder holds sljax_digest.json, the SHA-256 of its files, written inside the
+temporary folder just before orbax's rename (sljax.models.digest says why there), so a finished
+checkpoint always has one. `restore` checks it before orbax reads a byte: a file changed, cut
+short, emptied, missing, or a folder where a file was (or a file where the step's folder should
+be) is CheckpointUnreadable naming the step and the file. A checkpoint whose meta says it was
+written with a digest but has none is damaged too; one from before digests restores unchecked,
+with one line saying so.
 """
 
 import itertools
+import json
 import math
 import os
+import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -30,6 +41,7 @@ from flax import traverse_util
 from orbax.checkpoint.checkpoint_managers import preservation_policy as pp
 
 from sljax.errors import SljaxError
+from sljax.models import digest
 from sljax.models.failures import (RESTORE_ERRORS, SAVING, quiet_late_reads, quiet_storage_logs,
                                    storage_errno, storage_guard)
 
@@ -37,6 +49,7 @@ CHECKPOINT_DIR = "checkpoints"
 CONFIG_FILE = "config.json"
 BEST_METRIC = "val_mae"
 LAYOUT_KEY = "packed_layout"  # in meta: [[path parts], dtype, shape] per leaf
+DIGEST_KEY = "digest"  # in meta: the digest format, so a lost digest file is damage, not age
 
 
 def _val_mae(metrics: dict[str, Any]) -> float:
@@ -53,12 +66,27 @@ def make_manager(directory: str | os.PathLike, keep: int = 3,
                keep_checkpoints_without_metrics=False),
   ])
   quiet_storage_logs()
+  check_step_metadata(directory)
   options = ocp.CheckpointManagerOptions(
       preservation_policy=None if read_only else policy, best_fn=_val_mae, best_mode="min",
       keep_checkpoints_without_metrics=True, create=not read_only, read_only=read_only,
-      enable_async_checkpointing=not read_only)
+      enable_async_checkpointing=not read_only, temporary_path_class=digest.DigestedRename)
   with storage_guard("creating the checkpoint folder", directory):
     return ocp.CheckpointManager(directory, options=options, item_names=("state", "meta"))
+
+
+def check_step_metadata(directory: Path) -> None:
+  """CheckpointUnreadable for the first step whose orbax step metadata is not a JSON object:
+  orbax reads every step's when it opens the folder, and fails with a JSONDecodeError traceback
+  (the one file the digest leaves out, sljax.models.digest)."""
+  for step in step_entries(directory):
+    path = directory / str(step) / digest.COMMIT_FILES_METADATA
+    try:
+      ok = not path.is_file() or isinstance(json.loads(path.read_bytes()), dict)
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+      ok = False
+    if not ok:
+      raise damaged(directory, step, f"{path.name}: not the JSON object orbax wrote")
 
 
 def _key_name(key: Any) -> str:
@@ -108,7 +136,7 @@ def save(manager: ocp.CheckpointManager, step: int, state: Any, meta: dict[str, 
   `check` later); a failure of this save or of the previous one (orbax reports it here) is
   storage_failure's SljaxError."""
   metrics = None if val_mae is None else {BEST_METRIC: float(val_mae)}
-  meta = dict(meta, **{LAYOUT_KEY: layout(state)})
+  meta = dict(meta, **{LAYOUT_KEY: layout(state), DIGEST_KEY: digest.FORMAT})
   with storage_guard(f"saving checkpoint {step}", manager.directory):
     manager.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave(pack(state)),
                                                 meta=ocp.args.JsonSave(meta)),
@@ -186,29 +214,84 @@ def unreadable(directory: str | os.PathLike, step: int, exc: BaseException) -> C
                               f"do not restore: {reason})", Path(directory), step)
 
 
-def restore(manager: ocp.CheckpointManager, step: int,
-            abstract_state: Any | None = None) -> tuple[Any, dict[str, Any]]:
+def damaged(directory: str | os.PathLike, step: int, problem: str) -> CheckpointUnreadable:
+  """The one-line error for a step whose files are not those written ('FILE: problem')."""
+  folder = Path(directory) / str(step)
+  return CheckpointUnreadable(f"{folder}: checkpoint {step} is damaged or incomplete ({problem})",
+                              Path(directory), step)
+
+
+def step_entries(directory: str | os.PathLike) -> list[int]:
+  """Every step named in a checkpoints folder, sorted: folders and also what orbax skips (a file
+  where a step's folder should be, an emptied folder), so that none is passed over unsaid."""
+  directory = Path(directory)
+  return sorted(int(p.name) for p in directory.iterdir() if p.name.isdigit()) \
+      if directory.is_dir() else []
+
+
+def verify(directory: str | os.PathLike, step: int, only: frozenset[str] | None = None) -> bool:
+  """True when every file of the step (or those of `only` it has) is the bytes written; False
+  when it has no digest (saved before digests); else CheckpointUnreadable naming the first file
+  that differs."""
+  folder = Path(directory) / str(step)
+  if not folder.exists():
+    raise damaged(directory, step, "its folder is missing")
+  if not folder.is_dir():
+    raise damaged(directory, step, f"{folder.name}: a file where the checkpoint's folder "
+                  "should be")
+  if not any(folder.iterdir()):
+    raise damaged(directory, step, "an empty folder")
+  try:
+    expected = digest.read_digest(folder)
+  except ValueError as e:
+    raise damaged(directory, step, str(e)) from None
+  if expected is None:
+    return False
+  if only is not None:
+    expected = {k: v for k, v in expected.items() if k in only}
+  problem = digest.first_difference(folder, expected, extra=only is None)
+  if problem is not None:
+    raise damaged(directory, step, problem)
+  return True
+
+
+def print_note(line: str) -> None:
+  """Prints a note line (an unchecked or skipped checkpoint) on stderr, beside the errors."""
+  print(line, file=sys.stderr, flush=True)
+
+
+def restore(manager: ocp.CheckpointManager, step: int, abstract_state: Any | None = None,
+            note: Callable[[str], None] = print_note) -> tuple[Any, dict[str, Any]]:
   """(state, meta) saved at step; with abstract_state the arrays get its structure/shardings,
   else they land on this process's first device (also for checkpoints written by several
-  processes, whose saved shardings name devices this process does not have). A checkpoint
-  whose files do not restore raises CheckpointUnreadable naming its folder."""
+  processes, whose saved shardings name devices this process does not have). The step's bytes
+  are checked against its digest first; a checkpoint that is damaged or whose files do not
+  restore raises CheckpointUnreadable naming its folder (and the file); one saved before
+  digests restores unchecked, with a line to `note`."""
   # Installed before the restore, not after its failure: a late read can finish while orbax
   # is still raising, before any except clause here runs (seen on a busy 2-core CPU).
   quiet_late_reads()
   try:
-    return _restore(manager, step, abstract_state)
+    checked = verify(manager.directory, step)
+    return _restore(manager, step, abstract_state, checked, note)
   except SljaxError:
     raise
   except RESTORE_ERRORS as e:
     raise unreadable(manager.directory, step, e) from None
 
 
-def _restore(manager: ocp.CheckpointManager, step: int,
-             abstract_state: Any | None) -> tuple[Any, dict[str, Any]]:
+def _restore(manager: ocp.CheckpointManager, step: int, abstract_state: Any | None,
+             checked: bool, note: Callable[[str], None]) -> tuple[Any, dict[str, Any]]:
   meta = manager.restore(step, args=ocp.args.Composite(meta=ocp.args.JsonRestore()))["meta"]
   if not isinstance(meta, dict):  # valid JSON but not the loop's object: damage too
     raise unreadable(manager.directory, step, ValueError("meta is not a JSON object"))
   meta = dict(meta)
+  if not checked:
+    if meta.pop(DIGEST_KEY, None) is not None:  # saved with a digest that is gone: not age
+      raise damaged(manager.directory, step, f"{digest.DIGEST_FILE}: missing")
+    note(f"{Path(manager.directory) / str(step)}: checkpoint {step} has no digest (saved before "
+         "sljax recorded checkpoint bytes); restoring it unchecked")
+  meta.pop(DIGEST_KEY, None)
   if LAYOUT_KEY in meta:
     return _restore_packed(manager, step, meta.pop(LAYOUT_KEY), abstract_state), meta
   if abstract_state is None:  # a checkpoint written as a tree, before packing

@@ -60,6 +60,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                      "run (no config.json); a run stopped before its first checkpoint starts "
                      "again from step 0, and says so")
   start.add_argument("--overwrite", action="store_true", help="replace a run in --workdir")
+  # A run option, not a TrainConfig field: saved in config.json it would skip damaged
+  # checkpoints on every later --resume, unasked.
+  p.add_argument("--resume-skip-damaged", action="store_true",
+                 help="with --resume: when the newest checkpoint is damaged (its bytes differ "
+                 "from those written), move it aside to WORKDIR/checkpoints/N.damaged and "
+                 "resume from the newest intact one, saying so; without it, a damaged "
+                 "checkpoint stops the run with one line naming it")
   p.add_argument("--preset", choices=PRESETS, default="auto",
                  help="auto (default): paper with an accelerator, quick on CPU only; "
                  "paper: SPEC defaults (256x256, maxdisp 96, 120 epochs, Adam 1e-4); "
@@ -142,13 +149,17 @@ def run(args: argparse.Namespace, prog: str = "train.py") -> int:
       # Cross-process collectives on CPU need gloo (GPUs and TPUs bring their own).
       jax.config.update("jax_cpu_collectives_implementation", "gloo")
       jax.distributed.initialize()
+    if args.resume_skip_damaged and not args.resume:
+      raise SljaxError("--resume-skip-damaged: only with --resume (it says which checkpoint a "
+                       "resume may skip)")
     quiet_libraries()
     enable_compile_cache(programs=True)
     config, note, workdir = resolve(args, jax.default_backend())
     return train(config, workdir, resume=args.resume, overwrite=args.overwrite,
                  stop_after=args.stop_after, preset_note=note, profile_dir=args.profile,
                  log=lambda line: print(line, flush=True),
-                 progress=False if args.no_progress else None)
+                 progress=False if args.no_progress else None,
+                 skip_damaged=args.resume_skip_damaged)
 
   code, result = run_command(prog, start, lambda: _resume_hint(args))
   if code or result is None:

@@ -32,7 +32,6 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
-from sljax.errors import SljaxError, require
 from sljax.losses import weighting
 from sljax.models import checkpoint as ckpt
 from sljax.nets import registry
@@ -50,9 +49,9 @@ from sljax.train.record import (Recorder, TrainingDiverged, fetch_metrics, rate_
 from sljax.train.setup import Setup, merge_init, model_config, resolve_ynn, setup
 from sljax.train.state import LoopState
 from sljax.train.validate import validate_split
+from sljax.train.resume import fresh_start_note, open_manager, restore_checkpoint
 from sljax.train.workdir import (EPOCHS_FILE, METRICS_FILE, MetricWriter, clear_run,
-                                 default_workdir, fresh_start_note, held, restart_logs,
-                                 resume_advice, write_config)
+                                 default_workdir, held, restart_logs, write_config)
 
 # Re-exported: the loop's public names predate its rooms (tests and benchmarks use them).
 __all__ = ["EPOCHS_FILE", "LOADER_THREADS", "METRICS_FILE", "PREFETCH", "LoopState", "RowCache",
@@ -121,26 +120,6 @@ def create_train_state(run: Setup, model, tx) -> st.TrainState:
   return st.create_state(variables, tx)
 
 
-def restore_checkpoint(manager, state: st.TrainState, sharding) -> tuple[st.TrainState,
-                                                                           LoopState]:
-  """The TrainState and LoopState of the manager's latest checkpoint."""
-  step = manager.latest_step()
-  abstract = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding),
-                          state)
-  try:
-    state, meta = ckpt.restore(manager, step, abstract)
-    try:
-      loop = LoopState.from_meta(meta)
-    except (KeyError, TypeError, ValueError) as e:
-      raise ckpt.unreadable(manager.directory, step, e) from None
-  except ckpt.CheckpointUnreadable as e:
-    if not e.damaged:  # a permission problem: deleting the checkpoint is not the remedy
-      raise
-    raise SljaxError(f"{e}; {resume_advice(Path(manager.directory), step)}") from None
-  require(loop.step == int(state.step), f"{manager.directory}: checkpoint {step} is inconsistent")
-  return state, loop
-
-
 @dataclasses.dataclass(frozen=True)
 class RunResult:
   """What a finished (or stopped) run reports: its workdir, final LoopState and whether `stop`
@@ -161,7 +140,7 @@ def train(config: TrainConfig, workdir: str | os.PathLike | None = None, *, resu
           overwrite: bool = False, stop_after: int | None = None, preset_note: str = "",
           profile_dir: str | None = None, log: Callable[[str], None] = functools.partial(
               print, flush=True), progress: bool | Any | None = None,
-          stop: Callable[[], bool] | None = None) -> RunResult:
+          stop: Callable[[], bool] | None = None, skip_damaged: bool = False) -> RunResult:
   """Runs (or resumes) training; every bad input raises SljaxError before any compilation.
 
   stop_after: stop once the global step reaches this value (the last checkpoint is the one
@@ -170,19 +149,22 @@ def train(config: TrainConfig, workdir: str | os.PathLike | None = None, *, resu
   checkpoint at that step, as a Ctrl-C does, and returns with `stopped` set.
   progress: None (a bar on the main process), True/False, or a bar to drive: an object with
   tqdm's update(steps), set_postfix(**kw) and write(line), e.g. the experiment runner's.
+  skip_damaged: a resume whose newest checkpoint is damaged moves it aside (WORKDIR/
+  checkpoints/N.damaged, said in a line) and resumes from the newest intact one; without it
+  a damaged checkpoint is refused (SljaxError naming it).
   """
   workdir = Path(workdir if workdir is not None else default_workdir(config)).absolute()
   # One run per workdir: a second process (the run started again while it still goes on)
   # would interleave the logs and checkpoints of both.
   with held(workdir, f"sljax train ({config.net})"):
     return _train(config, workdir, resume, overwrite, stop_after, preset_note, profile_dir, log,
-                  progress, stop)
+                  progress, stop, skip_damaged)
 
 
 def _train(config: TrainConfig, workdir: Path, resume: bool, overwrite: bool,
            stop_after: int | None, preset_note: str, profile_dir: str | None,
            log: Callable[[str], None], progress: bool | Any | None,
-           stop: Callable[[], bool] | None) -> RunResult:
+           stop: Callable[[], bool] | None, skip_damaged: bool = False) -> RunResult:
   """train() once its workdir is held."""
   config = with_absolute_paths(config)  # config.json names the folders from anywhere
   check_profile_dir(profile_dir)
@@ -199,10 +181,11 @@ def _train(config: TrainConfig, workdir: Path, resume: bool, overwrite: bool,
   model, tx, train_step, eval_step = compiled_steps(run.model, config.disp_loss, config.lr,
                                                     drop, mesh, run.config.ynn)
   state = create_train_state(run, model, tx)
-  manager = ckpt.make_manager(workdir / ckpt.CHECKPOINT_DIR, keep=config.keep)
+  manager = open_manager(workdir / ckpt.CHECKPOINT_DIR, config.keep, run.resume and skip_damaged,
+                         log)
   loop = LoopState()
   if run.resume:
-    state, loop = restore_checkpoint(manager, state, repl)
+    state, loop = restore_checkpoint(manager, state, repl, skip_damaged, log)
     log(f"resuming from step {loop.step} (epoch {loop.step // spe + 1})")
   elif resume and not overwrite and fresh_start_note(workdir):
     log(fresh_start_note(workdir))

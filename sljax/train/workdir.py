@@ -35,9 +35,8 @@ VALIDATION_FILE = "validation.jsonl"  # --val-every-steps: a row per validation
 
 __all__ = ["CHECKPOINT_DIR", "CONFIG_FILE", "EPOCHS_FILE", "METRICS_FILE", "VALIDATION_FILE",
            "MetricWriter",
-           "check_config_kept", "clear_run", "default_workdir", "fresh_start_note",
-           "has_checkpoints", "held", "prepare_workdir", "read_config", "restart_logs",
-           "resume_advice", "sync", "write_config"]
+           "check_config_kept", "clear_run", "default_workdir", "has_checkpoints", "held",
+           "prepare_workdir", "read_config", "restart_logs", "sync", "write_config"]
 
 
 def default_workdir(config: TrainConfig) -> Path:
@@ -149,31 +148,6 @@ def prepare_workdir(workdir: Path, config_json: dict[str, Any], resume: bool,
                        "--overwrite to start again")
   sync("sljax-workdir-checked")
   return has_ckpt and resume and not overwrite, config_json
-
-
-def resume_advice(checkpoints: Path, step: int) -> str:
-  """What a user can do about a damaged latest checkpoint: never a silent fallback (it would
-  quietly repeat steps), but the earlier checkpoints and how to resume from one."""
-  earlier = sorted(int(p.name) for p in checkpoints.iterdir()
-                   if p.name.isdigit() and p.is_dir() and int(p.name) < step)
-  if not earlier:
-    return "no earlier checkpoint exists; start again with --overwrite"
-  return (f"earlier checkpoints: steps {', '.join(map(str, earlier))}; delete the damaged folder "
-          f"{checkpoints / str(step)} to resume from step {earlier[-1]}")
-
-
-def fresh_start_note(workdir: Path) -> str | None:
-  """The line for a --resume that finds config.json but no checkpoint (a run stopped before its
-  first one): it starts from step 0 and replaces the rows written before; None for a new
-  workdir (the experiment runner resumes every cell, new ones too)."""
-  if not (workdir / CONFIG_FILE).exists():
-    return None
-  rows = []
-  for name in (METRICS_FILE, EPOCHS_FILE):
-    n = len((workdir / name).read_text().splitlines()) if (workdir / name).exists() else 0
-    rows += [f"{n} row(s) of {name}"] if n else []
-  return (f"--resume: no checkpoint in {workdir / CHECKPOINT_DIR} yet; starting from step 0"
-          + (f" (replacing the {' and '.join(rows)} written without one)" if rows else ""))
 
 
 def clear_run(workdir: Path) -> None:

@@ -15,33 +15,12 @@ from sljax.errors import SljaxError
 from sljax.models import checkpoint as ckpt
 from sljax.models import digest
 from sljax.models import load as trained
-from sljax.train import cli, loop
+from sljax.train import cli
 
-import toys
-from test_train_faults import _dataset, _flags
+# The finished TinyTwin run (checkpoints 3, 4, 6) that test_train_faults damages, copied per test.
+from test_train_faults import _copy, base, tiny  # noqa: F401  (fixtures)
 
 pytestmark = pytest.mark.filterwarnings("ignore")
-
-
-@pytest.fixture(autouse=True)
-def tiny(monkeypatch):
-  monkeypatch.setattr(loop, "compiled_steps", toys.tiny_steps)
-
-
-@pytest.fixture(scope="module")
-def base(tmp_path_factory):
-  """(data folder, a finished TinyTwin run with checkpoints 3, 4, 6): copy before changing."""
-  root = tmp_path_factory.mktemp("digest")
-  data = _dataset(root / "data")
-  with pytest.MonkeyPatch.context() as mp:
-    mp.setattr(loop, "compiled_steps", toys.tiny_steps)
-    assert cli.main([*_flags(data), "--workdir", str(root / "run")]) == 0
-  return data, root / "run"
-
-
-def _copy(base, tmp_path) -> Path:
-  shutil.copytree(base[1], tmp_path / "wd")
-  return tmp_path / "wd"
 
 
 def _largest(step_dir: Path) -> Path:

@@ -43,7 +43,8 @@ def test_smoke_plan_runs_end_to_end_and_a_second_run_trains_nothing(smoke_out, c
   plan = plans.build_plan("table1", "smoke", 1)
   for cell in plan.cells:
     wd = records.cell_dir(smoke_out, cell.name)
-    assert (wd / records.DONE_FILE).exists() and (wd / "eval" / "heldout.json").exists()
+    assert (wd / records.DONE_FILE).exists()
+    assert records.stored(wd / "eval" / "heldout.json") is not None  # SET.json.xz
     done = json.loads((wd / records.DONE_FILE).read_text())
     final = done["step"]
     assert done["machine"] == machine.cpu_description()  # a grid may span CPUs
@@ -261,7 +262,7 @@ def test_v2_plan_reuses_the_v1_cells_and_scores_them_on_the_fixed_test_sets(smok
   for cell in plans.build_plan("table1-v2", "smoke", 1).cells:
     wd = records.cell_dir(out, cell.name)
     (evalset,) = cell.evals
-    rep = json.loads((wd / "eval" / f"{evalset.name}.json").read_text())
+    rep = records.read_json(wd / "eval" / f"{evalset.name}.json")
     assert rep["n_scenes"] == 20 and rep["dataset_seed"] == cells.TEST_SEED
     if cell.arm == "unet-sl":
       windows = json.loads((wd / "eval" / records.WINDOWS_FILE).read_text())
@@ -287,7 +288,7 @@ def _same_cells(a, b, plan):
     assert (wa / "metrics.jsonl").read_text() == (wb / "metrics.jsonl").read_text(), cell.name
     assert (json.loads((wa / records.DONE_FILE).read_text())["step"]
             == json.loads((wb / records.DONE_FILE).read_text())["step"])
-    ra, rb = (json.loads((w / "eval" / "heldout.json").read_text())["pooled"] for w in (wa, wb))
+    ra, rb = (records.read_json(w / "eval" / "heldout.json")["pooled"] for w in (wa, wb))
     assert ra == rb, cell.name
 
 
@@ -421,8 +422,8 @@ def test_a_cell_scored_on_its_best_checkpoint_keeps_it(tmp_path):
   assert done["best_step"] == best["epoch"] * spe
   kept = {int(p.name) for p in (wd / "checkpoints").iterdir() if p.name.isdigit()}
   assert kept == {done["step"], done["best_step"]}
-  final = json.loads((wd / "eval" / "test-objects.json").read_text())
-  at_best = json.loads((wd / "eval" / "test-objects-best.json").read_text())
+  final = records.read_json(wd / "eval" / "test-objects.json")
+  at_best = records.read_json(wd / "eval" / "test-objects-best.json")
   assert at_best["checkpoint"] == "best by validation MAE"
   assert "checkpoint" not in final
   if done["best_step"] == done["step"]:
@@ -459,5 +460,5 @@ def test_a_cell_validated_by_steps_fine_tunes_and_keeps_its_best(tmp_path):
   assert done["best_step"] == best["step"]
   kept = {int(p.name) for p in (wd / "checkpoints").iterdir() if p.name.isdigit()}
   assert kept == {done["step"], done["best_step"]}
-  assert {p.name for p in (wd / "eval").iterdir()} >= {"test-tissue.json",
-                                                       "test-tissue-best.json"}
+  assert {p.name for p in (wd / "eval").iterdir()} >= {"test-tissue.json.xz",
+                                                       "test-tissue-best.json.xz"}

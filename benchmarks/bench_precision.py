@@ -18,6 +18,7 @@ from pathlib import Path
 from common import machine, record  # first: puts this checkout's sljax on the path
 from sljax.train import loop
 from sljax.train.config import QUICK
+from sljax.train.workdir import EPOCHS_FILE
 
 
 def main() -> None:
@@ -34,7 +35,7 @@ def main() -> None:
                                    seed=args.seed, precision=precision)
       wd = Path(tmp) / precision
       loop.train(config, wd, log=lambda line: None, progress=False)
-      runs[precision] = [json.loads(l) for l in (wd / loop.EPOCHS_FILE).read_text().splitlines()]
+      runs[precision] = [json.loads(l) for l in (wd / EPOCHS_FILE).read_text().splitlines()]
   print(f"\n{machine()}\nquick preset, psmnet-mtl/{args.strategy}, seed {args.seed}\n")
   print("| epoch | val MAE fp32 px | val MAE bf16 px | bf16 - fp32 | s/epoch fp32 | s/epoch bf16 |")
   print("| --- | --- | --- | --- | --- | --- |")

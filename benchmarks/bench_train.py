@@ -39,6 +39,9 @@ from sljax.train import loop
 from sljax.train import state as st
 from sljax.train import step as stp
 from sljax.train.config import PAPER, QUICK, TrainConfig
+from sljax.train.feed import RowCache, batch_parts, check_source, open_source
+from sljax.train.setup import model_config
+from sljax.train.workdir import EPOCHS_FILE
 
 
 def config_for(args) -> TrainConfig:
@@ -60,15 +63,15 @@ def subset(config: TrainConfig, n_train: int, steps: int) -> TrainConfig:
 
 def compiled_step(config: TrainConfig):
   """The compiled step, a state and one fixed device batch for (a); compiles before returning."""
-  source = loop.open_source(config)
-  info = loop.check_source(source, config)
+  source = open_source(config)
+  info = check_source(source, config)
   mesh = stp.make_mesh()
-  model, tx, step, _ = loop.compiled_steps(loop.model_config(config, info), config.disp_loss,
+  model, tx, step, _ = loop.compiled_steps(model_config(config, info), config.disp_loss,
                                            config.lr, None, mesh)
   state = jax.device_put(st.create_state(init_variables(model, 0, *config.size,
                                                            info.channels), tx),
                          stp.shardings(mesh)[0])
-  rows = loop.RowCache(source, config, loop.batch_parts(config), False)
+  rows = RowCache(source, config, batch_parts(config), False)
   batch = stp.put_batch(rows.batch(list(range(config.batch_size))), mesh)
   w = jnp.asarray(step_weights(config.strategy, []))
   state, m = step(state, batch, w)  # compiles
@@ -116,7 +119,7 @@ def time_precisions(config: TrainConfig, precisions, steps: int, rounds: int = 2
 def time_loop(config: TrainConfig, workdir: Path) -> float:
   """(b), (c): steps/s of the loop's steady-state epochs (epoch 1 compiles; no validation)."""
   loop.train(config, workdir, overwrite=True, log=lambda line: None, progress=False)
-  recs = [json.loads(l) for l in (workdir / loop.EPOCHS_FILE).read_text().splitlines()]
+  recs = [json.loads(l) for l in (workdir / EPOCHS_FILE).read_text().splitlines()]
   steady = recs[1:]
   return recs[0]["step"] * len(steady) / sum(r["seconds"] for r in steady)
 
@@ -150,7 +153,7 @@ def main() -> None:
     p.error("--precision is fp32, bf16, or fp32,bf16 with --step-only")
   args.precision = precisions[0]
   config = config_for(args)
-  n_train = len(split_indices(loop.open_source(config), config.test_fraction, config.seed)[0])
+  n_train = len(split_indices(open_source(config), config.test_fraction, config.seed)[0])
   print(f"{machine()}")
   print(f"preset {config.preset}: {config.net}/{config.strategy}, {config.size[0]}x"
         f"{config.size[1]}, maxdisp {config.maxdisp}, batch {config.batch_size}, "
@@ -181,7 +184,7 @@ def main() -> None:
     n_folder = int(np.ceil(args.steps * config.batch_size / 0.8 / 10) * 10) + 10
     folder = write_folder(tmp / "scenes", n_folder, args.folder_size)
     folder_cfg = dataclasses.replace(config, data=str(folder))
-    n_folder_train = len(split_indices(loop.open_source(folder_cfg), config.test_fraction,
+    n_folder_train = len(split_indices(open_source(folder_cfg), config.test_fraction,
                                        config.seed)[0])
     path = add(f"(c) loop, folder of {args.folder_size}x{args.folder_size} PNG scenes",
                time_loop(subset(folder_cfg, n_folder_train, args.steps), tmp / "c"))

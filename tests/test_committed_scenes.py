@@ -14,7 +14,7 @@ import pytest
 
 from sljax.experiment.design.plans import build_plan
 from sljax.experiment.running import runner
-from sljax.train.loop import open_source
+from sljax.train.feed import open_source
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tools"))

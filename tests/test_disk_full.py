@@ -12,7 +12,7 @@ from sljax.errors import SljaxError
 from sljax.models import checkpoint as ckpt
 from sljax.models import failures
 from sljax.train import cli as train_cli
-from sljax.train import loop
+from sljax.train import loop, workdir
 
 from test_loop import _assert_same_run, _config, _final, tiny  # noqa: F401  (fixture)
 
@@ -77,7 +77,7 @@ def test_full_disk_while_writing_metrics(tiny, monkeypatch, tmp_path):
   """metrics.jsonl hits a full disk mid-row: one line, and the torn row is dropped on resume."""
   cfg = _config("stl", save_every=4)
   loop.train(cfg, tmp_path / "full", **QUIET)
-  init = loop.MetricWriter.__init__
+  init = workdir.MetricWriter.__init__
 
   class FullFile:
     def __init__(self, f):
@@ -95,11 +95,11 @@ def test_full_disk_while_writing_metrics(tiny, monkeypatch, tmp_path):
 
   def full_disk_init(self, *args, **kwargs):
     init(self, *args, **kwargs)
-    self.files[loop.METRICS_FILE] = FullFile(self.files[loop.METRICS_FILE])
+    self.files[workdir.METRICS_FILE] = FullFile(self.files[workdir.METRICS_FILE])
 
   wd = tmp_path / "run"
   with monkeypatch.context() as m:
-    m.setattr(loop.MetricWriter, "__init__", full_disk_init)
+    m.setattr(workdir.MetricWriter, "__init__", full_disk_init)
     with pytest.raises(SljaxError, match=f"writing metrics.jsonl failed: {ENOSPC_TEXT}"):
       loop.train(cfg, wd, **QUIET)
   loop.train(cfg, wd, resume=True, **QUIET)
@@ -153,7 +153,6 @@ def test_resume_drops_damaged_log_lines(tmp_path):
   """Lines of metrics.jsonl / epochs.jsonl that are not a JSON object (a torn write, a list, a
   number, undecodable bytes) are dropped on resume, as are rows after the checkpoint; the rest is
   kept byte for byte."""
-  from sljax.train import workdir
   good = [b'{"step": 1, "loss": 0.5}', b'{"step": 2, "loss": 0.25}']
   bad = [b"[1, 2]", b"3", b'"text"', b'{"step": 3, "lo\xff\xfess": 1}', b'{"step": 4, "lo']
   (tmp_path / workdir.METRICS_FILE).write_bytes(

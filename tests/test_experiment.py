@@ -24,7 +24,8 @@ from sljax.experiment.running import claims, runner, workers
 from sljax.nets import build_model, detach_sl
 from sljax.nets.model_config import init_variables
 from sljax.runtime import machine
-from sljax.train import loop
+from sljax.train.feed import RowCache, batch_parts, open_source
+from sljax.train.setup import setup
 
 import toys
 
@@ -175,13 +176,13 @@ def test_stl_and_unc_are_paired_within_a_seed(tmp_path):
   small = (("data", "1/16"),)
   stl, unc = by["stl", small, 0], by["unc", small, 0]
   assert stl.config.net == "psmnet" and unc.config.net == "psmnet-mtl"
-  runs = [loop.setup(c.config, tmp_path / c.name, resume=False, overwrite=False,
-                     log=lambda line: None) for c in (stl, unc, by["stl", small, 1])]
+  runs = [setup(c.config, tmp_path / c.name, resume=False, overwrite=False,
+                log=lambda line: None) for c in (stl, unc, by["stl", small, 1])]
   (tr_s, va_s), (tr_u, va_u), (tr_1, _) = [(r.train_idx, r.val_idx) for r in runs]
   assert tr_s == tr_u and va_s == va_u and tr_s != tr_1
   for epoch in range(3):
     assert epoch_order(tr_s, 0, epoch) == epoch_order(tr_u, 0, epoch)
-  rows = [loop.RowCache(loop.open_source(c.config), c.config, loop.batch_parts(c.config), False)
+  rows = [RowCache(open_source(c.config), c.config, batch_parts(c.config), False)
           .batch(epoch_order(tr_s, 0, 0)[:2]) for c in (stl, unc)]
   for part in ("left", "right", "disp"):
     np.testing.assert_array_equal(rows[0][part], rows[1][part])

@@ -13,7 +13,7 @@ from sljax.experiment.budget import calibrate
 from sljax.experiment.design import cells, plans
 from sljax.experiment.running import runner
 from sljax.render.synthetic import SynthConfig, render_scene
-from sljax.train.loop import open_source
+from sljax.train.feed import open_source
 
 
 class _Groups:

@@ -20,7 +20,11 @@ from sljax.io import files
 from sljax.models import checkpoint as ckpt
 from sljax.nets import ModelConfig
 from sljax.train import loop
+from sljax.train import step as stp
 from sljax.train.config import TrainConfig
+from sljax.train.feed import prefetch
+from sljax.train.state import LoopState
+from sljax.train.workdir import EPOCHS_FILE, METRICS_FILE
 
 import toys
 
@@ -77,7 +81,7 @@ def _assert_same_run(a: Path, b: Path) -> None:
   assert sa == sb
   for x, y in zip(jax.tree.leaves(ta), jax.tree.leaves(tb), strict=True):
     np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
-  for name in (loop.METRICS_FILE, loop.EPOCHS_FILE):
+  for name in (METRICS_FILE, EPOCHS_FILE):
     rows = [[{k: v for k, v in json.loads(l).items() if k not in ("seconds", "samples_per_s")}
              for l in (wd / name).read_text().splitlines()] for wd in (a, b)]
     assert rows[0] == rows[1], name
@@ -166,7 +170,7 @@ def test_a_stop_saves_its_step_and_the_resumed_run_is_the_uninterrupted_one(tiny
   part = loop.train(cfg, tmp_path / "part", stop=stop, **quiet)
   assert part.stopped and part.step == 10 and len(asked) == 10
   assert _final(tmp_path / "part")[0] == 10
-  rows = (tmp_path / "part" / loop.METRICS_FILE).read_text().splitlines()
+  rows = (tmp_path / "part" / METRICS_FILE).read_text().splitlines()
   assert json.loads(rows[-1])["step"] == 10
   done = loop.train(cfg, tmp_path / "part", resume=True, stop=lambda: False, **quiet)
   assert not done.stopped and done.step == full.step
@@ -178,9 +182,8 @@ def test_loading_overlaps_the_steps(tiny, monkeypatch, tmp_path):
   about max(S, T) per step, not S + T: batches are built while the step runs."""
   s_per_scene, t_step = 0.06, 0.12
   monkeypatch.setattr(loop, "open_source", lambda config: MemorySource(40, s_per_scene))
-  monkeypatch.setattr(loop, "LOADER_THREADS", 1)
   model, tx, step, evaluate = toys.tiny_steps(
-      ModelConfig("psmnet", in_channels=3, maxdisp=16), "l2", 3e-2, None, loop.stp.make_mesh())
+      ModelConfig("psmnet", in_channels=3, maxdisp=16), "l2", 3e-2, None, stp.make_mesh())
 
   def slow_step(state, batch, weights):
     time.sleep(t_step)
@@ -191,7 +194,7 @@ def test_loading_overlaps_the_steps(tiny, monkeypatch, tmp_path):
   loop.train(cfg, tmp_path / "warm", log=lambda line: None, progress=False)  # compiles
   cfg = dataclasses.replace(cfg, seed=1)
   loop.train(cfg, tmp_path / "run", log=lambda line: None, progress=False)
-  rec = json.loads((tmp_path / "run" / loop.EPOCHS_FILE).read_text().splitlines()[0])
+  rec = json.loads((tmp_path / "run" / EPOCHS_FILE).read_text().splitlines()[0])
   steps = rec["step"]
   source_time = steps * cfg.batch_size * s_per_scene  # 0.12 s per batch, as long as a step
   assert steps >= 14
@@ -207,14 +210,14 @@ def test_prefetch_keeps_order_and_stops_early():
     time.sleep(0.01 * (x % 3))
     return x * x
 
-  gen = loop.prefetch(slow_square, iter(range(100)), ahead=4, threads=3)
+  gen = prefetch(slow_square, iter(range(100)), ahead=4, threads=3)
   assert [next(gen) for _ in range(10)] == [x * x for x in range(10)]
   gen.close()
   assert len(calls) <= 10 + 4 + 3  # stopped: no work far beyond what was asked
 
 
 def test_loop_state_bookkeeping_and_metadata_round_trip():
-  s = loop.LoopState()
+  s = LoopState()
   for l_sl, l_disp in ((1.0, 4.0), (3.0, 2.0)):
     s = s.add_step(l_sl, l_disp)
   assert s.step == 2 and s.partial == (4.0, 6.0, 2)
@@ -222,9 +225,9 @@ def test_loop_state_bookkeeping_and_metadata_round_trip():
   assert s.history == ((2.0, 3.0),) and s.partial == (1.0, 1.0, 1)
   assert (s.best_val, s.last_val) == (0.5, 0.7)
   meta = json.loads(json.dumps(s.to_meta()))
-  assert loop.LoopState.from_meta(meta) == s
+  assert LoopState.from_meta(meta) == s
   old = {"step": 3, "history": [[2.0, 3.0]], "partial": [1.0, 1.0, 1], "best_val": 0.5}
-  assert loop.LoopState.from_meta(old).last_val is None  # checkpoints of earlier versions
+  assert LoopState.from_meta(old).last_val is None  # checkpoints of earlier versions
 
 
 def test_bf16_training_learns(tmp_path):
@@ -236,11 +239,11 @@ def test_bf16_training_learns(tmp_path):
   quiet = dict(log=lambda line: None, progress=False)
   loop.train(cfg, tmp_path / "bf16", **quiet)
   loop.train(dataclasses.replace(cfg, precision="fp32", epochs=1), tmp_path / "fp32", **quiet)
-  epochs = [json.loads(l) for l in (tmp_path / "bf16" / loop.EPOCHS_FILE).read_text().splitlines()]
+  epochs = [json.loads(l) for l in (tmp_path / "bf16" / EPOCHS_FILE).read_text().splitlines()]
   assert epochs[-1]["val_mae"] < 0.8 * epochs[0]["val_mae"], epochs
   _, state = _final(tmp_path / "bf16")
   assert {np.asarray(x).dtype for x in jax.tree.leaves(state["params"])} == {np.dtype(np.float32)}
-  first = [json.loads((tmp_path / p / loop.METRICS_FILE).read_text().splitlines()[0])
+  first = [json.loads((tmp_path / p / METRICS_FILE).read_text().splitlines()[0])
            for p in ("bf16", "fp32")]
   assert first[0]["loss_disp"] != first[1]["loss_disp"]  # really computed in bfloat16
   np.testing.assert_allclose(first[0]["loss_disp"], first[1]["loss_disp"], rtol=0.05)
@@ -304,7 +307,7 @@ def test_two_processes_equal_one(tmp_path):
   assert s1 == s2 == 2 * 3
   for a, b in zip(jax.tree.leaves(t2["params"]), jax.tree.leaves(t1["params"]), strict=True):
     np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=2e-5)
-  rows = [[json.loads(l) for l in (tmp_path / wd / loop.METRICS_FILE).read_text().splitlines()]
+  rows = [[json.loads(l) for l in (tmp_path / wd / METRICS_FILE).read_text().splitlines()]
           for wd in ("two", "one")]
   assert [r["step"] for r in rows[0]] == [r["step"] for r in rows[1]] == list(range(1, 7))
   np.testing.assert_allclose([r["loss"] for r in rows[0]], [r["loss"] for r in rows[1]],
@@ -347,7 +350,7 @@ class _Bar:
 
 def test_the_bar_says_it_is_compiling_then_how_long_the_first_step_took(monkeypatch, tmp_path):
   model, tx, step, evaluate = toys.tiny_steps(
-      ModelConfig("psmnet", in_channels=3, maxdisp=16), "l2", 3e-2, None, loop.stp.make_mesh())
+      ModelConfig("psmnet", in_channels=3, maxdisp=16), "l2", 3e-2, None, stp.make_mesh())
   calls = []
 
   def first_slow(state, batch, weights):  # the first call stands for XLA compiling
@@ -375,7 +378,7 @@ def test_the_bars_rate_and_time_left_leave_out_the_first_steps_compile(monkeypat
   import io
   from tqdm import tqdm
   model, tx, step, evaluate = toys.tiny_steps(
-      ModelConfig("psmnet", in_channels=3, maxdisp=16), "l2", 3e-2, None, loop.stp.make_mesh())
+      ModelConfig("psmnet", in_channels=3, maxdisp=16), "l2", 3e-2, None, stp.make_mesh())
   rates = []
 
   class Bar(tqdm):  # records the rate it shows after each update
@@ -450,7 +453,7 @@ def test_ctrl_c_stops_after_the_step_and_resumes_exactly(tmp_path, monkeypatch):
   assert proc.returncode == 130, proc.stderr[-3000:]
   assert "train.py: interrupted (continue with --resume)" in proc.stderr
   assert "KeyboardInterrupt" not in proc.stderr  # nothing dropped, no traceback
-  rows = (wd / loop.METRICS_FILE).read_text().splitlines()
+  rows = (wd / METRICS_FILE).read_text().splitlines()
   assert 9 <= json.loads(rows[-1])["step"] < 24  # it stopped after the step it was in
   assert _final(wd)[0] == json.loads(rows[-1])["step"]  # ... and saved that step
 

@@ -18,6 +18,8 @@ from sljax.data.scene import Scene, write_scene
 from sljax.errors import SljaxError
 from sljax.train import loop
 from sljax.train.config import TrainConfig
+from sljax.train.setup import setup
+from sljax.train.workdir import METRICS_FILE
 
 import toys
 
@@ -207,14 +209,14 @@ def test_training_stops_before_its_first_step(tmp_path, monkeypatch):
   root = _dataset(tmp_path / "data", 10)
   cfg = TrainConfig(data=str(root), size=(32, 32), maxdisp=16, epochs=1, batch_size=2,
                     preset="quick")
-  run = loop.setup(cfg, tmp_path / "probe", False, False, lambda line: None)
+  run = setup(cfg, tmp_path / "probe", False, False, lambda line: None)
   victim = root / f"s{run.val_idx[-1]}" / "im0.png"
   victim.write_bytes(victim.read_bytes()[:-20])
   monkeypatch.setattr(loop, "create_train_state",
                       lambda *a: pytest.fail("training started before the data check"))
   with pytest.raises(SljaxError, match=f"{victim}: truncated"):
     loop.train(cfg, tmp_path / "w", log=lambda line: None, progress=False)
-  assert not (tmp_path / "w" / loop.METRICS_FILE).exists()
+  assert not (tmp_path / "w" / METRICS_FILE).exists()
 
 
 def test_a_bad_file_is_named_before_any_tuning_or_compiling(tmp_path, monkeypatch, capsys):

@@ -17,6 +17,8 @@ from sljax.experiment.design import plans
 from sljax.models import checkpoint as ckpt
 from sljax.train import loop
 from sljax.train.config import TrainConfig, validate
+from sljax.train.state import LoopState
+from sljax.train.workdir import EPOCHS_FILE, METRICS_FILE
 
 import test_loop
 import toys
@@ -48,7 +50,7 @@ def test_validation_every_k_steps_with_the_training_loss_since_the_last(tiny, tm
   result = loop.train(cfg, tmp_path / "w", **QUIET)
   assert result.step == 15  # --steps wins over --epochs
   wd = tmp_path / "w"
-  metrics, val = _rows(wd / loop.METRICS_FILE), _rows(wd / "validation.jsonl")
+  metrics, val = _rows(wd / METRICS_FILE), _rows(wd / "validation.jsonl")
   assert [r["step"] for r in metrics] == list(range(1, 16))
   assert [r["step"] for r in val] == [4, 8, 12, 15]  # every 4 steps, and the last
   prev = 0
@@ -61,7 +63,7 @@ def test_validation_every_k_steps_with_the_training_loss_since_the_last(tiny, tm
     assert np.isfinite(r["val_mae"])
     prev = r["step"]
   # Epochs still close (DWA reads them); the budget ends the third part-way, after 3 steps.
-  epochs = _rows(wd / loop.EPOCHS_FILE)
+  epochs = _rows(wd / EPOCHS_FILE)
   assert [(r["epoch"], r["step"]) for r in epochs] == [(1, 6), (2, 12), (3, 15)]
   assert epochs[2]["loss_disp"] == pytest.approx(_mean(metrics, "loss_disp", 13, 15), rel=1e-12)
   assert not any("val_mae" in r for r in epochs)  # validation rows live in validation.jsonl
@@ -75,7 +77,7 @@ def test_validation_every_k_steps_with_the_training_loss_since_the_last(tiny, tm
 def test_a_steps_budget_validating_by_epochs_validates_its_short_last_epoch(tiny, tmp_path):
   cfg = test_loop._config("stl", epochs=99, steps=9, val_every=1)
   result = loop.train(cfg, tmp_path / "w", **QUIET)
-  epochs = _rows(tmp_path / "w" / loop.EPOCHS_FILE)
+  epochs = _rows(tmp_path / "w" / EPOCHS_FILE)
   assert result.step == 9 and [(r["epoch"], r["step"]) for r in epochs] == [(1, 6), (2, 9)]
   assert all(np.isfinite(r["val_mae"]) for r in epochs)
   assert not (tmp_path / "w" / "validation.jsonl").exists()
@@ -117,12 +119,12 @@ def test_step_options_are_checked_and_kept_out_of_older_cells_specs():
 
 
 def test_loop_state_interval_sums_reset_at_each_validation_and_round_trip():
-  s = loop.LoopState()
+  s = LoopState()
   for l_sl, l_disp in ((1.0, 4.0), (3.0, 2.0)):
     s = s.add_step(l_sl, l_disp)
   assert s.interval_means() == (2.0, 3.0)
   s = s.validated(0.5).add_step(5.0, 7.0)
   assert s.since_val == (5.0, 7.0, 1) and s.partial == (9.0, 13.0, 3)
-  assert loop.LoopState.from_meta(json.loads(json.dumps(s.to_meta()))) == s
+  assert LoopState.from_meta(json.loads(json.dumps(s.to_meta()))) == s
   old = {"step": 3, "history": [], "partial": [1.0, 1.0, 1], "best_val": 0.5}
-  assert loop.LoopState.from_meta(old).since_val == (0.0, 0.0, 0)  # earlier checkpoints
+  assert LoopState.from_meta(old).since_val == (0.0, 0.0, 0)  # earlier checkpoints

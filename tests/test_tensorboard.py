@@ -15,6 +15,7 @@ from sljax.errors import SljaxError
 from sljax.train import loop
 from sljax.train import tensorboard as tb
 from sljax.train.config import validate
+from sljax.train.workdir import EPOCHS_FILE, METRICS_FILE
 
 from test_loop import _config, tiny  # noqa: F401  (fixture)
 
@@ -53,8 +54,8 @@ def test_event_file_holds_the_run_scalars(tiny, tmp_path):
   loop.train(cfg, tmp_path / "w", **QUIET)
   (events,) = event_files(tmp_path / "w")
   got = scalars(read_events(events))
-  rows = [json.loads(l) for l in (tmp_path / "w" / loop.METRICS_FILE).read_text().splitlines()]
-  epochs = [json.loads(l) for l in (tmp_path / "w" / loop.EPOCHS_FILE).read_text().splitlines()]
+  rows = [json.loads(l) for l in (tmp_path / "w" / METRICS_FILE).read_text().splitlines()]
+  epochs = [json.loads(l) for l in (tmp_path / "w" / EPOCHS_FILE).read_text().splitlines()]
   assert len(rows) == 12 and len(epochs) == 2
   for key in ("loss", "loss_sl", "loss_disp", "w_sl", "w_disp", "sigma_sl", "sigma_disp"):
     want = {r["step"]: r[key] for r in rows}
@@ -91,7 +92,7 @@ def test_missing_package_is_one_line(monkeypatch):
 
 
 def test_tags():
-  assert tb.tag(loop.METRICS_FILE, "loss_sl") == "train/loss_sl"
-  assert tb.tag(loop.EPOCHS_FILE, "val_mae") == "val/mae"
-  assert tb.tag(loop.EPOCHS_FILE, "samples_per_s") == "perf/samples_per_s"
-  assert tb.tag(loop.EPOCHS_FILE, "loss_disp") == "epoch/loss_disp"
+  assert tb.tag(METRICS_FILE, "loss_sl") == "train/loss_sl"
+  assert tb.tag(EPOCHS_FILE, "val_mae") == "val/mae"
+  assert tb.tag(EPOCHS_FILE, "samples_per_s") == "perf/samples_per_s"
+  assert tb.tag(EPOCHS_FILE, "loss_disp") == "epoch/loss_disp"

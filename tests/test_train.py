@@ -19,6 +19,8 @@ from sljax.errors import SljaxError
 from sljax.models import checkpoint as ckpt
 from sljax.models import load as trained
 from sljax.train import cli, loop
+from sljax.train.config import TrainConfig
+from sljax.train.setup import merge_init
 
 import toys
 
@@ -141,9 +143,9 @@ def test_workdir_of_another_run_is_not_overwritten(data_full, tmp_path, capsys, 
 
 
 def test_dwa_weights_of_a_config_follow_history():
-  cfg = loop.TrainConfig(strategy="epr")
+  cfg = TrainConfig(strategy="epr")
   np.testing.assert_array_equal(loop.task_weights(cfg, []), [1, 1, 0])
-  cfg = loop.TrainConfig(model="unet-sl")
+  cfg = TrainConfig(model="unet-sl")
   np.testing.assert_array_equal(loop.task_weights(cfg, [(1, 1), (2, 2)]), [1, 0, 0])
 
 
@@ -247,28 +249,28 @@ def test_nan_loss_stops_with_clear_message(tmp_path, monkeypatch, capsys):
 
 
 def test_merge_init_keeps_twin_sl_path_and_checks_shapes():
-  cfg = loop.TrainConfig(strategy="cg_a")
+  cfg = TrainConfig(strategy="cg_a")
   target = {"params": {"feat": {"kernel": np.zeros((3, 3, 3, 4), np.float32)},
                        "sl": {"kernel": np.full((2, 2), 7.0, np.float32)}},
             "batch_stats": {"bn": {"mean": np.zeros(4, np.float32)}}}
   source = {"params": {"feat": {"kernel": np.ones((3, 3, 3, 4), np.float32)}},
             "batch_stats": {"bn": {"mean": np.full(4, 2.0, np.float32)}}}
-  out = loop.merge_init(target, source, "psmnet", cfg, "ckpt")
+  out = merge_init(target, source, "psmnet", cfg, "ckpt")
   np.testing.assert_array_equal(out["params"]["feat"]["kernel"], 1.0)  # from the checkpoint
   np.testing.assert_array_equal(out["params"]["sl"]["kernel"], 7.0)    # kept (new SL path)
   np.testing.assert_array_equal(out["batch_stats"]["bn"]["mean"], 2.0)
   bad = {"params": {"feat": {"kernel": np.ones((3, 3, 1, 4), np.float32)}}}
   with pytest.raises(SljaxError, match=r"feat/kernel has shape \(3, 3, 1, 4\)"):
-    loop.merge_init(target, bad, "psmnet", cfg, "ckpt")
+    merge_init(target, bad, "psmnet", cfg, "ckpt")
   extra = {"params": {"other": {"kernel": np.ones(2, np.float32)}}}
   with pytest.raises(SljaxError, match="does not fit"):
-    loop.merge_init(target, extra, "unet-disp", cfg, "ckpt")
+    merge_init(target, extra, "unet-disp", cfg, "ckpt")
 
 
 def test_resume_uses_the_saved_config(tmp_path):
   wd = tmp_path / "w"
   wd.mkdir()
-  saved = loop.TrainConfig(strategy="epr", size=(32, 32), maxdisp=16, epochs=3)
+  saved = TrainConfig(strategy="epr", size=(32, 32), maxdisp=16, epochs=3)
   (wd / "config.json").write_text(json.dumps(saved.to_json()))
   args = cli.build_parser().parse_args(["--workdir", str(wd), "--resume", "--epochs", "5"])
   config, note, workdir = cli.resolve(args, "cpu")
@@ -288,7 +290,7 @@ def test_epr_loop_uses_dwa_of_epoch_mean_training_losses_and_resumes_exactly(
   epochs, then computed by hand from the two previous epochs' mean training losses; a run
   stopped mid-epoch (partial epoch sums in its checkpoint) resumes bit-identically."""
   monkeypatch.setattr(loop, "compiled_steps", toys.tiny_steps)
-  cfg = loop.TrainConfig(strategy="epr", data=str(data_full), size=(32, 32), maxdisp=16,
+  cfg = TrainConfig(strategy="epr", data=str(data_full), size=(32, 32), maxdisp=16,
                          epochs=5, batch_size=2, lr=3e-2, save_every=3, max_val=2, preset="quick")
   quiet = dict(log=lambda line: None, progress=False)
   loop.train(cfg, tmp_path / "full", **quiet)

@@ -21,6 +21,7 @@ from sljax.errors import SljaxError
 from sljax.models import checkpoint as ckpt
 from sljax.models import load as trained
 from sljax.train import cli, loop
+from sljax.train.config import TrainConfig
 from sljax.train.profiler import StepProfiler
 
 import toys
@@ -204,8 +205,8 @@ def test_resume_refuses_a_missing_workdir_and_a_run_without_config(base, tmp_pat
           "put its config.json back (to --resume it), or pass --overwrite") in err
   assert _digest(wd) == before  # no default run started, no epochs.jsonl rows lost
   # The library refuses too (the experiment runner calls train(resume=True)).
-  config = loop.TrainConfig(data=str(base[0]), size=(32, 32), maxdisp=16, batch_size=2,
-                            max_val=2, ynn="on")
+  config = TrainConfig(data=str(base[0]), size=(32, 32), maxdisp=16, batch_size=2,
+                       max_val=2, ynn="on")
   with pytest.raises(SljaxError, match="has checkpoints but no config.json"):
     loop.train(config, wd, resume=True, log=lambda line: None, progress=False)
   assert _digest(wd) == before

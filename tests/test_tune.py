@@ -17,6 +17,7 @@ from sljax.runtime import choices, compile_cache, machine
 from sljax.train import loop
 from sljax.train import step as stp
 from sljax.train.config import QUICK, config_from_json
+from sljax.train.setup import resolve_ynn
 
 
 def fake(table):
@@ -314,14 +315,14 @@ def test_training_steps_get_the_choice_as_compiler_options(monkeypatch):
 def test_auto_resolves_once_and_a_resume_keeps_the_saved_choice(tmp_path, monkeypatch):
   monkeypatch.setattr(choices, "choice", lambda log=print: choices.KernelChoice(False, True))
   config = dataclasses.replace(QUICK, ynn="auto")
-  assert loop.resolve_ynn(config, tmp_path, False, False, print).ynn == "forward-off"
+  assert resolve_ynn(config, tmp_path, False, False, print).ynn == "forward-off"
   off = dataclasses.replace(config, ynn="off")
-  assert loop.resolve_ynn(off, tmp_path, False, False, print).ynn == "off"
+  assert resolve_ynn(off, tmp_path, False, False, print).ynn == "off"
   (tmp_path / ckpt.CONFIG_FILE).write_text(json.dumps({"ynn": "train-off"}))
-  assert loop.resolve_ynn(config, tmp_path, True, False, print).ynn == "train-off"  # kept
+  assert resolve_ynn(config, tmp_path, True, False, print).ynn == "train-off"  # kept
   # A run that replaces the old one (--overwrite) tunes anew, even a damaged config.json.
   (tmp_path / ckpt.CONFIG_FILE).write_text("{damaged")
-  assert loop.resolve_ynn(config, tmp_path, True, True, print).ynn == "forward-off"
+  assert resolve_ynn(config, tmp_path, True, True, print).ynn == "forward-off"
   # a config.json written before the option existed ran with XLA's default
   assert config_from_json({"model": "psmnet"}).ynn == "on"
 

@@ -56,7 +56,7 @@ def split(config: Any) -> dict[str, Any]:
   """The training subset and the validation split a cell's training used (as setup does):
   their sizes and a SHA-256 of each index list (order included)."""
   from sljax.data.dataset import split_indices, take_fraction
-  from sljax.train.loop import open_source
+  from sljax.train.feed import open_source
 
   train, val = split_indices(open_source(config), config.test_fraction, seed=config.seed)
   train = take_fraction(train, config.fraction, seed=config.seed)
@@ -71,7 +71,7 @@ def scenes() -> Iterator[tuple[dict[str, Any], Any]]:
   from sljax.experiment.design.cells import FIXED
   from sljax.experiment.design.plans import build_plan
   from sljax.experiment.running import runner
-  from sljax.train.loop import open_source
+  from sljax.train.feed import open_source
 
   seen = set()
   for grid in sorted(GRIDS.glob("v2-*")):

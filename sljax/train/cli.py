@@ -13,8 +13,8 @@ from sljax.models import load as trained
 from sljax.runtime.compile_cache import enable_compile_cache
 from sljax.runtime.quiet import quiet_libraries
 from sljax.train.config import FIELDS, PRESETS, TrainConfig, config_from_json, preset_config
-from sljax.train.loop import default_workdir, train
-from sljax.train.workdir import check_config_kept
+from sljax.train.loop import train
+from sljax.train.workdir import check_config_kept, default_workdir
 
 
 def add_config_flags(parser: argparse.ArgumentParser) -> None:

@@ -40,24 +40,20 @@ from sljax.runtime import choices, kept_programs
 from sljax.train import state as st
 from sljax.train import step as stp
 from sljax.train.config import TrainConfig, with_absolute_paths
+from sljax.train.feed import open_source, row_caches, train_batches
 from sljax.train.interrupt import deferred_interrupt
-from sljax.train.feed import (LOADER_THREADS, PREFETCH, RowCache, batch_parts, check_source,
-                              open_source, prefetch, row_caches, train_batches)
 from sljax.train.profiler import StepProfiler, check_profile_dir
-from sljax.train.record import (Recorder, TrainingDiverged, fetch_metrics, rate_after_first_step,
-                                save, write_epoch, write_validation)
-from sljax.train.setup import Setup, merge_init, model_config, resolve_ynn, setup
+from sljax.train.record import (Recorder, fetch_metrics, rate_after_first_step, save, write_epoch,
+                                write_validation)
+from sljax.train.resume import fresh_start_note, open_manager, restore_checkpoint
+from sljax.train.setup import Setup, merge_init, setup
 from sljax.train.state import LoopState
 from sljax.train.validate import validate_split
-from sljax.train.resume import fresh_start_note, open_manager, restore_checkpoint
-from sljax.train.workdir import (EPOCHS_FILE, METRICS_FILE, MetricWriter, clear_run,
-                                 default_workdir, held, restart_logs, write_config)
+from sljax.train.workdir import (MetricWriter, clear_run, default_workdir, held, restart_logs,
+                                 write_config)
 
-# Re-exported: the loop's public names predate its rooms (tests and benchmarks use them).
-__all__ = ["EPOCHS_FILE", "LOADER_THREADS", "METRICS_FILE", "PREFETCH", "LoopState", "RowCache",
-           "RunResult", "TrainConfig", "TrainingDiverged", "batch_parts", "check_source",
-           "compiled_steps", "default_workdir", "merge_init", "model_config", "open_source",
-           "prefetch", "resolve_ynn", "setup", "task_weights", "train"]
+__all__ = ["RunResult", "compiled_steps", "create_train_state", "first_step_origin",
+           "task_weights", "train"]
 
 
 # ----------------------------------------------------------------------------- compiled steps

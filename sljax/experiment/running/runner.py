@@ -38,7 +38,9 @@ from sljax.models import load as trained
 from sljax.render.synthetic import SynthConfig, SyntheticSource
 from sljax.runtime import choices, machine
 from sljax.train.config import config_from_json
-from sljax.train.loop import TrainingDiverged, open_source, train
+from sljax.train.feed import open_source
+from sljax.train.loop import train
+from sljax.train.record import TrainingDiverged
 
 # ----------------------------------------------------------------------------- cost estimates
 

@@ -258,6 +258,9 @@ def cache_file(root: Path) -> Path:
 
 
 def _load_cache(path: Path, root: Path) -> dict[str, Any]:
+  # Not held to the compile cache's trust check (sljax.runtime.cache_trust): JSON runs no code.
+  # A planted entry can at most skip this check of a scene, and the loader still reads every
+  # file with its own checks, so a bad file then fails there, later, with the loader's error.
   try:
     data = json.loads(path.read_text(encoding="utf-8"))
   except (OSError, ValueError):

@@ -154,6 +154,9 @@ def measurement_key() -> str:
 def read_measurements(path: Path | None = None) -> dict:
   """The measurements by key ({} when absent or unreadable: `sljax tune` can measure again)."""
   path = path or measurements_path()
+  # Not held to the compile cache's trust check (sljax.runtime.cache_trust): JSON runs no code,
+  # and what a planted file can choose is only which of two settings XLA compiles with, both
+  # the same function (speed and float rounding differ), read back through KernelChoice's fields.
   try:
     data = json.loads(path.read_text(encoding="utf-8"))
   except (OSError, ValueError):

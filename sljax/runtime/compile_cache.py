@@ -14,6 +14,11 @@ where the `filelock` package is installed; without it the folder is not limited.
 `SLJAX_COMPILE_CACHE=off` turns it off, `SLJAX_COMPILE_CACHE=DIR` moves it, and a
 `JAX_COMPILATION_CACHE_DIR` the user set wins. sljax's command lines (`sljax ...`,
 `python train.py`) turn it on; code importing sljax decides for itself (`enable_compile_cache`).
+
+Executables are code that runs, so the folder is used only when no one but the user, root and
+the user's groups can write it, its parents up to the cache's root or its entries
+(sljax.runtime.cache_trust); otherwise the run compiles, neither loading nor writing there, and
+says so in one line.
 """
 
 import hashlib
@@ -25,7 +30,7 @@ from pathlib import Path
 import jax
 import jaxlib
 
-from sljax.runtime import kept_programs, machine
+from sljax.runtime import cache_trust, kept_programs, machine
 
 ENV_DIR = "SLJAX_CACHE_DIR"
 ENV_COMPILE = "SLJAX_COMPILE_CACHE"
@@ -41,6 +46,15 @@ def user_cache_dir() -> Path:
   return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "sljax"
 
 
+def compile_cache_root() -> Path | None:
+  """The folder the user named for compiled programs ($SLJAX_COMPILE_CACHE), else sljax's cache
+  folder (user_cache_dir); None: turned off. Trust is checked from an entry up to here."""
+  setting = os.environ.get(ENV_COMPILE, "").strip()
+  if setting.lower() in OFF:
+    return None
+  return Path(setting) if setting else user_cache_dir()
+
+
 def compile_cache_dir() -> Path | None:
   """The folder of this CPU's and jax version's executables (None: turned off)."""
   setting = os.environ.get(ENV_COMPILE, "").strip()
@@ -52,17 +66,33 @@ def compile_cache_dir() -> Path | None:
   return root / f"{machine.cpu_key()}-{isa}-jax-{jax.__version__}-jaxlib-{jaxlib.__version__}"
 
 
+def trusted(folder: Path, root: Path) -> bool:
+  """Whether a compile-cache folder may be loaded from (sljax.runtime.cache_trust); if not, one
+  line on stderr says which path and how to allow it (once per process)."""
+  found = cache_trust.untrusted_folder(folder, root)
+  if found is not None:
+    cache_trust.warn_once(folder, found)
+  return found is None
+
+
 def enable_compile_cache(programs: bool = False) -> Path | None:
   """Turns JAX's persistent compilation cache on in compile_cache_dir(), and with `programs`
   sljax's cache of whole compiled programs in the same folder (sljax.runtime.kept_programs: command
   lines only); returns the folder in use (the user's JAX_COMPILATION_CACHE_DIR when set;
-  None when turned off)."""
+  None when turned off or not trusted)."""
   if jax.config.jax_compilation_cache_dir:
     folder = Path(jax.config.jax_compilation_cache_dir)
-    kept_programs.enable(folder if programs else None)
+    if not trusted(folder, folder):
+      # jax would load the user's own setting too: the check holds for it as for sljax's.
+      jax.config.update("jax_compilation_cache_dir", None)
+      kept_programs.enable(None)
+      return None
+    kept_programs.enable(folder if programs else None, root=folder)
     return folder
   folder = compile_cache_dir()
-  kept_programs.enable(folder if programs else None)
+  if folder is not None and not trusted(folder, compile_cache_root()):
+    folder = None  # compiled here, never loaded nor written there
+  kept_programs.enable(folder if programs else None, root=compile_cache_root())
   if folder is None:
     return None
   jax.config.update("jax_compilation_cache_dir", str(folder))

@@ -24,7 +24,10 @@ an edit of sljax that left the program as it was, say) the program is compiled a
 under a compiler option that jax's key sees and XLA ignores, and kept. Entries sit in the
 compile cache's folder under jax's own file names, bounded with it by jax's size limit (least
 recently used first), and whatever turns the compile cache off (`SLJAX_COMPILE_CACHE=off`)
-turns this off too. A folder it cannot read or write costs the cache, never the run.
+turns this off too. A folder it cannot read or write costs the cache, never the run. An entry
+is unpickled and loaded only when it, its folder and their parents up to the cache's root pass
+sljax.runtime.cache_trust's check (checked again at each load: the pickled trees run code);
+otherwise one line, and the process keeps no programs from then on.
 Multi-process runs (`--distributed`) are not cached: an executable there spans the processes'
 devices.
 """
@@ -46,7 +49,7 @@ import jaxlib
 import numpy as np
 
 from sljax.errors import SljaxError
-from sljax.runtime import machine
+from sljax.runtime import cache_trust, machine
 
 ENV = "SLJAX_PROGRAM_CACHE"  # 0/off/false/no: never keep or load compiled programs
 MAGIC = b"sljax-executable 1\n"
@@ -63,15 +66,31 @@ _IGNORED_SETTINGS = ("jax_compilation_cache", "jax_persistent_cache", "jax_log_c
 # compiled under it misses jax's cache, so XLA compiles it afresh (`compile_and_keep`).
 FRESH_OPTION = {"xla_dump_large_constants": True}
 
-_state = {"folder": None}
+_state = {"folder": None, "root": None}
 
 
-def enable(folder: Path | None) -> Path | None:
+def enable(folder: Path | None, root: Path | None = None) -> Path | None:
   """Keeps compiled programs in `folder` (the compile cache's; None turns it off) unless
-  $SLJAX_PROGRAM_CACHE is off; returns the folder in use."""
+  $SLJAX_PROGRAM_CACHE is off or the folder is not trusted (sljax.runtime.cache_trust, its
+  parents checked up to `root`, by default the folder itself); returns the folder in use."""
   off = os.environ.get(ENV, "").strip().lower() in ("0", "off", "false", "no")
   _state["folder"] = None if off or folder is None else Path(folder)
+  _state["root"] = None if _state["folder"] is None else Path(root or folder)
+  if _state["folder"] is not None and _untrusted(
+      cache_trust.untrusted_folder(_state["folder"], _state["root"])):
+    return None
   return _state["folder"]
+
+
+def _untrusted(found: tuple[Path, str, str] | None) -> bool:
+  """Whether a trust check found something; if so the process keeps no programs from now on
+  (neither loading nor writing there), and one line says so (once per process)."""
+  if found is None:
+    return False
+  where, _state["folder"] = _state["folder"], None
+  if where is not None:
+    cache_trust.warn_once(where, found)
+  return True
 
 
 def folder() -> Path | None:
@@ -210,6 +229,9 @@ def load(name: str, key: str, log: Callable[[str], None], device: jax.Device | N
   """The kept program under `key`, or None: none kept, a folder that cannot be read (one
   line), or an entry that is not intact (deleted, one line)."""
   where = folder()
+  if where is None or _untrusted(cache_trust.untrusted_chain(where / f"{key}-cache",
+                                                             _state["root"] or where)):
+    return None  # the entry is checked before its bytes are unpickled and loaded
   try:
     data = _store(where).get(key)
   except Exception as e:  # noqa: BLE001  a read-only, full or busy folder: compile instead
@@ -348,6 +370,8 @@ class Program:
       compiled = future.result() if prefetched == key else None
     if compiled is None and key is not None:
       compiled = load(self.name, key, self.log, self.device)
+    if folder() is None:  # a trust check in a load turned the cache off: keep nothing there
+      where = key = None
     if compiled is not None:
       self.origin = "loaded"
       self._unproven.add(id(compiled))

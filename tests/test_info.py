@@ -73,8 +73,9 @@ def test_info_reports_problems(tmp_path, capsys):
   write_scene(tmp_path / "c", flipped)
   assert cli.main(["info", str(tmp_path)]) == 1
   out = capsys.readouterr().out
-  assert ("c: disp1.pfm: 100% of its known disparities are negative (is the sign flipped?)"
-          in out), out
+  # The loader's own words (sljax.data.checks.disparity_problem), as --check and training say it.
+  assert "c: disp1.pfm: 100% of its known disparities are negative;" in out, out
+  assert "(is the sign flipped?)" in out
   assert "c: disp0.pfm" not in out
 
 

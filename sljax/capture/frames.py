@@ -28,6 +28,7 @@ import numpy as np
 
 from sljax.errors import SljaxError, require
 from sljax.io import files
+from sljax.io.images import decode
 from sljax.sl import codes
 from sljax.sl.decode import count_patterns
 
@@ -164,9 +165,7 @@ def assign_roles(paths: Sequence[Path], layout: str, projector: tuple[int, int] 
 
 def read_frame(path: Path) -> np.ndarray:
   """A frame as OpenCV decodes it: uint8 or uint16, HxW or HxWx3 BGR (alpha dropped)."""
-  img = cv2.imread(os.fspath(path), cv2.IMREAD_UNCHANGED)
-  if img is None:
-    raise SljaxError(f"{path}: {'missing' if not path.exists() else 'not a readable image'}")
+  img = decode(path)  # sized from its header first: a huge claim is one line, not cv2.error
   if img.dtype not in (np.uint8, np.uint16):
     raise SljaxError(f"{path}: {img.dtype} samples; frames must be 8- or 16-bit images")
   if img.ndim == 3 and img.shape[2] == 4:

@@ -9,7 +9,7 @@ docs/captures.md):
   the shadow threshold everywhere, or both saturated). Correct captures: 73% and 88%; the
   projector off or every frame saturated: 0%.
 - LEFT and RIGHT swapped: more than half of a view's matched disparities are negative, the rule
-  sljax.data.scene.negative_share applies when a scene loads, so that an import never writes a
+  sljax.data.checks.negative_share applies when a scene loads, so that an import never writes a
   scene the loader refuses. Correct captures: none negative; swapped, by cameras alike: 99%.
 - rectified rows that do not match (the opencv layout's row frames, with the row check): the
   row check refuses more than MAX_ROW_REFUSED of the left matches it can judge: the
@@ -24,7 +24,7 @@ cannot be either), and then its partner in the other view (the left-right check 
 
 import numpy as np
 
-from sljax.data.scene import negative_share
+from sljax.data.checks import negative_share
 from sljax.errors import SljaxError
 from sljax.sl.match import lr_check_disparities
 from sljax.sl.stereo import StereoDecoded
@@ -46,7 +46,7 @@ def check_lit(decoded: StereoDecoded, where: tuple[str, str]) -> None:
 
 def swapped(decoded: StereoDecoded) -> tuple[str, float] | None:
   """(view, share) of a view whose matched disparities are mostly negative, else None."""
-  # The rule by which scene.negative_share refuses a scene on load: LEFT and RIGHT swapped.
+  # The rule by which checks.negative_share refuses a scene on load: LEFT and RIGHT swapped.
   for view, d in zip(("left", "right"), (decoded.disp0, decoded.disp1)):
     share = negative_share(d)
     if share is not None:

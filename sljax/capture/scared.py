@@ -36,7 +36,8 @@ from sljax.capture.rig import (RECTIFY_ALPHA, check_rig, read_calibration, recti
                             remap)
 from sljax.data.scene import Scene, write_scene
 from sljax.errors import SljaxError
-from sljax.io.images import image_to_float
+from sljax.io.headers import check_image_size
+from sljax.io.images import decode, image_to_float
 
 LEFT, RIGHT = "Left_Image.png", "Right_Image.png"
 DEPTH, CALIB = "left_depth_map.tiff", "endoscope_calibration.yaml"
@@ -54,7 +55,11 @@ def read_scared_points(path: str | os.PathLike) -> np.ndarray:
   path = os.fspath(path)
   if not os.path.exists(path):
     raise SljaxError(f"{path}: missing")
-  raw = cv2.imread(path, cv2.IMREAD_UNCHANGED)
+  check_image_size(path)  # before OpenCV allocates what the header claims
+  try:
+    raw = cv2.imread(path, cv2.IMREAD_UNCHANGED)
+  except cv2.error:  # a format whose header sljax does not read, claiming too much
+    raw = None
   # An 8/16-bit image (a depth picture, not the point map) would pass as x, y, z of 0..255 mm.
   if raw is None or raw.ndim != 3 or raw.shape[2] != 3 or raw.dtype.kind != "f":
     found = ("unreadable" if raw is None else
@@ -69,10 +74,8 @@ def read_scared_points(path: str | os.PathLike) -> np.ndarray:
 
 def _read_view(path: Path) -> np.ndarray:
   """The raw 8/16-bit view as OpenCV decodes it (remapped before conversion to float)."""
-  if not path.exists():
-    raise SljaxError(f"{path}: missing")
-  img = cv2.imread(os.fspath(path), cv2.IMREAD_UNCHANGED)
-  if img is None or img.dtype not in (np.uint8, np.uint16):
+  img = decode(path)  # sized from its header first
+  if img.dtype not in (np.uint8, np.uint16):
     raise SljaxError(f"{path}: not an 8- or 16-bit image")
   return img
 

@@ -7,18 +7,19 @@ import struct
 from typing import Any
 from pathlib import Path
 
-import cv2
 import numpy as np
 from tqdm import tqdm
 
 from sljax.data import preflight
 from sljax.data.camera import read_calib
+from sljax.data.checks import disparity_problem
 from sljax.data.dataset import FolderSource, split_indices
 from sljax.data.pfm import read_pfm
-from sljax.data.scene import negative_share, present_parts
+from sljax.data.scene import present_parts
 from sljax.errors import SljaxError
 from sljax.io import files
-from sljax.io.images import holds_12_bit
+from sljax.io.headers import pixel_problem
+from sljax.io.images import decode, holds_12_bit
 
 _FILES = ("im1.png", "disp0.pfm", "disp1.pfm", "mask0.png", "sl0", "sl1", "raw0", "raw1",
           "calib.txt", "meta.json")
@@ -43,8 +44,8 @@ def register(subparsers) -> None:
                  help="list every scene when there are at most this many (default 20)")
   p.add_argument("--check", action="store_true",
                  help="only check that every file of every scene is readable (the check "
-                      "training runs before its first step: PNG structure and CRCs, PFM "
-                      "headers and sizes, calib.txt, meta.json, shapes); lists each bad scene "
+                      "training runs before its first step: PNG structure, CRCs and image "
+                      "data, PFM headers, sizes and values, calib.txt, meta.json, shapes); lists each bad scene "
                       "and exits with 2 when there is one")
   p.add_argument("--no-cache", action="store_true",
                  help="with --check: check every file again, ignoring the results cached for "
@@ -76,6 +77,8 @@ def _scene_row(path: Path, problems: list[str], name: str, group: str) -> dict:
     problems.append(f"{name}: im0.png: {e}")
     return row
   row["size"], row["kind"] = (w, h), f"{depth}-bit {colour}"
+  if pixel_problem(w, h) is not None:
+    problems.append(f"{name}: im0.png: {pixel_problem(w, h)}")
   for f in _FILES:
     if (path / f).exists():
       row["files"].add(f)
@@ -102,15 +105,12 @@ def _scene_row(path: Path, problems: list[str], name: str, group: str) -> dict:
       except SljaxError as e:
         problems.append(str(e))
         continue
-      if d.shape[:2] != (h, w):
-        problems.append(f"{name}: {f} is {d.shape[1]}x{d.shape[0]}, the views {w}x{h}")
+      problem = disparity_problem(d, (h, w))  # what loading and the pre-flight refuse
+      if problem is not None:
+        problems.append(f"{name}: {f}: {problem}")
       finite = d[np.isfinite(d)]
       row[f] = (float(finite.min()), float(finite.max()), finite.size / d.size) if finite.size \
           else None
-      share = negative_share(d)
-      if share is not None:  # what loading refuses
-        problems.append(f"{name}: {f}: {share:.0%} of its known disparities are negative (is "
-                        "the sign flipped?)")
   if "calib.txt" in row["files"]:
     try:
       c = read_calib(path / "calib.txt")
@@ -125,11 +125,17 @@ def check(src, use_cache: bool = True) -> int:
   """`sljax info --check`: the pre-flight check of every part of every scene; prints each bad
   scene's line and raises SljaxError when there is one."""
   jobs = [([i], list(present_parts(p))) for i, p in enumerate(src.paths)]
-  problems, counts = preflight.scan(src, jobs, use_cache=use_cache)
+  # The whole dataset must hold a usable disparity somewhere, as a run's split must.
+  with_disp = [i for (i,), parts in jobs if "disp" in parts]
+  problems, counts = preflight.scan(src, jobs, use_cache=use_cache,
+                                    disparity_sets=[with_disp] if with_disp else [])
   for line in problems:
     print(line)
   if problems:
-    raise SljaxError(f"{src.root}: {_plural(len(problems), 'bad scene')} of {counts['scenes']}")
+    empty = sum(line.startswith(f"{src.root}: none of") for line in problems)
+    bad = len(problems) - empty
+    raise SljaxError(f"{src.root}: " + (f"{_plural(bad, 'bad scene')} of {counts['scenes']}"
+                                        if bad else "no usable disparity"))
   print(f"{src.root}: all {_plural(counts['scenes'], 'scene')} readable "
         f"({counts['cached']} unchanged since the last check)")
   return 0
@@ -141,8 +147,11 @@ def _low_bit_note(rows: list[dict]) -> str | None:
   row = next((r for r in rows if r["kind"].startswith("16-bit")), None)
   if row is None:
     return None
-  image = cv2.imread(os.fspath(row["path"] / "im0.png"), cv2.IMREAD_UNCHANGED)
-  if image is None or not holds_12_bit(image.max(), image.dtype):
+  try:
+    image = decode(row["path"] / "im0.png")
+  except SljaxError:  # listed under problems already, or found by --check
+    return None
+  if not holds_12_bit(image.max(), image.dtype):
     return None
   return (f"note:    {row['name']}/im0.png is 16-bit with values up to {int(image.max())} "
           "(12-bit data?); sljax reads 16-bit PNGs as value / 65535, so it looks "

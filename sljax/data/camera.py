@@ -118,7 +118,7 @@ def read_calib(path: str | os.PathLike) -> Calib:
   if vmin is not None and vmax is not None and not vmin <= vmax:
     raise SljaxError(f"{path}: vmin={values['vmin']} is not at most vmax={values['vmax']} "
                      "(they are the smallest and largest disparity present)")
-  return Calib(
+  calib = Calib(
       cam0=_parse_matrix(values["cam0"], path, "cam0"),
       cam1=_parse_matrix(values["cam1"], path, "cam1"),
       doffs=number("doffs"),
@@ -128,6 +128,12 @@ def read_calib(path: str | os.PathLike) -> Calib:
       ndisp=integer("ndisp"),
       vmin=vmin,
       vmax=vmax)
+  # Refused here, where every reader reads it (the loader, the pre-flight, info, predict), not
+  # first by the depth code when a run or an evaluation is half done.
+  problem = calib_problem(calib)
+  if problem is not None:
+    raise SljaxError(f"{path}: {problem}")
+  return calib
 
 
 def calib_text(calib: Calib, where: str = "calib") -> str:
@@ -154,16 +160,29 @@ def write_calib(path: str | os.PathLike, calib: Calib) -> None:
   files.write_text(path, calib_text(calib, os.fspath(path)))
 
 
+def calib_problem(calib: Calib) -> str | None:
+  """Why a calibration cannot give depth (a focal length or baseline not positive, a value not
+  finite); None when it can."""
+  fy = float(np.asarray(calib.cam0, dtype=np.float64)[1, 1])
+  # A zero or negative f, fy or baseline gives zero, negative or infinite depths, not an error.
+  if not all(np.isfinite(v) and v > 0 for v in (calib.focal, fy, calib.baseline)):
+    return (f"calibration needs a positive focal length and baseline, got "
+            f"f = {calib.focal:g}, fy = {fy:g}, baseline = {calib.baseline:g}")
+  numbers = [*np.ravel(calib.cam0), *np.ravel(calib.cam1), calib.doffs,
+             *(v for v in (calib.vmin, calib.vmax) if v is not None)]
+  if not np.all(np.isfinite(np.asarray(numbers, dtype=np.float64))):  # NaN depths, silently
+    return "calibration holds a value that is not a finite number (NaN or inf)"
+  return None
+
+
 def check_calib(calib: Calib, where: str) -> None:
   """SljaxError unless calib is a Calib with positive, finite focal lengths and baseline."""
   if not isinstance(calib, Calib):
     raise SljaxError(f"{where}: calib must be a sljax.data.camera.Calib (read_calib reads "
                      f"calib.txt), got {type(calib).__name__}")
-  fy = float(np.asarray(calib.cam0, dtype=np.float64)[1, 1])
-  # A zero or negative f, fy or baseline gives zero, negative or infinite depths, not an error.
-  if not all(np.isfinite(v) and v > 0 for v in (calib.focal, fy, calib.baseline)):
-    raise SljaxError(f"{where}: calibration needs a positive focal length and baseline, got "
-                     f"f = {calib.focal:g}, fy = {fy:g}, baseline = {calib.baseline:g}")
+  problem = calib_problem(calib)
+  if problem is not None:
+    raise SljaxError(f"{where}: {problem}")
 
 
 def depth_from_disparity(disp: np.ndarray, calib: Calib, where: str = "depth") -> np.ndarray:

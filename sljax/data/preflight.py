@@ -2,16 +2,19 @@
 
 A corrupt file found by the loader stops a run when the file is first read, which can be
 hours in (validation scenes are first read at the end of epoch 1). The check reads each file
-the run's scene parts need, cheaply:
+the run's scene parts need, whole, and passes its values through the loader's own verdicts
+(sljax.data.checks, camera.read_calib), so that what it passes trains and what training would
+refuse it refuses first:
 
 - PNG: the chunk structure is walked and every chunk's CRC-32 verified (signature, IHDR first,
-  IDAT present, IEND reached). This reads the whole file but does not inflate it: truncation
-  (an interrupted copy, the common corruption) and flipped bytes anywhere (CRC) are caught at
-  a fraction of a decode's cost. A zlib stream written wrong with correct CRCs (a broken
-  encoder, not a broken copy) would pass and fail later, as before. Files without the PNG
-  signature are decoded in full with OpenCV, as the loader would read them.
-- PFM: the header parsed and the file's size compared with what the header needs (no float
-  parsing).
+  IDAT present, IEND reached), the header's size checked (sljax.io.headers.MAX_PIXELS), then
+  the image data inflated to the end (sljax.io.headers.png_check): truncation, flipped bytes
+  (CRC) and a zlib stream written wrong behind correct CRCs are all named here. Other formats
+  are sized from their headers, then decoded in full with OpenCV, as the loader reads them.
+- PFM: the header parsed and the file's size compared with what the header needs, then the
+  values read and judged (sljax.data.checks.disparity_problem: mostly negative or beyond the
+  width). Every set of scenes whose disparities a run reads must hold at least one usable
+  disparity (known, 0 to the width): all NaN or 1e30 would train on nothing.
 - calib.txt, meta.json: parsed with the loader's own readers (they are small).
 - Shapes: every view, disparity, pattern and mask of a scene has im0's size; sl1 holds as many
   patterns as sl0, and every scene as many as the first (the network's input is built for it),
@@ -25,8 +28,6 @@ else ~/.cache/sljax), never inside the dataset; a second run stats the files and
 import concurrent.futures
 import hashlib
 import json
-import struct
-import zlib
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
@@ -36,16 +37,18 @@ import numpy as np
 from tqdm import tqdm
 
 from sljax.data.camera import read_calib
+from sljax.data.checks import disparity_problem, no_usable_disparity, usable_disparities
 from sljax.data.dataset import FolderSource, PART_FIELD
 from sljax.data.pfm import _HEADER as PFM_HEADER
+from sljax.data.pfm import read_pfm
 from sljax.data.scene import _PATTERN_FILE, _RAW_FILE, _numbered_files
 from sljax.errors import SljaxError
 from sljax.io import files
 from sljax.io.files import read_json_object
+from sljax.io.headers import PNG_SIGNATURE, image_size, pixel_problem, png_check
 from sljax.runtime.compile_cache import user_cache_dir
 
-PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-CACHE_VERSION = 1
+CACHE_VERSION = 2  # 2: images decoded whole, disparities judged and counted ("usable")
 THREADS = 4  # file reads and CRC-32 release the GIL
 ALL_PARTS = ("im", "disp", "mask", "sl", "raw", "calib", "meta")
 
@@ -58,39 +61,6 @@ class BadFile(Exception):
     self.file, self.problem = file, problem
 
 
-def png_check(data: bytes) -> tuple[int, int, int]:
-  """(width, height, bit depth) of a structurally intact PNG; ValueError naming the problem."""
-  if data[:8] != PNG_SIGNATURE:
-    raise ValueError("not a PNG file")
-  pos, n, seen_idat, ihdr = 8, len(data), False, None
-  while True:
-    if pos + 8 > n:
-      raise ValueError(f"truncated after {pos} bytes (no IEND chunk)")
-    length, kind = struct.unpack(">I4s", data[pos:pos + 8])
-    end = pos + 12 + length
-    if end > n:
-      raise ValueError(f"truncated: chunk {kind.decode('latin-1')} at byte {pos} needs {end} "
-                       f"bytes, the file has {n}")
-    body = data[pos + 4:pos + 8 + length]  # type + data, what the CRC covers
-    if zlib.crc32(body) != struct.unpack(">I", data[pos + 8 + length:end])[0]:
-      raise ValueError(f"corrupt: chunk {kind.decode('latin-1')} at byte {pos} fails its CRC "
-                       "check")
-    if ihdr is None:
-      if kind != b"IHDR" or length < 13:
-        raise ValueError("corrupt: the first chunk is not IHDR")
-      ihdr = struct.unpack(">IIB", data[pos + 8:pos + 17])
-    seen_idat |= kind == b"IDAT"
-    pos = end
-    if kind == b"IEND":
-      break
-  if not seen_idat:
-    raise ValueError("corrupt: no image data (IDAT)")
-  width, height, depth = ihdr
-  if width == 0 or height == 0:
-    raise ValueError(f"corrupt: size {width}x{height}")
-  return width, height, depth
-
-
 def image_check(path: Path) -> tuple[int, int, int]:
   """(width, height, bit depth) of an image file the loader can read; ValueError otherwise."""
   data = path.read_bytes()
@@ -98,6 +68,10 @@ def image_check(path: Path) -> tuple[int, int, int]:
     raise ValueError("empty file (0 bytes)")
   if data[:8] == PNG_SIGNATURE:
     return png_check(data)
+  size = image_size(path)  # before OpenCV allocates what the header claims
+  problem = None if size is None else pixel_problem(*size)
+  if problem is not None:
+    raise ValueError(problem)
   try:
     img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
   except cv2.error:
@@ -199,17 +173,24 @@ def check_scene(scene_dir: Path, parts: Iterable[str]) -> dict[str, Any]:
   s = _Scene(scene_dir)
   hw = s.image("im0.png")
   s.image("im1.png", hw)
-  t = None
+  t = usable = None
   if "disp" in parts:
     for i, name in enumerate(("disp0.pfm", "disp1.pfm")):
       if i == 0 or s.exists(name):
         try:
           w, h, c = pfm_check(s.require(name))
+          d = read_pfm(s.dir / name)
         except (OSError, ValueError) as e:
           raise BadFile(name, str(e)) from None
+        except SljaxError as e:
+          raise BadFile(name, str(e).split(": ", 1)[-1]) from None
         if c != 1:
           raise BadFile(name, "disparity must have one channel, the file holds 3")
-        s.same_size(name, (h, w), hw)
+        problem = disparity_problem(d, hw)  # the loader's verdict, word for word
+        if problem is not None:
+          raise BadFile(name, problem)
+        if i == 0:
+          usable = usable_disparities(d)
   if "mask" in parts:
     s.image("mask0.png", hw)
   if "sl" in parts:
@@ -232,7 +213,7 @@ def check_scene(scene_dir: Path, parts: Iterable[str]) -> dict[str, Any]:
       read_json_object(s.require("meta.json"), "meta.json")
     except SljaxError as e:
       raise BadFile("meta.json", str(e).split(": ", 1)[-1]) from None
-  return {"hw": list(hw), "t": t, "stamps": s.stamps}
+  return {"hw": list(hw), "t": t, "usable": usable, "stamps": s.stamps}
 
 
 def _still_valid(scene_dir: Path, entry: dict[str, Any]) -> bool:
@@ -281,9 +262,13 @@ def _save_cache(path: Path, root: Path, scenes: dict[str, Any]) -> None:
 
 
 def scan(source, jobs: Sequence[tuple[Iterable[int], Iterable[str]]], *,
-         progress: bool = True, use_cache: bool = True) -> tuple[list[str], dict[str, int]]:
-  """(one line per bad scene, {'scenes', 'cached'}) for the scenes of a FolderSource:
-  jobs = [(scene indices, scene-folder parts to read)]."""
+         progress: bool = True, use_cache: bool = True,
+         disparity_sets: Sequence[Iterable[int]] | None = None
+         ) -> tuple[list[str], dict[str, int]]:
+  """(one line per bad scene, then one per set of scenes without a usable disparity; {'scenes',
+  'cached'}) for the scenes of a FolderSource: jobs = [(scene indices, scene-folder parts to
+  read)]; disparity_sets: the sets of scenes that must each hold a usable disparity (default:
+  each job that reads disparities)."""
   wanted: dict[int, set[str]] = {}
   for indices, parts in jobs:
     for i in indices:
@@ -326,8 +311,23 @@ def scan(source, jobs: Sequence[tuple[Iterable[int], Iterable[str]]], *,
     if not fits_patterns(t, expected, declared):
       problems.setdefault(i, f"{source.paths[i] / 'sl0'}: holds {t} patterns, {whose} "
                              f"{expected}")
-  return ([problems[i] for i in sorted(problems)],
+  if disparity_sets is None:
+    disparity_sets = [indices for indices, parts in jobs if "disp" in parts]
+  empty = [line for indices in disparity_sets
+           if (line := _without_disparity(source, list(indices), results)) is not None]
+  return ([problems[i] for i in sorted(problems)] + list(dict.fromkeys(empty)),
           {"scenes": len(wanted), "cached": len(wanted) - len(todo)})
+
+
+def _without_disparity(source, indices: list[int], results: dict[int, dict[str, Any]]
+                       ) -> str | None:
+  """The line for a set of checked scenes whose disparity maps hold no usable value (all NaN,
+  inf, negative or beyond the width: training would learn nothing from them); None otherwise
+  (or when a scene of the set is bad already: its own line says why)."""
+  counts = [results[int(i)].get("usable") for i in indices if int(i) in results]
+  if len(counts) < len(indices) or not counts or any(c is None or c > 0 for c in counts):
+    return None
+  return no_usable_disparity(str(source.root), len(counts))
 
 
 def fits_patterns(t: int, expected: int | None, declared: Any) -> bool:

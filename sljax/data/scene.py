@@ -7,15 +7,15 @@ import re
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 
 from sljax.data.camera import Calib, calib_text, read_calib
+from sljax.data.checks import disparity_problem
 from sljax.data.pfm import read_pfm, write_pfm
 from sljax.errors import SljaxError
 from sljax.io import files
 from sljax.io.files import read_json_object
-from sljax.io.images import png_pixels, read_image
+from sljax.io.images import decode, png_pixels, read_image
 
 
 @dataclasses.dataclass
@@ -54,14 +54,6 @@ UNKNOWN_PATTERN = 128  # on-disk value of an unknown pattern pixel (0 = dark, 25
 PARTS = frozenset({"im", "disp", "mask", "sl", "raw", "calib", "meta"})
 _PATTERN_FILE = re.compile(r"^(\d{3,})\.png$")
 _RAW_FILE = re.compile(r"^(white|black|[pi]\d{3,})\.png$")
-
-
-def negative_share(disparity: np.ndarray) -> float | None:
-  """The share of a disparity map's known (finite) values that are negative, when it is more
-  than half (a flipped sign: sljax reads x_left - x_right >= 0); None otherwise."""
-  known = disparity[np.isfinite(disparity)]
-  negative = np.count_nonzero(known < 0)
-  return negative / known.size if negative * 2 > known.size else None
 
 
 def _fail(scene_dir: Path, file: str, problem: str) -> SljaxError:
@@ -105,9 +97,8 @@ def read_patterns(folder: str | os.PathLike) -> np.ndarray:
                      f"(missing {', '.join(f'{m:03d}.png' for m in missing[:5])})")
   planes = []
   for p in planes_found:
-    v = cv2.imread(os.fspath(p), cv2.IMREAD_UNCHANGED)
-    if v is None:
-      raise SljaxError(f"{p}: not a readable image")
+    # Sized from its header first: every plane has the first one's size.
+    v = decode(p, planes[0].shape[:2] if planes else None, planes_found[0].name)
     if v.dtype != np.uint8:
       raise SljaxError(f"{p}: pattern images must be 8-bit (0 dark, 255 lit, 128 unknown)")
     if v.ndim == 3:
@@ -150,12 +141,9 @@ def read_raw(folder: str | os.PathLike) -> dict[str, np.ndarray]:
     raise SljaxError(f"{folder}: no raw captures (white.png, black.png, p000.png, ...)")
   out: dict[str, np.ndarray] = {}
   for p in captures:
-    img = read_image(p, gray=True)[..., 0]
     first = next(iter(out.items()), None)
-    if first is not None and img.shape != first[1].shape:
-      raise SljaxError(f"{p}: size {img.shape[1]}x{img.shape[0]} differs from "
-                       f"{first[0]}.png ({first[1].shape[1]}x{first[1].shape[0]})")
-    out[p.stem] = img
+    out[p.stem] = read_image(p, gray=True, want_hw=None if first is None else first[1].shape,
+                             against="" if first is None else f"{first[0]}.png")[..., 0]
   return out
 
 
@@ -230,9 +218,8 @@ def load_scene(path: str | os.PathLike, gray: bool | None = None,
     if not (scene_dir / f).exists():
       raise _fail(scene_dir, f, "missing")
   im0 = read_image(scene_dir / "im0.png", gray)
-  im1 = read_image(scene_dir / "im1.png", gray)
   hw = im0.shape[:2]
-  _check_size(scene_dir, "im1.png", im1, hw)
+  im1 = read_image(scene_dir / "im1.png", gray, want_hw=hw)  # sized before it is decoded
   if im0.shape[2] != im1.shape[2]:  # one gray, one colour file: promote the gray one
     im0, im1 = (np.repeat(im, 3, axis=2) if im.shape[2] == 1 else im for im in (im0, im1))
   scene = Scene(name=scene_dir.name, im0=im0, im1=im1)
@@ -241,22 +228,13 @@ def load_scene(path: str | os.PathLike, gray: bool | None = None,
     for i, f in enumerate(("disp0.pfm", "disp1.pfm")):
       if (need(f) if i == 0 else (scene_dir / f).exists()):
         d = read_pfm(scene_dir / f)
-        if d.ndim != 2:
-          raise _fail(scene_dir, f, f"disparity must have one channel, got shape {d.shape}")
-        _check_size(scene_dir, f, d, hw)
-        share = negative_share(d)
-        if share is not None:  # training would ignore them all, evaluation score them
-          raise _fail(scene_dir, f, f"{share:.0%} of its known disparities are "
-                      "negative; disparities are x_left - x_right >= 0 in both views, unknown "
-                      "pixels inf or NaN (is the sign flipped?)")
+        problem = disparity_problem(d, hw)  # the pre-flight's and info's verdict too
+        if problem is not None:
+          raise _fail(scene_dir, f, problem)
         setattr(scene, f[:5], d)
   if "mask" in parts and need("mask0.png"):
-    m = cv2.imread(os.fspath(scene_dir / "mask0.png"), cv2.IMREAD_UNCHANGED)
-    if m is None:
-      raise _fail(scene_dir, "mask0.png", "not a readable image")
-    m = m.reshape(m.shape[0], m.shape[1], -1).any(axis=2)
-    _check_size(scene_dir, "mask0.png", m, hw)
-    scene.mask0 = m
+    m = decode(scene_dir / "mask0.png", hw)
+    scene.mask0 = m.reshape(m.shape[0], m.shape[1], -1).any(axis=2)
   if "sl" in parts:
     for i, f in enumerate(("sl0", "sl1")):
       if (need(f) if i == 0 else (scene_dir / f).exists()):

@@ -31,6 +31,7 @@ from tqdm import tqdm
 
 from sljax.capture import scared
 from sljax.corr.uncertainty import pattern_uncertainty
+from sljax.data.checks import no_usable_disparity
 from sljax.data.pfm import read_pfm, write_pfm
 from sljax.data.scene import present_parts
 from sljax.depth.geometry import check_calib_size
@@ -142,6 +143,22 @@ def _scared_row(source, i: int, scene, disparity: np.ndarray, where: str
   return scared.keyframe_error(gt, pred)
 
 
+def check_mae(result: dict[str, Any], gt: np.ndarray, where: str) -> None:
+  """SljaxError naming the scene when its MAE is no error a disparity can have: not finite
+  although the truth is known somewhere, or more than the image's width (values no match can
+  have, in the truth or in the prediction)."""
+  mae, width = result["mae"], gt.shape[1]
+  if result["n_pixels"] == 0 or (math.isfinite(mae) and mae <= width):
+    return
+  with np.errstate(invalid="ignore"):
+    beyond = int(np.count_nonzero(np.isfinite(gt) & (np.abs(gt) > width)))
+  culprit = (f"disp0.pfm holds {beyond} known disparities beyond the image's width ({width} px; "
+             "unknown pixels must be inf or NaN)" if beyond else
+             "the prediction is not finite wherever the truth is known" if not math.isfinite(mae)
+             else f"the prediction holds disparities beyond the image's width ({width} px)")
+  raise SljaxError(f"{where}: the mean absolute error would be {mae:g} px: {culprit}")
+
+
 def evaluate(predictor, source, indices: list[int] | None = None, *, out_dir: Path | None = None,
              save_predictions: bool = False, figures: bool = False,
              progress: bool = True, info: dict[str, Any] | None = None) -> dict[str, Any]:
@@ -175,9 +192,10 @@ def evaluate(predictor, source, indices: list[int] | None = None, *, out_dir: Pa
         mask = scene.mask0 if region == "seg" else None
         acc = metrics.DisparityAccumulator()
         acc.add(out["disparity"], scene.disp0, mask, scene.calib, name=where)
+        row[region] = acc.result()
+        check_mae(row[region], scene.disp0, where)  # before it is pooled into the report
         pooled[region].add(out["disparity"], scene.disp0, mask, scene.calib, name=where)
         used[region] += 1
-        row[region] = acc.result()
     scared_row = _scared_row(source, i, scene, out["disparity"], where)
     if scared_row is not None:
       row["scared"] = scared_row
@@ -206,6 +224,9 @@ def evaluate(predictor, source, indices: list[int] | None = None, *, out_dir: Pa
               f"{predictor.model_name} ({predictor.mode})")
     rows.append(row)
 
+  if used["full"] and pooled["full"].n_pixels == 0:  # the scenes' truth is all unknown
+    raise SljaxError(no_usable_disparity(str(getattr(source, "root", "dataset")),
+                                         used["full"]))
   report: dict[str, Any] = dict(info or {})
   report.update({
       "model": predictor.model_name,

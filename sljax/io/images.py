@@ -13,6 +13,7 @@ import numpy as np
 
 from sljax.errors import SljaxError
 from sljax.io import files
+from sljax.io.headers import check_image_size
 
 # ITU-R BT.601 luma, the weights OpenCV uses for RGB -> gray.
 _LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32)
@@ -25,17 +26,32 @@ def to_gray(image: np.ndarray) -> np.ndarray:
   return (image @ _LUMA)[..., None].astype(np.float32)
 
 
-def read_image(path: str | os.PathLike, gray: bool | None = None) -> np.ndarray:
+def decode(path: str | os.PathLike, want_hw: tuple[int, int] | None = None,
+           against: str = "im0.png") -> np.ndarray:
+  """An image file as OpenCV decodes it (IMREAD_UNCHANGED), its header's size checked first
+  (sljax.io.headers: MAX_PIXELS, and want_hw, the size of `against`); SljaxError naming the file."""
+  path = os.fspath(path)
+  if not os.path.exists(path):
+    raise SljaxError(f"{path}: missing")
+  check_image_size(path, want_hw, against)  # before OpenCV allocates what the header claims
+  try:
+    raw = cv2.imread(path, cv2.IMREAD_UNCHANGED)
+  except cv2.error as e:  # a format whose header is not read first, claiming too much
+    raise SljaxError(f"{path}: not a readable image ({str(e).strip().splitlines()[-1]})") from None
+  if raw is None:
+    raise SljaxError(f"{path}: not a readable image")
+  return raw
+
+
+def read_image(path: str | os.PathLike, gray: bool | None = None,
+               want_hw: tuple[int, int] | None = None, against: str = "im0.png") -> np.ndarray:
   """Reads an 8- or 16-bit PNG to float32 HxWxC in [0, 1] (RGB order; alpha dropped).
 
-  gray=None keeps the file's channels (C = 1 or 3), True gives C = 1, False gives C = 3.
+  gray=None keeps the file's channels (C = 1 or 3), True gives C = 1, False gives C = 3;
+  want_hw: the (height, width) it must have, checked before decoding (decode).
   """
   path = os.fspath(path)
-  raw = cv2.imread(path, cv2.IMREAD_UNCHANGED)
-  if raw is None:
-    reason = "missing" if not os.path.exists(path) else "not a readable image"
-    raise SljaxError(f"{path}: {reason}")
-  img = image_to_float(raw, path)
+  img = image_to_float(decode(path, want_hw, against), path)
   if gray is True:
     img = to_gray(img)
   elif gray is False and img.shape[2] == 1:

@@ -926,3 +926,31 @@ def test_plausible_drops_what_no_rig_can_see_by_hand():
   assert captures.refusals.plausible(far, np.full((1, 8), inf, np.float32), 8, 1.0)[2] == (1, 0)
   same = captures.refusals.plausible(got0, got1, 8, 1.0)
   assert same[0] is got0 and same[1] is got1 and same[2] == (0, 0)
+
+
+@pytest.mark.parametrize("error", [OSError(28, "No space left on device"), KeyboardInterrupt()])
+def test_a_failure_while_writing_leaves_the_scene_as_it_was(capture, tmp_path, capsys,
+                                                            monkeypatch, error):
+  """A full disk (or Ctrl-C) while the raw frames are written, after the views, disparities
+  and patterns: OUT_SCENE stays absent, and with --overwrite keeps its files byte for byte."""
+  import gc  # pylint: disable=import-outside-toplevel
+  import toys  # pylint: disable=import-outside-toplevel
+  from sljax.data import scene as scene_module  # pylint: disable=import-outside-toplevel
+  out = tmp_path / "s"
+  args = [capture / "cam1", capture / "cam2", out, "--calib", capture / "calib.yml",
+          "--projector", PROJ]
+
+  def failing(*a, **k):
+    gc.collect()  # not inside jax's gc callback, which would report a Ctrl-C as ignored
+    raise error
+
+  with monkeypatch.context() as m:
+    m.setattr(scene_module, "write_raw", failing)
+    assert _import(args, capsys)[0] in (2, 130)
+  assert not out.exists()
+  assert _import(args)[0] == 0
+  before = toys.tree(out)
+  with monkeypatch.context() as m:
+    m.setattr(scene_module, "write_raw", failing)
+    assert _import(args + ["--overwrite", "--bit-threshold", "20"], capsys)[0] in (2, 130)
+  assert toys.tree(out) == before

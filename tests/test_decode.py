@@ -1,3 +1,4 @@
+import gc
 import json
 import math
 
@@ -6,11 +7,14 @@ import numpy as np
 import pytest
 
 from sljax import cli
+from sljax.commands import decode
 from sljax.data.pfm import read_pfm
 from sljax.errors import SljaxError
 from sljax.sl import codes
 from sljax.sl.decode import DecodeConfig, column_from_bits, decode_captures
 from sljax.sl.match import disparity_from_codes
+
+import toys
 
 H, W = 48, 256
 T = 7                      # Gray code of a 128-column projector
@@ -370,3 +374,49 @@ def test_cli_decode_applies_the_importers_filters(tmp_path, scene, capsys, monke
   for d in (d0, d1):
     assert (np.isfinite(d) & ((d < 0) | (d > W))).sum() == 0
   assert np.isfinite(d0).mean() > 0.5  # the rest kept
+
+
+def test_cli_decode_is_all_or_nothing(tmp_path, scene, capsys):
+  """A capture that passes the pre-flight but fails to decode in the last scene: every scene
+  stays as it was, byte for byte: none decoded (absent stays absent) and, with --overwrite,
+  the earlier decoding of the others kept."""
+  root = tmp_path / "ds"
+  for name in ("0ok", "1ok"):
+    _write_scene_folder(root, name, scene, meta={"code": "gray"})
+  assert cli.main(["decode", str(root)]) == 0
+  capsys.readouterr()
+  bad = _write_scene_folder(root, "2bad", scene, meta={"code": "gray"}) / "raw1" / "p003.png"
+  toys.break_deflate(bad)
+  before = toys.tree(root)
+  assert cli.main(["decode", str(root), "--overwrite", "--bit-threshold", "5"]) == 2
+  _one_line_error(capsys, f"{bad}: not a readable image", "nothing was decoded")
+  assert toys.tree(root) == before
+  fresh = tmp_path / "fresh"
+  for name in ("0ok", "1ok", "2bad"):
+    _write_scene_folder(fresh, name, scene, meta={"code": "gray"})
+  toys.break_deflate(fresh / "2bad" / "raw1" / "p003.png")
+  before = toys.tree(fresh)
+  assert cli.main(["decode", str(fresh)]) == 2
+  capsys.readouterr()
+  assert toys.tree(fresh) == before
+
+
+def test_cli_decode_interrupted_leaves_nothing_partial(tmp_path, scene, capsys, monkeypatch):
+  """Ctrl-C while the second scene's disparity is written: exit 130 and no scene changed."""
+  root = tmp_path / "ds"
+  for name in ("0", "1"):
+    _write_scene_folder(root, name, scene, meta={"code": "gray"})
+  before = toys.tree(root)
+  calls, real = [], decode.write_pfm
+
+  def write_pfm(path, disp):
+    calls.append(path)
+    if len(calls) == 3:  # the first scene's two files are staged by now
+      gc.collect()  # not inside jax's gc callback, which would report it as ignored
+      raise KeyboardInterrupt
+    real(path, disp)
+
+  monkeypatch.setattr(decode, "write_pfm", write_pfm)
+  assert cli.main(["decode", str(root)]) == 130
+  assert "interrupted" in capsys.readouterr().err
+  assert toys.tree(root) == before and len(calls) == 3

@@ -259,3 +259,25 @@ def test_full_disk_keeps_the_earlier_report_file(sgbm_run, tmp_path, monkeypatch
   assert info.value.filename == str(out / "per_scene.csv")
   after = {p.name: p.read_bytes() for p in out.iterdir()}
   assert sorted(after) == sorted(before) and after["per_scene.csv"] == before["per_scene.csv"]
+
+
+def test_a_late_failure_leaves_out_as_it_was(dataset, tmp_path, capsys):
+  """A view that passes the pre-flight but does not decode in the last scene: --out stays
+  absent (no empty folder), and an earlier --out keeps its files byte for byte."""
+  import shutil  # pylint: disable=import-outside-toplevel
+  import toys  # pylint: disable=import-outside-toplevel
+  data = tmp_path / "data"
+  shutil.copytree(dataset, data)
+  toys.break_deflate(data / "group" / "s2" / "im1.png")
+  out = tmp_path / "a" / "out"
+  assert cli.main(["evaluate", "sgbm", str(data), "--out", str(out), "--save-predictions",
+                   "--figures"]) == 2
+  assert "s2/im1.png: not a readable image" in capsys.readouterr().err
+  assert not (tmp_path / "a").exists()
+  old = tmp_path / "old"
+  assert cli.main(["evaluate", "sgbm", str(dataset), "--out", str(old),
+                   "--save-predictions"]) == 0
+  before = toys.tree(old)
+  assert cli.main(["evaluate", "sgbm", str(data), "--out", str(old), "--overwrite",
+                   "--save-predictions", "--figures"]) == 2
+  assert toys.tree(old) == before

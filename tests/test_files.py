@@ -32,6 +32,55 @@ def test_replacing_keeps_the_old_files_when_the_block_fails(tmp_path):
   assert (a.read_text(), b.read_text()) == ("new a", "new b")
 
 
+def _tree(folder):
+  """Every file below folder (hidden ones included) with its bytes."""
+  return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*"))
+          if p.is_file()}
+
+
+@pytest.mark.parametrize("error", [RuntimeError, KeyboardInterrupt])
+def test_staged_leaves_an_absent_folder_absent_and_an_old_one_as_it_was(tmp_path, error):
+  new = tmp_path / "a" / "b" / "out"  # its parents are made for the stage, and unmade
+  with pytest.raises(error):
+    with files.staged(new) as stage:
+      assert files.is_temporary(stage)
+      (stage / "x.txt").write_text("half")
+      raise error()
+  assert list(tmp_path.iterdir()) == []
+  old = tmp_path / "old"
+  (old / "sl0").mkdir(parents=True)
+  (old / "sl0" / "000.png").write_bytes(b"old plane")
+  (old / "keep.txt").write_text("kept")
+  before = _tree(old)
+  with pytest.raises(error):
+    with files.staged(old, whole=frozenset({"sl0"})) as stage:
+      assert stage.parent == old and files.is_temporary(stage)  # inside: one file system
+      (stage / "keep.txt").write_text("new")
+      raise error()
+  assert _tree(old) == before
+
+
+def test_staged_moves_in_merging_and_replacing_whole_folders(tmp_path):
+  with files.staged(tmp_path / "new") as stage:
+    (stage / "sub").mkdir()
+    (stage / "sub" / "f.txt").write_text("f")
+  assert _tree(tmp_path) == {"new/sub/f.txt": b"f"}
+  out = tmp_path / "new"
+  (out / "sl0").mkdir()
+  (out / "sl0" / "000.png").write_bytes(b"0")
+  (out / "sl0" / "001.png").write_bytes(b"stale")
+  with files.staged(out, whole=frozenset({"sl0"})) as stage:
+    (stage / "sub").mkdir()
+    (stage / "sub" / "g.txt").write_text("g")  # merged beside f.txt
+    (stage / "sl0").mkdir()
+    (stage / "sl0" / "000.png").write_bytes(b"new")  # replaces sl0/ whole: 001.png goes
+  assert _tree(out) == {"sub/f.txt": b"f", "sub/g.txt": b"g", "sl0/000.png": b"new"}
+  (tmp_path / "file").write_text("x")
+  with pytest.raises(SljaxError, match="file: exists and is not a folder$"):
+    with files.staged(tmp_path / "file"):
+      pass
+
+
 def test_temporaries_are_recognised_and_nothing_else(tmp_path):
   for name in ("metrics.json", "im0.png", "000.png", "variables.npz", "README"):
     tmp = files.temp_path(tmp_path / name)

@@ -331,3 +331,22 @@ def test_full_disk_keeps_the_earlier_file(tmp_path, capsys, monkeypatch, victim)
   assert err == [f"sljax predict: error: {out / victim}: No space left on device"]
   after = {p.name: p.read_bytes() for p in out.iterdir()}
   assert set(after) == set(before) and after[victim] == before[victim]
+
+
+def test_a_late_failure_leaves_out_as_it_was(tmp_path, capsys):
+  """A folder of pairs whose last view does not decode (the pre-flight-proof damage): --out
+  stays absent, and an existing --out keeps its earlier files byte for byte."""
+  import toys  # pylint: disable=import-outside-toplevel
+  data = tmp_path / "data"
+  for name in ("a", "b", "c"):
+    _scene(data / name)
+  toys.break_deflate(data / "c" / "im1.png")
+  out = tmp_path / "out"
+  assert cli.main(["predict", "sgbm", str(data), "--out", str(out)]) == 2
+  assert "c/im1.png: not a readable image" in capsys.readouterr().err
+  assert not out.exists()
+  assert cli.main(["predict", "sgbm", str(data / "a"), "--out", str(out)]) == 0
+  (out / "notes.txt").write_text("mine")
+  before = toys.tree(out)
+  assert cli.main(["predict", "sgbm", str(data), "--out", str(out), "--overwrite"]) == 2
+  assert toys.tree(out) == before

@@ -280,3 +280,24 @@ def test_report_of_named_plans_only(fake, capsys):
   assert cli.main(["experiment", "report", str(out), "--plans", "table3-v2"]) == 2
   err = capsys.readouterr().err
   assert "no plan table3-v2 was run here (plans run: fig7-v2, table2-v2)" in err
+
+
+def test_a_failed_report_leaves_out_as_it_was(fake, capsys):
+  """A damaged score of a plan reported after another: no figures/ of the first plan left
+  behind, and with an earlier report its files stay byte for byte."""
+  import toys  # pylint: disable=import-outside-toplevel
+  out, _ = fake
+  fig7 = plans.build_plan("fig7-v2", "smoke", 1)
+  records.register(out, fig7)
+  cell = next(c for c in fig7.cells if c.evals)
+  _write_eval(out, cell, cell.evals[0].name, 1.0)
+  bad = records.cell_dir(out, cell.name) / records.EVAL_DIR / f"{cell.evals[0].name}.json"
+  bad.write_text('{"pooled": {"full"')  # cut short
+  before = toys.tree(out)
+  assert cli.main(["experiment", "report", str(out)]) == 2
+  assert bad.name in capsys.readouterr().err
+  assert toys.tree(out) == before and not (out / "figures").exists()
+  assert cli.main(["experiment", "report", str(out), "--plans", "table2-v2"]) == 0
+  before = toys.tree(out)
+  assert cli.main(["experiment", "report", str(out)]) == 2
+  assert toys.tree(out) == before

@@ -1,3 +1,4 @@
+import gc
 import json
 import math
 
@@ -5,6 +6,8 @@ import numpy as np
 import pytest
 
 from sljax import cli
+from sljax.errors import SljaxError
+from sljax.io import files
 from sljax.render import synth_geometry as geo
 from sljax.render import synth_sensor
 from sljax.render import synthetic as synth
@@ -408,3 +411,36 @@ def test_a_command_keeps_the_renderers_programs_and_the_next_one_loads_them(tmp_
     assert scene.raw0.keys() == plain.raw0.keys()
     for k in plain.raw0:
       np.testing.assert_array_equal(scene.raw0[k], plain.raw0[k], err_msg=k)
+
+
+@pytest.mark.parametrize("error", [SljaxError("scene 2: render failed"), KeyboardInterrupt()])
+def test_make_data_is_all_or_nothing(tmp_path, capsys, monkeypatch, error):
+  """A failure (or Ctrl-C) at the last scene: OUT stays absent, or with --overwrite keeps its
+  earlier scenes byte for byte; a finished --overwrite with fewer patterns drops stale planes."""
+  import toys  # pylint: disable=import-outside-toplevel
+  from sljax.commands import make_data  # pylint: disable=import-outside-toplevel
+  out = tmp_path / "ds"
+  args = ["make-data", str(out), "--n", "3", "--size", "32", "--patterns", "5", "--raw"]
+
+  def failing(i, *a, **k):
+    if i == 2:
+      gc.collect()  # not inside jax's gc callback, which would report a Ctrl-C as ignored
+      raise error
+    return render_scene(i, *a, **k)
+
+  monkeypatch.setattr(make_data, "render_scene", failing)
+  assert cli.main(args) in (2, 130)
+  assert not out.exists()
+  monkeypatch.setattr(make_data, "render_scene", render_scene)
+  assert cli.main(args[:-3] + ["--patterns", "6", "--raw"]) == 0
+  before = toys.tree(out)
+  monkeypatch.setattr(make_data, "render_scene", failing)
+  assert cli.main(args + ["--overwrite"]) in (2, 130)
+  assert toys.tree(out) == before
+  monkeypatch.setattr(make_data, "render_scene", render_scene)
+  assert cli.main(args + ["--overwrite"]) == 0
+  scene = sorted(p for p in out.iterdir() if p.is_dir())[0]
+  assert sorted(p.name for p in (scene / "sl0").iterdir())[-1] == "004.png"
+  assert not (scene / "raw0" / "p005.png").exists() and not any(
+      files.is_temporary(p) for p in out.rglob("*"))
+  capsys.readouterr()

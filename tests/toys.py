@@ -115,3 +115,25 @@ def need_submitit() -> None:
   import pytest  # pylint: disable=import-outside-toplevel
   if importlib.util.find_spec("submitit") is None:
     pytest.skip("submitit is not installed (pip install -e '.[cluster]')")
+
+
+def tree(folder) -> dict[str, bytes]:
+  """Every file below folder (hidden ones included) with its bytes; {} when folder is absent:
+  the all-or-nothing tests compare an output place before and after a failed command."""
+  folder = Path(folder)
+  return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*"))
+          if p.is_file()} if folder.exists() else {}
+
+
+def break_deflate(path) -> None:
+  """Damages a PNG so that the pre-flight passes it and decoding it fails (a broken encoder):
+  the first IDAT's data replaced by bytes that do not inflate, its CRC recomputed."""
+  import struct  # pylint: disable=import-outside-toplevel
+  import zlib  # pylint: disable=import-outside-toplevel
+  data = bytearray(Path(path).read_bytes())
+  pos = data.index(b"IDAT") - 4
+  length = struct.unpack(">I", data[pos:pos + 4])[0]
+  junk = b"\x78\x9c" + b"\xff" * (length - 2)  # a zlib header, then an invalid deflate block
+  data[pos + 8:pos + 8 + length] = junk
+  data[pos + 8 + length:pos + 12 + length] = struct.pack(">I", zlib.crc32(b"IDAT" + junk))
+  Path(path).write_bytes(bytes(data))

@@ -24,7 +24,7 @@ from tqdm import tqdm
 
 from sljax.capture import frames, refusals
 from sljax.capture import rig as rigs
-from sljax.data.scene import Scene, write_scene
+from sljax.data.scene import SEQUENCE_FOLDERS, Scene, write_scene
 from sljax.errors import SljaxError, require
 from sljax.io import files
 from sljax.io.images import holds_12_bit, image_to_float
@@ -252,10 +252,13 @@ def import_captures(left: str | os.PathLike, right: str | os.PathLike, out: str 
                 calib=rect.calib(rigs.UNITS_MM[config.unit], disp, config.scale),
                 meta=_meta(out, roles, ambient_paths, config, calibration, rect, bits, shares,
                            result, implausible, save_calibration))
-  _timed(seconds, "write", write_scene, out, scene, overwrite=overwrite,
-         bit_depth=8 if bits == 8 else 16)
-  if save_calibration:
-    _timed(seconds, "write", rigs.write_calibration, out / CALIBRATION_FILE, calibration)
+  # The scene and its calibration are written into a hidden folder and moved in together: a
+  # failure or Ctrl-C while writing leaves OUT_SCENE as it was (refuse_existing checked it).
+  with files.staged(out, whole=SEQUENCE_FOLDERS) as stage:
+    _timed(seconds, "write", write_scene, stage, scene, overwrite=overwrite,
+           bit_depth=8 if bits == 8 else 16)
+    if save_calibration:
+      _timed(seconds, "write", rigs.write_calibration, stage / CALIBRATION_FILE, calibration)
   decoded = tuple(float(np.isfinite(v.column).mean()) for v in (result.left, result.right))
   return ImportReport(out=out, size=size, valid=(shares[0][0], shares[1][0]),
                       ranges=(shares[0][1], shares[1][1]), decoded=decoded,

@@ -1,6 +1,7 @@
 """`sljax decode DATASET`: raw structured-light captures -> sl0/, sl1/ and code disparity."""
 
 import argparse
+import contextlib
 import sys
 from pathlib import Path
 
@@ -11,8 +12,9 @@ from sljax.capture import refusals
 from sljax.data import preflight
 from sljax.data.dataset import FolderSource
 from sljax.data.pfm import write_pfm
-from sljax.data.scene import write_patterns
+from sljax.data.scene import SEQUENCE_FOLDERS, write_patterns
 from sljax.errors import SljaxError, require
+from sljax.io import files
 from sljax.io.images import read_image
 from sljax.sl.decode import DecodeConfig, count_patterns
 from sljax.sl.stereo import MatchConfig, decode_views, match_views
@@ -33,7 +35,8 @@ def register(subparsers) -> None:
       "decoding, matching and filters as import-captures: a disparity below 0 or beyond the "
       "width is unknown, and a scene whose views look swapped gets no disparity and exit "
       "code 1). Existing disparity files are never replaced (they may be ground truth); "
-      "delete them to recompute.")
+      "delete them to recompute. All or nothing: every scene's outputs are moved in once "
+      "all scenes are decoded, so a failure or Ctrl-C changes no scene.")
   p.add_argument("dataset", metavar="DATASET", help="dataset root (or one scene folder)")
   p.add_argument("--overwrite", action="store_true", help="replace existing sl0/ and sl1/")
   p.add_argument("--code", choices=("binary", "gray"), default=None,
@@ -95,39 +98,11 @@ def run(args: argparse.Namespace) -> int:
     for cam in (0, 1):
       _check_contrast(src.paths[i] / f"raw{cam}", config.shadow_threshold)
 
-  written_disp, kept_disp, coverage, disp_known, swaps = 0, [], [], [], []
-  for i in tqdm(todo, desc="decode", unit="scene", file=sys.stderr, disable=None):
-    path = src.paths[i]
-    scene = src.get(i, parts={"raw"})  # load_scene checks sizes and that raw0, raw1 agree
-    # The projector's width (written by import-captures) makes codes beyond it unknown.
-    width = (src.meta(i).get("projector") or [None])[0]
-    dec = decode_views(scene.raw0, scene.raw1, codes[i], config, projector=(width, None),
-                       where=(f"scene {path}: raw0", f"scene {path}: raw1"))
-    for cam, d in enumerate((dec.left, dec.right)):
-      write_patterns(path / f"sl{cam}", d.bits, overwrite=args.overwrite)
-    coverage.append(float(np.mean([np.isfinite(d.column).mean() for d in (dec.left, dec.right)])))
-    if args.no_disparity:
-      continue
-    targets = [path / f"disp{cam}.pfm" for cam in (0, 1)]
-    absent = [not p.exists() for p in targets]
-    kept_disp += [str(p) for p, missing in zip(targets, absent) if not missing]
-    if any(absent):
-      match_views(dec, _MATCH)
-      found = refusals.swapped(dec)
-      if found is not None:  # the loader would refuse the scene: write no disparity for it
-        swaps.append(path)  # said now: a later scene's error must not hide it
-        tqdm.write(f"sljax decode: scene {path}: raw0 and raw1 look swapped ({found[1]:.0%} of "
-                   f"the {found[0]} view's matched disparities are negative); no disparity "
-                   "written for it: swap the two folders and rerun with --overwrite",
-                   file=sys.stderr)
-        continue
-      *disps, _ = refusals.plausible(dec.disp0, dec.disp1, dec.disp0.shape[1],
-                                     _MATCH.lr_tolerance)
-      disp_known.append(float(np.isfinite(disps[0]).mean()))
-      for p, missing, disp in zip(targets, absent, disps):
-        if missing:
-          write_pfm(p, disp)
-          written_disp += 1
+  try:
+    written_disp, kept_disp, coverage, disp_known, swaps = _decode_all(src, todo, codes, config,
+                                                                       args)
+  except SljaxError as e:
+    raise SljaxError(f"{e}; nothing was decoded (no scene was changed)") from None
 
   print(f"decoded {len(todo)} scene(s) of {len(src)} below {src.root}: sl0/ and sl1/ written; "
         f"pixels with a decoded code: {np.mean(coverage):.1%} on average")
@@ -137,6 +112,53 @@ def run(args: argparse.Namespace) -> int:
     print(f"disparity files written: {written_disp}{known}; kept existing: {len(kept_disp)}"
           + (f" (e.g. {kept_disp[0]}; delete to recompute)" if kept_disp else ""))
   return 1 if swaps else 0
+
+
+def _decode_all(src: FolderSource, todo: list[int], codes: dict[int, str],
+                config: DecodeConfig, args: argparse.Namespace):
+  """Decodes (and matches) every scene; all scenes' outputs are moved in together at the end.
+  Returns the counts the summary prints."""
+  written_disp, kept_disp, coverage, disp_known, swaps = 0, [], [], [], []
+  # The checks above read every capture's header, but some failures show only while decoding
+  # (or are a full disk, or Ctrl-C), and checking for them would mean decoding every scene
+  # twice. So each scene's outputs are staged inside its folder and moved in only once every
+  # scene has succeeded: a failure in the last scene leaves the first ones as they were.
+  with contextlib.ExitStack() as stack:
+    for i in tqdm(todo, desc="decode", unit="scene", file=sys.stderr, disable=None):
+      path = src.paths[i]
+      stage = stack.enter_context(files.staged(path, whole=SEQUENCE_FOLDERS))
+      scene = src.get(i, parts={"raw"})  # load_scene checks sizes and that raw0, raw1 agree
+      # The projector's width (written by import-captures) makes codes beyond it unknown.
+      width = (src.meta(i).get("projector") or [None])[0]
+      dec = decode_views(scene.raw0, scene.raw1, codes[i], config, projector=(width, None),
+                         where=(f"scene {path}: raw0", f"scene {path}: raw1"))
+      for cam, d in enumerate((dec.left, dec.right)):
+        write_patterns(stage / f"sl{cam}", d.bits, overwrite=args.overwrite)
+      coverage.append(float(np.mean([np.isfinite(d.column).mean()
+                                     for d in (dec.left, dec.right)])))
+      if args.no_disparity:
+        continue
+      targets = [path / f"disp{cam}.pfm" for cam in (0, 1)]
+      absent = [not p.exists() for p in targets]
+      kept_disp += [str(p) for p, missing in zip(targets, absent) if not missing]
+      if any(absent):
+        match_views(dec, _MATCH)
+        found = refusals.swapped(dec)
+        if found is not None:  # the loader would refuse the scene: write no disparity for it
+          swaps.append(path)  # said now: a later scene's error must not hide it
+          tqdm.write(f"sljax decode: scene {path}: raw0 and raw1 look swapped ({found[1]:.0%} of "
+                     f"the {found[0]} view's matched disparities are negative); no disparity "
+                     "written for it: swap the two folders and rerun with --overwrite",
+                     file=sys.stderr)
+          continue
+        *disps, _ = refusals.plausible(dec.disp0, dec.disp1, dec.disp0.shape[1],
+                                       _MATCH.lr_tolerance)
+        disp_known.append(float(np.isfinite(disps[0]).mean()))
+        for p, missing, disp in zip(targets, absent, disps):
+          if missing:
+            write_pfm(stage / p.name, disp)
+            written_disp += 1
+  return written_disp, kept_disp, coverage, disp_known, swaps
 
 
 def _check_capture_files(src: FolderSource, todo: list[int]) -> None:

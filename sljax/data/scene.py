@@ -54,6 +54,9 @@ UNKNOWN_PATTERN = 128  # on-disk value of an unknown pattern pixel (0 = dark, 25
 PARTS = frozenset({"im", "disp", "mask", "sl", "raw", "calib", "meta"})
 _PATTERN_FILE = re.compile(r"^(\d{3,})\.png$")
 _RAW_FILE = re.compile(r"^(white|black|[pi]\d{3,})\.png$")
+# Folders holding one numbered sequence, written whole by write_patterns / write_raw (a shorter
+# new sequence drops the old one's extra planes): staged outputs replace them, never merge in.
+SEQUENCE_FOLDERS = frozenset({"sl0", "sl1", "raw0", "raw1"})
 
 
 def _fail(scene_dir: Path, file: str, problem: str) -> SljaxError:

@@ -300,19 +300,25 @@ def predict_pairs(predictor, pairs: list[Pair], out: str | os.PathLike,
                      f"sljax.inference.load), got {type(predictor).__name__} "
                      f"{inference.short_repr(predictor)}")
   geometry.check_max_depth(max_depth)
-  out = Path(out)  # a str works as it does on the command line
-  summaries = []
-  for pair in tqdm(pairs, desc="predict", unit="pair", disable=None if progress else True):
-    left, right = read_pair(pair)
-    if pair.stereo is not None:  # rectified before inference; every output is in that frame
-      rect = rectifier(pair.stereo, (left.shape[1], left.shape[0]), f"{pair.left}")
-      left, right = rect(left, right)
-      pair = dataclasses.replace(pair, calib=rect.calib)
-    if pair.calib is not None:  # before the (slow) prediction
-      geometry.check_calib_size(pair.calib, left.shape[:2], str(pair.calib_path))
-    try:
-      res = predictor(left, right, calib=pair.calib)
-    except SljaxError as e:
-      raise SljaxError(f"{pair.left}: {e}") from None
-    summaries.append(write_outputs(output_dir(out, pair), pair, left, res, max_depth))
-  return summaries
+  # Written into a hidden folder and moved in once every pair is done: a failure or Ctrl-C
+  # leaves out as it was (absent stays absent; its other and, with --overwrite, old files stay).
+  with files.staged(out) as stage:  # a str works as it does on the command line
+    return [_predict_pair(predictor, pair, stage, max_depth)
+            for pair in tqdm(pairs, desc="predict", unit="pair",
+                             disable=None if progress else True)]
+
+
+def _predict_pair(predictor, pair: Pair, out: Path, max_depth: float | None) -> dict[str, Any]:
+  """Predicts one pair and writes its files under out; returns its summary."""
+  left, right = read_pair(pair)
+  if pair.stereo is not None:  # rectified before inference; every output is in that frame
+    rect = rectifier(pair.stereo, (left.shape[1], left.shape[0]), f"{pair.left}")
+    left, right = rect(left, right)
+    pair = dataclasses.replace(pair, calib=rect.calib)
+  if pair.calib is not None:  # before the (slow) prediction
+    geometry.check_calib_size(pair.calib, left.shape[:2], str(pair.calib_path))
+  try:
+    res = predictor(left, right, calib=pair.calib)
+  except SljaxError as e:
+    raise SljaxError(f"{pair.left}: {e}") from None
+  return write_outputs(output_dir(out, pair), pair, left, res, max_depth)

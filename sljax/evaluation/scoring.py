@@ -52,9 +52,9 @@ NO_GT_NOTE = "no scene has ground-truth disparity (disp0.pfm): no metrics could 
 
 
 def check_out_dir(out: str | os.PathLike, overwrite: bool) -> Path:
-  """Creates the output folder; refuses a non-empty one unless overwrite."""
+  """The output folder, checked, not created (`evaluate` moves it in whole at the end); refuses a
+  non-empty one unless overwrite."""
   out = files.check_output_folder(out, overwrite, must_be_empty=True)
-  out.mkdir(parents=True, exist_ok=True)
   return out
 
 
@@ -163,6 +163,19 @@ def evaluate(predictor, source, indices: list[int] | None = None, *, out_dir: Pa
              save_predictions: bool = False, figures: bool = False,
              progress: bool = True, info: dict[str, Any] | None = None) -> dict[str, Any]:
   """Runs the predictor over the scenes and returns the report (written when out_dir is set)."""
+  kwargs = dict(save_predictions=save_predictions, figures=figures, progress=progress, info=info)
+  if out_dir is None:
+    return _evaluate(predictor, source, indices, None, **kwargs)
+  # Written into a hidden folder and moved in once every scene is scored: a failure or Ctrl-C
+  # leaves out_dir as it was (absent stays absent, --overwrite's earlier files stay).
+  with files.staged(out_dir) as stage:
+    return _evaluate(predictor, source, indices, stage, **kwargs)
+
+
+def _evaluate(predictor, source, indices: list[int] | None, out_dir: Path | None, *,
+              save_predictions: bool, figures: bool, progress: bool,
+              info: dict[str, Any] | None) -> dict[str, Any]:
+  """`evaluate`, writing into out_dir (a staged folder) as it goes."""
   indices = list(range(len(source))) if indices is None else list(indices)
   if not indices:
     raise SljaxError("no scenes to evaluate (empty dataset or split)")

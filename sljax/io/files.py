@@ -4,12 +4,17 @@ A full disk or an error then leaves the earlier file (with --overwrite) or nothi
 truncated file; files written together are renamed only once all are complete (one after the
 other, so only a kill between two renames can mix old and new). A kill while writing leaves a
 hidden temporary file (.NAME.tmpPID.EXT) beside the output.
+
+Folders of outputs are written the same way by `staged`: into a hidden folder, moved into place
+only once the whole command has succeeded, so that a failure or Ctrl-C part way leaves the
+output folder as it was (absent stays absent).
 """
 
 import contextlib
 import json
 import os
 import re
+import shutil
 import socket
 import sys
 import time
@@ -60,6 +65,81 @@ def replacing(*paths: str | os.PathLike) -> Iterator[tuple[Path, ...]]:
   finally:
     for tmp in tmps:
       tmp.unlink(missing_ok=True)
+
+
+STAGE_NAME = ".sljax-staged"
+
+
+def stage_path(target: str | os.PathLike) -> Path:
+  """Where `staged` writes target's contents: a hidden folder inside target when it is a folder
+  already (nothing is written beside it, so `--out .` works), else beside it; on target's file
+  system either way, so that moving it in is renaming. Both names match `is_temporary`."""
+  target = Path(target)
+  if target.is_dir():
+    return target / f"{STAGE_NAME}.tmp{os.getpid()}"
+  return temp_path(target.absolute())  # absolute: "out/" and "." have a name to hide
+
+
+@contextlib.contextmanager
+def staged(target: str | os.PathLike, whole: frozenset[str] = frozenset()) -> Iterator[Path]:
+  """Yields an empty hidden folder to write target's contents into; once the block has finished
+  without error, moves them into target (all or nothing), else removes them (any exception,
+  KeyboardInterrupt included): target stays exactly as it was, absent or with its old files.
+
+  An absent target is the staged folder renamed (none is made when nothing was written); into
+  an existing one (the callers' --overwrite, or a folder that holds other things) each staged
+  file replaces its namesake and each staged folder is merged into its namesake, except folders
+  named in `whole`, which replace theirs (numbered sequences such as sl0/: a shorter new one
+  must not keep stale old planes). Only a kill during those renames can mix old and new. Parent
+  folders created for the stage are removed again on failure."""
+  target = Path(target)
+  if target.exists() and not target.is_dir():
+    raise SljaxError(f"{target}: exists and is not a folder")
+  stage = stage_path(target)
+  created = [d for d in stage.parents if not d.exists()]  # deepest first
+  shutil.rmtree(stage, ignore_errors=True)  # a leftover of a killed run with this pid
+  stage.mkdir(parents=True)
+  try:
+    yield stage
+    if target.is_dir():
+      _merge(stage, target, whole)
+    elif any(stage.iterdir()):  # nothing written: nothing created
+      os.rename(stage, target)
+  except (OSError, SljaxError) as e:  # name the user's file, not the staged one
+    _unstage(e, stage, target)
+    raise
+  finally:
+    shutil.rmtree(stage, ignore_errors=True)
+    for d in created if not target.exists() else ():  # made for the stage alone
+      try:
+        d.rmdir()  # only when empty
+      except OSError:
+        break
+
+
+def _unstage(e: OSError | SljaxError, stage: Path, target: Path) -> None:
+  """Rewrites an error's path below stage as the same path below target."""
+  if isinstance(e, OSError):
+    if isinstance(e.filename, str) and e.filename.startswith(os.fspath(stage)):
+      e.filename = os.fspath(target) + e.filename[len(os.fspath(stage)):]
+  elif e.args and isinstance(e.args[0], str):
+    e.args = (e.args[0].replace(os.fspath(stage), os.fspath(target)),) + e.args[1:]
+
+
+def _merge(stage: Path, target: Path, whole: frozenset[str]) -> None:
+  """Moves stage's entries into the folder target (see `staged`)."""
+  for entry in sorted(stage.iterdir()):
+    dest = target / entry.name
+    real_dirs = entry.is_dir() and dest.is_dir() and not dest.is_symlink()
+    if real_dirs and entry.name not in whole:
+      _merge(entry, dest, whole)
+    elif dest.is_dir() and not dest.is_symlink():  # a folder replaced: set aside, then dropped
+      aside = temp_path(dest.with_name(dest.name + "-old"))
+      os.rename(dest, aside)
+      os.rename(entry, dest)
+      shutil.rmtree(aside, ignore_errors=True)
+    else:
+      os.replace(entry, dest)
 
 
 def write_bytes(path: str | os.PathLike, data: bytes) -> None:

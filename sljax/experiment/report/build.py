@@ -451,15 +451,19 @@ def write_report(out: str | Path, only: Sequence[str] | None = None) -> Path:
            "2x the scene's farthest ground truth (sljax.evaluation.metrics), the capped share shown. Any "
            "statement that a gain of a given size is excluded is exploratory.", ""]
   data: dict[str, Any] = {}
-  for name in PLANS:  # in the paper's order
-    if name not in registered or not any(c.evals for c in registered[name].cells):
-      continue  # a plan that scores no set (the v3 pilot) is reported by its own command
-    plan, args = registered[name], plan_args(registered[name])
-    agg = aggregate(out, plan)
-    cl = claims(plan, agg)
-    figs = figures.write(plan, agg, out / "figures")
-    lines += _plan_markdown(out, plan, agg, cl, figs)
-    data[name] = {"args": args, "aggregate": agg, "claims": cl, "figures": figs}
-  files.write_text(out / "report.md", "\n".join(lines))
-  files.write_text(out / "report.json", dumps(json_safe(data)) + "\n")
+  # The figures go to a hidden folder and the two files to temporaries, all moved in together
+  # at the end: a failed report leaves OUT as it was (no figures/ of a report never written).
+  with files.staged(out / "figures") as fig_dir, \
+       files.replacing(out / "report.md", out / "report.json") as (md, js):
+    for name in PLANS:  # in the paper's order
+      if name not in registered or not any(c.evals for c in registered[name].cells):
+        continue  # a plan that scores no set (the v3 pilot) is reported by its own command
+      plan, args = registered[name], plan_args(registered[name])
+      agg = aggregate(out, plan)
+      cl = claims(plan, agg)
+      figs = figures.write(plan, agg, fig_dir)
+      lines += _plan_markdown(out, plan, agg, cl, figs)
+      data[name] = {"args": args, "aggregate": agg, "claims": cl, "figures": figs}
+    md.write_bytes("\n".join(lines).encode("utf-8"))
+    js.write_bytes((dumps(json_safe(data)) + "\n").encode("utf-8"))
   return out / "report.md"

@@ -8,7 +8,6 @@ import pytest
 from jax import lax
 
 from sljax import kernels as c3
-from sljax.nets import conv3d as old_home
 
 DIMS = ("NDHWC", "DHWIO", "NDHWC")
 
@@ -143,15 +142,6 @@ def test_modules_have_flax_parameters_and_outputs():
     rng = np.random.RandomState(6)
     v = jax.tree.map(lambda s: jnp.asarray(rng.randn(*s.shape), jnp.float32), shapes)
     _assert_close(jax.jit(ours.apply)(v, x), jax.jit(theirs.apply)(v, x))
-
-
-def test_old_import_path_reexports_the_kernels():
-  """sljax.nets.conv3d (the kernels' old home) gives the very objects of sljax.kernels."""
-  for name in old_home.__all__:
-    assert getattr(old_home, name) is getattr(c3, name), name
-  x, k = _data(16, (1, 4, 5, 5, 2), (3, 3, 3, 2, 3))
-  _assert_close(old_home.conv3d(x, k, impl="fast"),
-                lax.conv_general_dilated(x, k, (1, 1, 1), ((1, 1),) * 3, dimension_numbers=DIMS))
 
 
 def test_impl_selection(monkeypatch):

@@ -376,28 +376,42 @@ def test_cli_decode_applies_the_importers_filters(tmp_path, scene, capsys, monke
   assert np.isfinite(d0).mean() > 0.5  # the rest kept
 
 
-def test_cli_decode_is_all_or_nothing(tmp_path, scene, capsys):
-  """A capture that passes the pre-flight but fails to decode in the last scene: every scene
-  stays as it was, byte for byte: none decoded (absent stays absent) and, with --overwrite,
-  the earlier decoding of the others kept."""
+def test_cli_decode_is_all_or_nothing(tmp_path, scene, capsys, monkeypatch):
+  """A capture that fails only while the last scene decodes (its files pass every check):
+  every scene stays as it was, byte for byte: none decoded (absent stays absent) and, with
+  --overwrite, the earlier decoding of the others kept. A stream that does not inflate is
+  named before anything is decoded."""
+  from sljax.commands import decode as command  # pylint: disable=import-outside-toplevel
+  real = command.decode_views
+
+  def fails_in_2bad(raw0, raw1, code, config, projector, where):
+    if "2bad" in where[0]:
+      raise SljaxError(f"{where[1]}: the codes do not decode")
+    return real(raw0, raw1, code, config, projector=projector, where=where)
   root = tmp_path / "ds"
   for name in ("0ok", "1ok"):
     _write_scene_folder(root, name, scene, meta={"code": "gray"})
   assert cli.main(["decode", str(root)]) == 0
   capsys.readouterr()
-  bad = _write_scene_folder(root, "2bad", scene, meta={"code": "gray"}) / "raw1" / "p003.png"
-  toys.break_deflate(bad)
+  _write_scene_folder(root, "2bad", scene, meta={"code": "gray"})
+  monkeypatch.setattr(command, "decode_views", fails_in_2bad)
   before = toys.tree(root)
   assert cli.main(["decode", str(root), "--overwrite", "--bit-threshold", "5"]) == 2
-  _one_line_error(capsys, f"{bad}: not a readable image", "nothing was decoded")
+  _one_line_error(capsys, "2bad: raw1: the codes do not decode", "nothing was decoded")
   assert toys.tree(root) == before
   fresh = tmp_path / "fresh"
   for name in ("0ok", "1ok", "2bad"):
     _write_scene_folder(fresh, name, scene, meta={"code": "gray"})
-  toys.break_deflate(fresh / "2bad" / "raw1" / "p003.png")
   before = toys.tree(fresh)
   assert cli.main(["decode", str(fresh)]) == 2
   capsys.readouterr()
+  assert toys.tree(fresh) == before
+  monkeypatch.undo()
+  bad = fresh / "2bad" / "raw1" / "p003.png"
+  toys.break_deflate(bad)  # caught by the checks before decoding (sljax.io.headers)
+  before = toys.tree(fresh)
+  assert cli.main(["decode", str(fresh)]) == 2
+  _one_line_error(capsys, f"{bad}", "does not inflate")
   assert toys.tree(fresh) == before
 
 

@@ -126,8 +126,9 @@ def tree(folder) -> dict[str, bytes]:
 
 
 def break_deflate(path) -> None:
-  """Damages a PNG so that the pre-flight passes it and decoding it fails (a broken encoder):
-  the first IDAT's data replaced by bytes that do not inflate, its CRC recomputed."""
+  """Damages a PNG as a broken encoder would: valid chunks and CRCs, the first IDAT's data
+  replaced by bytes that do not inflate. The checks that inflate (`info --check`, the
+  pre-flight, decode's) name it up front; a reader that only reads the header fails later."""
   import struct  # pylint: disable=import-outside-toplevel
   import zlib  # pylint: disable=import-outside-toplevel
   data = bytearray(Path(path).read_bytes())

@@ -1,1 +1,2 @@
-"""Running a trained model outside JAX: ONNX export (jax2onnx, checked by ONNX Runtime)."""
+"""Deployable files of a trained model: serialised StableHLO (stablehlo, jax.export) and ONNX
+checked by ONNX Runtime (onnx, conv)."""

@@ -1,0 +1,2 @@
+"""The grids behind the paper's tables, by stage: design, records, running, budget, report
+(docs/architecture.md)."""

@@ -1,1 +1,1 @@
-"""Training: config and presets, state, the sharded step, the loop, checkpoints."""
+"""Training: config and presets, state, the sharded step, the loop, resuming."""

@@ -1,0 +1,1 @@
+"""The pilots' budget rules: calibration of epochs by the plateau rule, the overfitting regime."""

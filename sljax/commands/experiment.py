@@ -7,7 +7,7 @@ from pathlib import Path
 from sljax.experiment.budget import calibrate as cal, regime as reg
 from sljax.experiment.design import plans
 from sljax.experiment.report import build as rep
-from sljax.experiment.running import runner, status as st, submit as subm, workers
+from sljax.experiment.running import price, runner, status as st, submit as subm, workers
 
 
 def register(subparsers) -> None:
@@ -44,6 +44,9 @@ def register(subparsers) -> None:
                       "its cell is taken over (every worker of a grid may run on its own host: "
                       "start as many as you like on one OUT)")
   r.add_argument("--log-path", default=None, help=argparse.SUPPRESS)  # set by submit's jobs
+  _dry_run_options(r)
+  r.add_argument("--workers", type=int, default=1,
+                 help="--dry-run: the wall time on this many workers")
   r.set_defaults(func=run_plan)
   _submit_parser(sub)
   rep = sub.add_parser("report", help="write OUT/report.md, report.json and figures",
@@ -95,10 +98,34 @@ def register(subparsers) -> None:
   ls.set_defaults(func=list_plans)
 
 
+def _dry_run_options(parser) -> None:
+  """--dry-run and --gpu, shared by run and submit."""
+  parser.add_argument("--dry-run", action="store_true",
+                      help="print the cells, what each waits for, their steps, the GPU-hours "
+                           "and the wall time on --workers workers; train, submit and write "
+                           "nothing")
+  parser.add_argument("--gpu", choices=("h100", "h200"), default=None,
+                      help="--dry-run: price with this GPU's measured step times (default: "
+                           "this machine's, from cells finished under OUT)")
+
+
+def _seeds(args: argparse.Namespace) -> int:
+  return args.seeds if args.seeds is not None else 1 if args.scale == "smoke" else 3
+
+
+def dry_run(args: argparse.Namespace) -> int:
+  """Prints what the plan would cost; writes nothing."""
+  plan, stand_ins = plans.stand_in_plan(args.plan, args.scale, _seeds(args), args.data,
+                                        tuple(args.eval_data))
+  print(price.dry_run(plan, args.out, args.workers, args.gpu, stand_ins))
+  return 0
+
+
 def run_plan(args: argparse.Namespace) -> int:
   """Runs the plan and says how to report it."""
-  seeds = args.seeds if args.seeds is not None else 1 if args.scale == "smoke" else 3
-  plan = plans.build_plan(args.plan, args.scale, seeds, args.data, tuple(args.eval_data))
+  if args.dry_run:
+    return dry_run(args)
+  plan = plans.build_plan(args.plan, args.scale, _seeds(args), args.data, tuple(args.eval_data))
   res = runner.run(plan, args.out, progress=not args.no_progress, lease=args.lease,
                    log_path=args.log_path)
   left_out = (f"; {len(res['diverged'])} cell(s) left out as diverged (each diverged.json "
@@ -153,16 +180,18 @@ def _submit_parser(sub) -> None:
   b.add_argument("--lease", type=float, default=workers.LEASE_S, metavar="SECONDS",
                  help="as for `run`")
   b.add_argument("--wait", action="store_true", help="wait for every worker to end")
+  _dry_run_options(b)
   b.set_defaults(func=submit_workers)
 
 
 def submit_workers(args: argparse.Namespace) -> int:
   """Checks the options and the plan, records it under OUT and submits the workers."""
+  if args.dry_run:
+    return dry_run(args)
   res = subm.Resources(args.workers, args.partition, args.gpus_per_worker, args.cpus_per_worker,
                        subm.parse_minutes(args.time), args.account, subm.parse_sbatch(args.sbatch),
                        tuple(args.setup))
-  seeds = args.seeds if args.seeds is not None else 1 if args.scale == "smoke" else 3
-  plan = plans.build_plan(args.plan, args.scale, seeds, args.data, tuple(args.eval_data))
+  plan = plans.build_plan(args.plan, args.scale, _seeds(args), args.data, tuple(args.eval_data))
   from sljax import cli  # pylint: disable=import-outside-toplevel  (cli imports this module)
   subm.submit_grid(plan, Path(args.out), res, local=args.local, wait=args.wait,
                    lease=args.lease, entry=cli.main, log=lambda line: print(line, flush=True))

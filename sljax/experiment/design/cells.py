@@ -73,6 +73,13 @@ class Plan:
     return [c for c in self.cells if all((k, v) in c.factors for k, v in factors.items())]
 
 
+def waits_for(cell: Cell) -> tuple[str, ...]:
+  """The cells that must be trained before this one starts: the cell it fine-tunes, if any."""
+  # The one place a cell's dependencies are read from (the dry run's schedule): cells that wait
+  # on something else (a calibration run, say) are added here.
+  return () if cell.init_cell is None else (cell.init_cell,)
+
+
 Epochs = Callable[[str, str], int]  # (arm, phase) -> training epochs
 
 

@@ -149,9 +149,35 @@ def build_plan(name: str, scale: str = "cpu", seeds: int = 3, data: str | None =
   scale without calibrated budgets."""
   _check_args(name, scale, seeds, data, eval_data)
   sc = dataclasses.replace(SCALES[scale], t=_pattern_count(data, SCALES[scale]))
+  return _build(name, sc, seeds, data, eval_data,
+                _v1_epochs(sc) if name in V1_PLANS else sc.budget)
+
+
+def stand_in_plan(name: str, scale: str = "cpu", seeds: int = 3, data: str | None = None,
+                  eval_data: tuple[str, ...] = ()) -> tuple[Plan, tuple[tuple[str, str], ...]]:
+  """The plan as build_plan makes it, except that a v2 plan's budgets the scale has not
+  committed yet are v1's epochs of the phase (for pricing only: `run` refuses such a plan);
+  with the (arm, phase) pairs stood in for."""
+  _check_args(name, scale, seeds, data, eval_data)
+  sc = dataclasses.replace(SCALES[scale], t=_pattern_count(data, SCALES[scale]))
+  if name in V1_PLANS:
+    return _build(name, sc, seeds, data, eval_data, _v1_epochs(sc)), ()
+  table, v1, missing = dict(sc.v2.budgets), _v1_epochs(sc), []
+
+  def epochs(arm: str, phase: str) -> int:
+    committed = table.get((arm, phase), table.get(("*", phase)))
+    if committed is None and (arm, phase) not in missing:
+      missing.append((arm, phase))
+    return v1(arm, phase) if committed is None else committed
+
+  return _build(name, sc, seeds, data, eval_data, epochs), tuple(missing)
+
+
+def _build(name: str, sc: Scale, seeds: int, data: str | None, eval_data: tuple[str, ...],
+           epochs: Epochs) -> Plan:
+  """The plan's cells at a scale, with these budgets."""
   build, baseline = BUILDERS[name]
-  epochs = _v1_epochs(sc) if name in V1_PLANS else sc.budget
-  seed_list = plan_seeds(name, scale, seeds)
+  seed_list = plan_seeds(name, sc.name, seeds)
   cells = [c for seed in seed_list
            for c in build(Seeded(sc, seed, data, tuple(eval_data), epochs))]
   return Plan(name, sc, seed_list, tuple(cells), baseline, data, tuple(eval_data))

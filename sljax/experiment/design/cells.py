@@ -43,6 +43,10 @@ class Cell:
   init_cell: str | None = None
   evals: tuple[EvalSet, ...] = ()
   windows: tuple[int, ...] = ()  # unet-sl, v2: correlation windows chosen from on validation
+  # Cells that must be trained before this one starts, besides init_cell: the calibration
+  # cells whose budgets set its epochs (a plan calibrated in its own OUT). Scheduling only, not
+  # the run's identity: not in spec().
+  waits: tuple[str, ...] = ()
 
   def spec(self) -> dict[str, Any]:
     """What identifies the run (plan.json): a changed spec under one name is refused. The
@@ -67,10 +71,19 @@ class Plan:
   baseline: str            # the arm every other arm is compared with (paired by seed)
   data: str | None = None
   eval_data: tuple[str, ...] = ()
+  # ((arm, phase), epochs) the plateau rule gave in this plan's OUT (calibration-PLAN.json),
+  # recorded in OUT/plan.json; () where the scale's committed budgets set every epoch.
+  budgets: tuple[tuple[tuple[str, str], int], ...] = ()
 
   def cells_of(self, **factors: str) -> list[Cell]:
     """The cells whose factors include the given ones."""
     return [c for c in self.cells if all((k, v) in c.factors for k, v in factors.items())]
+
+
+def waits_for(cell: Cell) -> tuple[str, ...]:
+  """The cells that must be trained before this one may start: the cell it fine-tunes, and the
+  calibration cells its budget comes from."""
+  return ((cell.init_cell,) if cell.init_cell is not None else ()) + cell.waits
 
 
 Epochs = Callable[[str, str], int]  # (arm, phase) -> training epochs

@@ -1,6 +1,7 @@
 """The v2 design: three group-level splits, fixed test sets identical across seeds and arms,
 the cpu128 scale's pattern count, the calibration rule (no training here)."""
 
+import dataclasses
 import math
 
 import numpy as np
@@ -151,15 +152,18 @@ def test_calibration_plan():
   assert ft.init_cell == pre.name and ft.config.epochs == 120 and ft.config.lr == pytest.approx(
       1e-4)
   assert all(c.seed == 0 and c.config.max_val is None and not c.evals for c in cal.cells)
-  with pytest.raises(SljaxError, match="not a v2 plan"):
+  with pytest.raises(SljaxError, match="not a calibrated plan"):
     plans.calibration_plan("table1", "cpu128")
 
 
 @pytest.mark.parametrize("plan", ["table1-v2", "table2-v2", "table3-v2"])
-def test_calibrate_at_a_scale_without_calibration_epochs(plan, capsys):
-  """The paper scale has no calibration epochs: one line naming the scales that have them (was
-  a KeyError '1/16' / 'objects'), exit 2, nothing written."""
+def test_calibrate_at_a_scale_without_calibration_epochs(plan, capsys, monkeypatch):
+  """A scale without calibration epochs (the paper scale had none before issue 63): one line
+  naming the scales that have them (was a KeyError '1/16' / 'objects'), exit 2, nothing
+  written."""
   from sljax import cli
+  monkeypatch.setitem(plans.SCALES, "paper", dataclasses.replace(
+      plans.SCALES["paper"], v2=dataclasses.replace(plans.SCALES["paper"].v2, calib_epochs=())))
   assert cli.main(["experiment", "calibrate", plan, "/nonexistent/cal", "--scale", "paper"]) == 2
   err = capsys.readouterr().err.strip().splitlines()
   assert err == [f"sljax experiment: error: calibrate --scale paper: the scale has no "

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from sljax import cli
-from sljax.experiment.design import plans
+from sljax.experiment.design import cells, plans
 from sljax.experiment.records import DONE_FILE, cell_dir, register, write_json
 from sljax.experiment.running import gpu_figures as gf, price, submit
 from sljax.runtime import machine
@@ -93,16 +93,23 @@ def test_the_gpu_figures_agree_with_their_records(m):
   assert m.seconds == pytest.approx(expected)
 
 
-def test_the_paper_scale_is_priced_with_stand_ins_labelled():
-  plan, stand_ins = plans.stand_in_plan("table2-v2", "paper", 3)
-  assert ("stl", "1/16") in stand_ins and plan.cells[0].config.epochs == 120
-  text = price.dry_run(plan, "/nonexistent/out", 32, "h200", stand_ins)
-  assert "STAND-IN budgets" in text and "calibrate table2-v2" in text
+def test_a_plan_its_out_calibrates_is_priced_with_its_calibration_first():
+  """table2-v2 at the paper scale has no committed budgets: the dry run prices its calibration
+  cells, then its cells at the long runs' epochs (an upper bound), each waiting for them."""
+  plan, calibrating = price.plan_to_price("table2-v2", "paper", 3)
+  calib = plans.calibration_plan("table2-v2", "paper")
+  assert calibrating == len(calib.cells) > 0
+  assert plan.cells[:calibrating] == calib.cells
+  long_epochs = dict(plans.SCALES["paper"].v2.calib_epochs)
+  for cell in plan.cells[calibrating:]:
+    assert cell.config.epochs == long_epochs[plans.phase_of(cell)], cell.name
+    assert set(cells.waits_for(cell)) >= {c.name for c in calib.cells}, cell.name
+  text = price.dry_run(plan, "/nonexistent/out", 32, "h200", calibrating)
+  assert "UPPER BOUND" in text and f"{calibrating} calibration cell(s)" in text
   assert "psmnet: 0.1077 s a training step (measured" in text
   assert "psmnet-mtl: 0.1424 s a training step (measured" in text
   assert "unet" not in text.split("| cell |")[0]
-  with pytest.raises(Exception, match="no calibrated budget"):
-    plans.build_plan("table2-v2", "paper", 3)  # running it is still refused
+  assert price.plan_to_price("table1-v2", "smoke", 1)[1] == 0  # committed budgets: no calibration
 
 
 def test_this_machine_without_finished_cells_is_unknown(tmp_path):

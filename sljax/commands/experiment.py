@@ -75,8 +75,9 @@ def register(subparsers) -> None:
                   "(sljax.experiment.budget.calibrate) and prints the budgets to commit into the "
                   "scale; OUT/calibration-PLAN.json keeps the curves.",
       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-  c.add_argument("plan", metavar="PLAN", help="table1-v2, table2-v2, table3-v2 or fig7-v2")
-  c.add_argument("out", metavar="OUT", help="calibration folder (not a grid's OUT)")
+  c.add_argument("plan", metavar="PLAN", help=f"{', '.join(plans.CALIBRATED)}")
+  c.add_argument("out", metavar="OUT", help="calibration folder (`experiment run` calibrates "
+                                            "in the grid's own OUT where budgets are missing)")
   c.add_argument("--scale", default="cpu128", help="smoke, cpu or cpu128")
   c.add_argument("--no-progress", action="store_true", help="no progress bar")
   c.set_defaults(func=calibrate)
@@ -115,9 +116,9 @@ def _seeds(args: argparse.Namespace) -> int:
 
 def dry_run(args: argparse.Namespace) -> int:
   """Prints what the plan would cost; writes nothing."""
-  plan, stand_ins = plans.stand_in_plan(args.plan, args.scale, _seeds(args), args.data,
-                                        tuple(args.eval_data))
-  print(price.dry_run(plan, args.out, args.workers, args.gpu, stand_ins))
+  plan, calibrating = price.plan_to_price(args.plan, args.scale, _seeds(args), args.data,
+                                          tuple(args.eval_data))
+  print(price.dry_run(plan, args.out, args.workers, args.gpu, calibrating))
   return 0
 
 
@@ -125,9 +126,10 @@ def run_plan(args: argparse.Namespace) -> int:
   """Runs the plan and says how to report it."""
   if args.dry_run:
     return dry_run(args)
-  plan = plans.build_plan(args.plan, args.scale, _seeds(args), args.data, tuple(args.eval_data))
+  plan, then = cal.worker_plan(args.plan, args.scale, _seeds(args), args.data,
+                               tuple(args.eval_data), args.out)
   res = runner.run(plan, args.out, progress=not args.no_progress, lease=args.lease,
-                   log_path=args.log_path)
+                   log_path=args.log_path, then=then)
   left_out = (f"; {len(res['diverged'])} cell(s) left out as diverged (each diverged.json "
               "says why)" if res["diverged"] else "")
   done = (f"{args.plan}: trained {res['trained']} cell(s), scored {res['evaluated']} set(s) in "
@@ -191,10 +193,15 @@ def submit_workers(args: argparse.Namespace) -> int:
   res = subm.Resources(args.workers, args.partition, args.gpus_per_worker, args.cpus_per_worker,
                        subm.parse_minutes(args.time), args.account, subm.parse_sbatch(args.sbatch),
                        tuple(args.setup))
-  plan = plans.build_plan(args.plan, args.scale, _seeds(args), args.data, tuple(args.eval_data))
+  # A plan calibrated in OUT registers its calibration cells first; the workers go on to it.
+  first, then = cal.worker_plan(args.plan, args.scale, _seeds(args), args.data,
+                                tuple(args.eval_data), args.out)
+  grid = None if then is None else plans.provisional_plan(args.plan, args.scale, _seeds(args),
+                                                          args.data, tuple(args.eval_data))
   from sljax import cli  # pylint: disable=import-outside-toplevel  (cli imports this module)
-  subm.submit_grid(plan, Path(args.out), res, local=args.local, wait=args.wait,
-                   lease=args.lease, entry=cli.main, log=lambda line: print(line, flush=True))
+  subm.submit_grid(first, Path(args.out), res, local=args.local, wait=args.wait,
+                   lease=args.lease, entry=cli.main, log=lambda line: print(line, flush=True),
+                   grid=grid)
   return 0
 
 
@@ -202,7 +209,8 @@ def calibrate(args: argparse.Namespace) -> int:
   """Runs the calibration and prints the budgets by the plateau rule."""
   result = cal.calibrate(args.plan, args.scale, args.out, progress=not args.no_progress)
   print(f"budgets for scale {args.scale} by the plateau rule (commit them into "
-        "sljax/experiment/design/scales.py, SCALES[...].budgets):")
+        "sljax/experiment/design/scales.py, SCALES[...].budgets, or let `experiment run` "
+        "use them in the grid's own OUT):")
   for line in cal.budget_lines(result):
     print("  " + line)
   if result["missing"]:

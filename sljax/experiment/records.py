@@ -1,6 +1,9 @@
 """An experiment folder on disk: where each record lives, and reading and writing them.
 
-OUT/plan.json            the plans run here and the spec of every cell (see Cell.spec)
+OUT/plan.json            the plans run here and the spec of every cell (see Cell.spec); a
+                         plan calibrated here records its budgets (written once)
+OUT/calibration-PLAN.json  the plateau rule applied to the plan's calibration cells, written
+                         when the last of them is done (sljax.experiment.budget.calibrate)
 OUT/claims/, workers/   which worker holds which cell (sljax.experiment.running.workers)
 OUT/cells/NAME/          the cell's training workdir (config.json, checkpoints/, *.jsonl)
 OUT/cells/NAME/train.log its training output
@@ -25,7 +28,8 @@ from pathlib import Path
 from typing import Any
 
 from sljax.errors import SljaxError, require
-from sljax.experiment.design.plans import Plan, build_plan, check_unique
+from sljax.experiment.design.plans import (CALIBRATE, Plan, build_plan, calibration_plan,
+                                          check_unique)
 from sljax.io import files
 from sljax.models import checkpoint as ckpt
 from sljax.train.config import dumps
@@ -121,9 +125,23 @@ def write_eval(out: Path, name: str, set_name: str, report: dict[str, Any]) -> P
 
 
 def plan_args(plan: Plan) -> dict[str, Any]:
-  """What rebuilds the plan (build_plan's arguments)."""
-  return {"scale": plan.scale.name, "seeds": len(plan.seeds), "data": plan.data,
+  """What rebuilds the plan (build_plan's arguments), with the budgets its OUT's calibration
+  gave where it has them."""
+  args = {"scale": plan.scale.name, "seeds": len(plan.seeds), "data": plan.data,
           "eval_data": list(plan.eval_data)}
+  if plan.budgets:  # only then: the records of plans with committed budgets stay as they were
+    args["budgets"] = budget_rows(plan.budgets)
+  return args
+
+
+def budget_rows(budgets) -> list[list]:
+  """((arm, phase), epochs) pairs as plan.json's [arm, phase, epochs] rows, sorted."""
+  return sorted([arm, phase, int(epochs)] for (arm, phase), epochs in budgets)
+
+
+def budget_pairs(rows) -> tuple[tuple[tuple[str, str], int], ...]:
+  """plan.json's [arm, phase, epochs] rows as build_plan's ((arm, phase), epochs) pairs."""
+  return tuple(sorted(((str(a), str(p)), int(e)) for a, p, e in rows))
 
 
 def read_record(out: Path) -> dict[str, Any] | None:
@@ -149,6 +167,8 @@ def register(out: Path, plan: Plan) -> dict[str, Any]:
   check_unique(plan)
   out.mkdir(parents=True, exist_ok=True)
   record = read_record(out) or {"version": FORMAT_VERSION, "plans": {}, "cells": {}}
+  # Budgets first: a changed budget would also change its cells' specs, a vaguer message.
+  _keep_budgets(out, plan.name, record["plans"].get(plan.name), plan_args(plan))
   for cell in plan.cells:
     old, new = record["cells"].get(cell.name), cell.spec()
     if old is not None and old != new:
@@ -160,6 +180,7 @@ def register(out: Path, plan: Plan) -> dict[str, Any]:
     raise SljaxError(f"{out}: plan {plan.name} was run at scale {previous['scale']}, not "
                      f"{plan.scale.name}; use another OUT")
   args = plan_args(plan)
+  _keep_budgets(out, plan.name, previous, args)
   if previous is not None:  # more seeds or evaluation folders extend a plan; fewer keep it
     args["seeds"] = max(args["seeds"], previous["seeds"])
     args["eval_data"] = sorted(set(args["eval_data"]) | set(previous.get("eval_data", [])))
@@ -171,6 +192,19 @@ def register(out: Path, plan: Plan) -> dict[str, Any]:
   return record
 
 
+def _keep_budgets(out: Path, name: str, previous: dict[str, Any] | None,
+                  args: dict[str, Any]) -> None:
+  """SljaxError when a plan recorded with its calibration's budgets comes with others; args
+  keeps the recorded ones (budgets committed since win: the record stays)."""
+  if previous is None or "budgets" not in previous:
+    return
+  require(args.get("budgets", previous["budgets"]) == previous["budgets"],
+          f"{out}: plan {name} was registered with the budgets its calibration gave "
+          f"({previous['budgets']}), not {args.get('budgets')}; budgets never change after "
+          "results (use another OUT)")
+  args["budgets"] = previous["budgets"]
+
+
 def registered_plans(out: Path, seeds: int | None = None) -> list[Plan]:
   """The plans recorded in OUT/plan.json, rebuilt (with `seeds` seeds where more than were run,
   e.g. a grid's target while it runs seed by seed); SljaxError when OUT is not an experiment
@@ -179,8 +213,10 @@ def registered_plans(out: Path, seeds: int | None = None) -> list[Plan]:
   require(record is not None, f"{out}: no {PLAN_FILE} (not an experiment folder; run "
           "`sljax experiment run PLAN OUT` first)")
   require(seeds is None or seeds >= 1, f"--seeds {seeds}: at least 1")
-  return [build_plan(name, args["scale"], max(seeds or 0, args["seeds"]), args.get("data"),
-                     tuple(args.get("eval_data", ())))
+  return [calibration_plan(name.removeprefix(CALIBRATE), args["scale"])
+          if name.startswith(CALIBRATE) else
+          build_plan(name, args["scale"], max(seeds or 0, args["seeds"]), args.get("data"),
+                     tuple(args.get("eval_data", ())), budget_pairs(args.get("budgets", ())))
           for name, args in record["plans"].items()]
 
 

@@ -15,6 +15,13 @@ The rule (plateau):
    third as many at the low rate; fine-tuning (already at the low rate) trains P epochs.
 
 OUT/calibration-PLAN.json keeps every curve, the smoothed values, P, the budget and the flag.
+
+Calibration as cells of the grid: at a scale whose budgets for a plan are not committed in
+scales.py, `sljax experiment run PLAN OUT` (and every worker `submit` starts) runs the plan's
+calibration cells in OUT like any other cells (claims, leases, resume); when the last is done
+the rule writes OUT/calibration-PLAN.json once, and the plan's cells are built from its
+budgets, recorded in OUT/plan.json (a plan already recorded with other budgets is refused),
+and run (`worker_plan`).
 """
 
 import math
@@ -24,10 +31,11 @@ from typing import Any
 
 import numpy as np
 
+from sljax.errors import require
 from sljax.experiment import records
 from sljax.experiment.design import plans
 from sljax.experiment.design.cells import Plan
-from sljax.experiment.running import runner
+from sljax.experiment.running import runner, workers
 
 PLATEAU_TOL = 0.05
 SMOOTH = 3
@@ -72,15 +80,71 @@ def budgets(out: Path, plan: Plan) -> dict[str, Any]:
           "budgets": [[r["arm"], r["phase"], r["budget"]] for r in rows.values()]}
 
 
+def calibration_file(out: Path, name: str) -> Path:
+  """OUT/calibration-NAME.json."""
+  return out / f"calibration-{name}.json"
+
+
+def settled(out: Path, name: str, scale: str) -> dict[str, Any] | None:
+  """OUT's calibration of a plan once complete: calibration-NAME.json, written by the rule
+  when the last calibration cell is done (once: a complete file is never rewritten); None
+  while a cell is unfinished. SljaxError when a cell diverged (the rule has no budget then)."""
+  path = calibration_file(out, name)
+  with workers.plan_lock(out):
+    result = records.read_json(path)
+    if result is not None and not result["missing"]:
+      return result
+    plan = plans.calibration_plan(name, scale)
+    left_out = runner.diverged(out, plan)
+    require(not left_out, f"{out}: calibration cell {next(iter(left_out), '')} diverged, so "
+            f"the plateau rule gives no budget for it (docs/plan-v2.md); plan {name} cannot run "
+            "at this scale in this OUT")
+    result = budgets(out, plan)
+    if result["missing"]:
+      return None
+    records.write_json(path, result)
+  return result
+
+
+def calibrated_plan(name: str, scale: str, seeds: int, data: str | None,
+                    eval_data: tuple[str, ...], out: Path) -> Plan:
+  """The plan with the budgets OUT's complete calibration gave, registered in OUT/plan.json
+  (refused there if it was recorded with other budgets)."""
+  result = settled(out, name, scale)
+  require(result is not None, f"{out}: the calibration of {name} is not finished")
+  found = tuple(((arm, phase), int(epochs)) for arm, phase, epochs in result["budgets"])
+  plan = plans.build_plan(name, scale, seeds, data, eval_data, found)
+  with workers.plan_lock(out):
+    records.register(out, plan)
+  return plan
+
+
+def worker_plan(name: str, scale: str, seeds: int, data: str | None,
+                eval_data: tuple[str, ...], out: str | Path):
+  """(plan, then) for a worker of `experiment run` under OUT: the plan and None; or, at a scale
+  without committed budgets for it, its calibration cells and the function that builds and
+  registers the calibrated plan once they are done (runner.run's `then`); or the calibrated
+  plan itself when OUT's calibration is already complete."""
+  out = Path(out)
+  if not plans.needs_calibration(name, scale):
+    return plans.build_plan(name, scale, seeds, data, eval_data), None
+  plans.provisional_plan(name, scale, seeds, data, eval_data)  # bad arguments: refused now
+  if calibration_file(out, name).exists() and settled(out, name, scale) is not None:
+    return calibrated_plan(name, scale, seeds, data, eval_data, out), None
+  return plans.calibration_plan(name, scale), lambda: calibrated_plan(
+      name, scale, seeds, data, eval_data, out)
+
+
 def calibrate(name: str, scale: str, out: str | Path, *, progress: bool = True,
               log=print) -> dict[str, Any]:
-  """Runs (or resumes) the calibration cells of a v2 plan under OUT and writes
-  OUT/calibration-NAME.json; returns its content."""
+  """Runs (or resumes) the calibration cells of a calibrated plan under OUT and writes
+  OUT/calibration-NAME.json (once complete, never again); returns its content."""
   out = Path(out)
   plan = plans.calibration_plan(name, scale)
   runner.run(plan, out, progress=progress, log=log)
-  result = budgets(out, plan)
-  records.write_json(out / f"calibration-{name}.json", result)
+  result = settled(out, name, scale)
+  if result is None:  # other workers still train some: what is done so far, not written
+    result = budgets(out, plan)
   return result
 
 

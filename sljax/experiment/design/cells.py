@@ -43,6 +43,10 @@ class Cell:
   init_cell: str | None = None
   evals: tuple[EvalSet, ...] = ()
   windows: tuple[int, ...] = ()  # unet-sl, v2: correlation windows chosen from on validation
+  # Cells that must be trained before this one starts, besides init_cell: the calibration
+  # cells whose budgets set its epochs (a plan calibrated in its own OUT). Scheduling only, not
+  # the run's identity: not in spec().
+  waits: tuple[str, ...] = ()
 
   def spec(self) -> dict[str, Any]:
     """What identifies the run (plan.json): a changed spec under one name is refused. The
@@ -67,6 +71,9 @@ class Plan:
   baseline: str            # the arm every other arm is compared with (paired by seed)
   data: str | None = None
   eval_data: tuple[str, ...] = ()
+  # ((arm, phase), epochs) the plateau rule gave in this plan's OUT (calibration-PLAN.json),
+  # recorded in OUT/plan.json; () where the scale's committed budgets set every epoch.
+  budgets: tuple[tuple[tuple[str, str], int], ...] = ()
 
   def cells_of(self, **factors: str) -> list[Cell]:
     """The cells whose factors include the given ones."""
@@ -74,10 +81,9 @@ class Plan:
 
 
 def waits_for(cell: Cell) -> tuple[str, ...]:
-  """The cells that must be trained before this one starts: the cell it fine-tunes, if any."""
-  # The one place a cell's dependencies are read from (the dry run's schedule): cells that wait
-  # on something else (a calibration run, say) are added here.
-  return () if cell.init_cell is None else (cell.init_cell,)
+  """The cells that must be trained before this one may start: the cell it fine-tunes, and the
+  calibration cells its budget comes from."""
+  return ((cell.init_cell,) if cell.init_cell is not None else ()) + cell.waits
 
 
 Epochs = Callable[[str, str], int]  # (arm, phase) -> training epochs

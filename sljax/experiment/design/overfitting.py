@@ -1,4 +1,4 @@
-"""The cells of the v3 and v4 designs (docs/plan-v3.md, plan-v4.md): the pilots that look for
+"""The cells of the v3, v4 and v5 designs (docs/plan-v3.md, plan-v4.md, plan-v5.md): the pilots that look for
 where stl overfits (curves only, validated on the whole validation split at a constant learning
 rate), and the grids of stl, unc and epr run in the regime a pilot's rule found (the scale's
 V3Design.regime, V4Design.regime), scored on the fixed test sets; sljax.experiment.design.plans
@@ -120,4 +120,29 @@ def v4_grid(a: Seeded) -> list[Cell]:
                                  val_every_steps=design.val_every)
     cells.append(Cell("v4-" + psmnet_name(strategy, "tissue-ft", fraction, a.seed), strategy,
                       factors, a.seed, config, init_cell=pre_name, evals=evals))
+  return cells
+
+
+def v5_grid(a: Seeded) -> list[Cell]:
+  """Each arm's objects model on all the data (its epochs the calibrated budget, phase
+  "objects"), fine-tuned on a few tissue scenes for the design's steps, validated every
+  val_every steps on the whole tissue validation split; the final and the best checkpoint
+  scored on the fixed tissue test set (docs/plan-v5.md)."""
+  design = a.scale.v5
+  evals = (test_set("tissue", a.scale), test_set("tissue", a.scale, "best"))
+  factors = (("setting", "finetune"), ("data", design.tissue_fraction))
+  cells = []
+  for strategy in design.arms:
+    pre = dataclasses.replace(base_config(a.scale, a.seed, a.epochs(strategy, "objects")),
+                              model="psmnet", strategy=strategy, lr_drop_epoch=None)
+    pre_name = "v5-" + psmnet_name(strategy, "objects", "1", a.seed)
+    cells.append(Cell(pre_name, strategy, (("setting", "pretrain"), ("data", "all")), a.seed,
+                      pre))
+    config = dataclasses.replace(pre, domain="tissue", synth_n=a.scale.tissue_n,
+                                 fraction=design.tissue_fraction, lr=design.finetune_lr,
+                                 epochs=a.scale.schedule.finetune_epochs,  # steps rule instead
+                                 steps=design.finetune_steps, val_every_steps=design.val_every,
+                                 max_val=None)
+    cells.append(Cell("v5-" + psmnet_name(strategy, "tissue-ft", design.tissue_fraction, a.seed),
+                      strategy, factors, a.seed, config, init_cell=pre_name, evals=evals))
   return cells

@@ -50,6 +50,16 @@ Plans:
   strategy, as the pilot's pretraining). The final and the best checkpoint scored on the
   setting's fixed test set (tissue when fine-tuning, objects from scratch). Seeds 300, 301, ...,
   as many as the plan's 24-hour rule committed (V4Design.grid_seeds).
+- v5: the paper's mechanism at the paper's scale (docs/plan-v5.md): each strategy's objects
+  model on all the data, trained for its calibrated budget, fine-tuned on a few tissue scenes
+  for a long fixed number of steps, validated every few steps; the final and the best
+  checkpoint scored on the fixed tissue test set. Seeds 500, 501, ...
+
+Calibration in the grid's folder (docs/plan-v2.md's plateau rule): a v2 plan or v5 at a scale
+whose budgets are not committed in scales.py first runs its calibration cells (calibration_plan:
+one long run per arm and phase, seed 0) in the same OUT; the plan's cells are built from the
+budgets the rule gives (build_plan's `budgets`) and each waits for those cells (Cell.waits,
+cells.waits_for). provisional_plan prices them before then.
 """
 
 
@@ -73,7 +83,11 @@ V3_PLANS = (V3_PILOT, "v3")
 V4_PILOT = "v4-pilot"
 V4 = "v4"
 V4_PLANS = (V4_PILOT, V4)
-PLANS = V1_PLANS + V2_PLANS + V3_PLANS + V4_PLANS
+V5 = "v5"
+PLANS = V1_PLANS + V2_PLANS + V3_PLANS + V4_PLANS + (V5,)
+CALIB_PREFIX = "calib-"  # a calibration cell's name: this, then the cell it calibrates
+CALIBRATED = V2_PLANS + (V5,)   # plans whose epochs come from the plateau rule
+CALIBRATE = "calibrate-"        # a calibration plan's name: CALIBRATE + the plan's
 PHASES = ("objects", "1/16", "finetune")  # the budgets of a scale: all data, 1/16, fine-tuning
 
 # Each shipped plan: its cells for one seed, and the arm the others are compared with.
@@ -84,7 +98,9 @@ BUILDERS: dict[str, tuple[Callable[[Seeded], list[Cell]], str]] = {
     "table3-v2": (paper_tables.table3_v2, SINGLE_TASK), "fig7-v2": (paper_tables.fig7_v2, SINGLE_TASK),
     V3_PILOT: (overfitting.v3_pilot, SINGLE_TASK), "v3": (overfitting.v3_grid, SINGLE_TASK),
     V4_PILOT: (overfitting.v4_pilot, SINGLE_TASK), V4: (overfitting.v4_grid, SINGLE_TASK),
+    V5: (overfitting.v5_grid, SINGLE_TASK),
 }
+Budgets = tuple[tuple[tuple[str, str], int], ...]  # ((arm, phase), epochs)
 
 
 def _v1_epochs(scale: Scale) -> Epochs:
@@ -108,7 +124,8 @@ def plan_seeds(name: str, scale: str, seeds: int) -> tuple[int, ...]:
   """The seeds of a plan run with --seeds N: 0..N-1, or from a pilot's first seed."""
   first = {V3_PILOT: lambda: SCALES[scale].v3.first_seed,
            V4_PILOT: lambda: SCALES[scale].v4.first_seed,
-           V4: lambda: SCALES[scale].v4.grid_first_seed}.get(name, lambda: 0)()
+           V4: lambda: SCALES[scale].v4.grid_first_seed,
+           V5: lambda: SCALES[scale].v5.first_seed}.get(name, lambda: 0)()
   return tuple(range(first, first + seeds))
 
 
@@ -123,6 +140,13 @@ def _check_args(name: str, scale: str, seeds: int, data: str | None,
   require(name not in V4_PLANS or scale in v4_scales,
           f"--scale {scale}: plan {name} runs at {' or '.join(v4_scales)} (docs/plan-v4.md)")
   require(seeds >= 1, f"--seeds {seeds}: must be at least 1")
+  v5_scales = [s.name for s in SCALES.values() if s.v5 is not None]
+  require(name != V5 or scale in v5_scales,
+          f"--scale {scale}: plan v5 runs at {' or '.join(v5_scales)} (docs/plan-v5.md)")
+  if name == V5:
+    require(seeds <= SCALES[scale].v5.seeds,
+            f"--seeds {seeds}: plan v5 pre-registered {SCALES[scale].v5.seeds} seeds at scale "
+            f"{scale} (docs/plan-v5.md); fewer run a part of them")
   design = SCALES[scale].v4
   if name == V4 and design.regime not in (None, NO_REGIME):
     require(design.grid_seeds is not None,
@@ -143,73 +167,96 @@ def _check_args(name: str, scale: str, seeds: int, data: str | None,
       files.require_folder(folder, "dataset folder")
 
 
-def build_plan(name: str, scale: str = "cpu", seeds: int = 3, data: str | None = None,
-               eval_data: tuple[str, ...] = ()) -> Plan:
-  """The cells of a shipped plan; SljaxError for an unknown plan or scale, or a v2 plan at a
-  scale without calibrated budgets."""
-  _check_args(name, scale, seeds, data, eval_data)
-  sc = dataclasses.replace(SCALES[scale], t=_pattern_count(data, SCALES[scale]))
-  return _build(name, sc, seeds, data, eval_data,
-                _v1_epochs(sc) if name in V1_PLANS else sc.budget)
+def committed(name: str, sc: Scale) -> dict[tuple[str, str], int]:
+  """{(arm or "*", phase): epochs} committed in scales.py for a plan's design (v5 its own)."""
+  return dict(sc.v5.budgets if name == V5 and sc.v5 is not None else sc.v2.budgets)
 
 
-def stand_in_plan(name: str, scale: str = "cpu", seeds: int = 3, data: str | None = None,
-                  eval_data: tuple[str, ...] = ()) -> tuple[Plan, tuple[tuple[str, str], ...]]:
-  """The plan as build_plan makes it, except that a v2 plan's budgets the scale has not
-  committed yet are v1's epochs of the phase (for pricing only: `run` refuses such a plan);
-  with the (arm, phase) pairs stood in for."""
-  _check_args(name, scale, seeds, data, eval_data)
-  sc = dataclasses.replace(SCALES[scale], t=_pattern_count(data, SCALES[scale]))
-  if name in V1_PLANS:
-    return _build(name, sc, seeds, data, eval_data, _v1_epochs(sc)), ()
-  table, v1, missing = dict(sc.v2.budgets), _v1_epochs(sc), []
+def _epochs(name: str, sc: Scale, found: Budgets) -> Epochs:
+  """A calibrated plan's epochs: committed budgets win, else the ones its OUT's calibration
+  found; SljaxError for an arm and phase with neither."""
+  table, here = committed(name, sc), dict(found)
 
   def epochs(arm: str, phase: str) -> int:
-    committed = table.get((arm, phase), table.get(("*", phase)))
-    if committed is None and (arm, phase) not in missing:
-      missing.append((arm, phase))
-    return v1(arm, phase) if committed is None else committed
+    for key in ((arm, phase), ("*", phase)):
+      if key in table:
+        return table[key]
+    require((arm, phase) in here,
+            f"scale {sc.name} has no calibrated budget for {arm} ({phase}) yet: `sljax "
+            f"experiment run {name} OUT --scale {sc.name}` runs the calibration cells first "
+            "(docs/plan-v2.md)")
+    return here[(arm, phase)]
+  return epochs
 
-  return _build(name, sc, seeds, data, eval_data, epochs), tuple(missing)
+
+def asked(name: str, sc: Scale) -> set[tuple[str, str]]:
+  """The (arm, phase) budgets a calibrated plan's cells ask for."""
+  found: set[tuple[str, str]] = set()
+  BUILDERS[name][0](Seeded(sc, 0, None, (), lambda arm, phase: found.add((arm, phase)) or 1))
+  return found
 
 
-def _build(name: str, sc: Scale, seeds: int, data: str | None, eval_data: tuple[str, ...],
-           epochs: Epochs) -> Plan:
-  """The plan's cells at a scale, with these budgets."""
+def needs_calibration(name: str, scale: str) -> bool:
+  """Whether a plan's cells wait for calibration cells in its OUT: a calibrated plan (v2, v5)
+  with an (arm, phase) that the scale has no committed budget for."""
+  if name not in CALIBRATED:
+    return False
+  sc, table = SCALES[scale], committed(name, SCALES[scale])
+  return any(k not in table and ("*", k[1]) not in table for k in asked(name, sc))
+
+
+def build_plan(name: str, scale: str = "cpu", seeds: int = 3, data: str | None = None,
+               eval_data: tuple[str, ...] = (), budgets: Budgets = ()) -> Plan:
+  """The cells of a shipped plan; budgets: those its OUT's calibration found (plan.json). Each
+  cell of a plan calibrated in its OUT waits for the calibration cells. SljaxError for an
+  unknown plan or scale, or a calibrated plan without a budget for one of its cells."""
+  _check_args(name, scale, seeds, data, eval_data)
+  sc = dataclasses.replace(SCALES[scale], t=_pattern_count(data, SCALES[scale]))
   build, baseline = BUILDERS[name]
-  seed_list = plan_seeds(name, sc.name, seeds)
+  epochs = _v1_epochs(sc) if name not in CALIBRATED else _epochs(name, sc, budgets)
+  seed_list = plan_seeds(name, scale, seeds)
   cells = [c for seed in seed_list
            for c in build(Seeded(sc, seed, data, tuple(eval_data), epochs))]
-  return Plan(name, sc, seed_list, tuple(cells), baseline, data, tuple(eval_data))
+  if needs_calibration(name, scale):
+    waits = tuple(c.name for c in calibration_plan(name, scale).cells)
+    cells = [dataclasses.replace(c, waits=waits) for c in cells]
+  return Plan(name, sc, seed_list, tuple(cells), baseline, data, tuple(eval_data),
+              tuple(sorted(budgets)) if needs_calibration(name, scale) else ())
 
 
-def _calib_phases(name: str, sc: Scale) -> set[str]:
-  """The budget phases (PHASES) whose epochs a v2 plan's cells ask for."""
-  asked: set[str] = set()
-  BUILDERS[name][0](Seeded(sc, 0, None, (), lambda arm, phase: asked.add(phase) or 1))
-  return asked
+def provisional_plan(name: str, scale: str, seeds: int, data: str | None = None,
+                     eval_data: tuple[str, ...] = ()) -> Plan:
+  """Before its calibration: the plan with every uncalibrated budget at its long run's epochs
+  (the most the plateau rule can give), each cell waiting for the calibration cells. For
+  pricing a grid; never registered or run."""
+  long_epochs = dict(SCALES[scale].v2.calib_epochs)
+  found = tuple(((arm, phase), long_epochs[phase]) for arm, phase in asked(name, SCALES[scale]))
+  return build_plan(name, scale, seeds, data, eval_data, found)
 
 
 def calibration_plan(name: str, scale: str) -> Plan:
-  """The long runs that set a v2 plan's budgets (docs/plan-v2.md): one cell per arm and phase of
-  the plan, seed 0, at the scale's calibration epochs, fixed learning rate, every validation
-  scene; a fine-tuning run starts from the same arm's long objects run."""
-  require(name in V2_PLANS, f"calibrate: {name!r} is not a v2 plan; choose from "
-          f"{', '.join(V2_PLANS)}")
+  """The long runs that set a calibrated plan's budgets (docs/plan-v2.md): one cell per arm and
+  phase the plan asks a budget for, seed 0, at the scale's calibration epochs, fixed learning
+  rate, every validation scene; a fine-tuning run starts from the same arm's long objects run."""
+  require(name in CALIBRATED, f"calibrate: {name!r} is not a calibrated plan; choose from "
+          f"{', '.join(CALIBRATED)}")
   _check_args(name, scale, 1, None, ())
-  able = [s.name for s in SCALES.values()
-          if _calib_phases(name, s) <= set(dict(s.v2.calib_epochs))]
+  able = [s.name for s in SCALES.values() if (name != V5 or s.v5 is not None)
+          and {p for _, p in asked(name, s)} <= set(dict(s.v2.calib_epochs))]
   require(scale in able, f"calibrate --scale {scale}: the scale has no calibration epochs for "
           f"plan {name}; calibrate it at {', '.join(able[:-1])} or {able[-1]}")
   sc = SCALES[scale]
   long_epochs = dict(sc.v2.calib_epochs)
+  phases = {p for _, p in asked(name, sc)}
   build, baseline = BUILDERS[name]
+  # v5's cells ask no budget for fine-tuning (a fixed number of steps): only the phases asked.
   cells = [dataclasses.replace(
-      c, name="calib-" + c.name.removesuffix("-s0"), evals=(), windows=(),
-      init_cell=None if c.init_cell is None else "calib-" + c.init_cell.removesuffix("-s0"),
+      c, name=CALIB_PREFIX + c.name.removesuffix("-s0"), evals=(), windows=(),
+      init_cell=None if c.init_cell is None else CALIB_PREFIX + c.init_cell.removesuffix("-s0"),
       config=dataclasses.replace(c.config, lr_drop_epoch=None, max_val=None))
-      for c in build(Seeded(sc, 0, None, (), lambda arm, phase: long_epochs[phase]))]
-  return Plan(f"calibrate-{name}", sc, (0,), tuple(cells), baseline)
+      for c in build(Seeded(sc, 0, None, (), lambda arm, phase: long_epochs[phase]))
+      if phase_of(c) in phases]
+  return Plan(CALIBRATE + name, sc, (0,), tuple(cells), baseline)
 
 
 def phase_of(cell: Cell) -> str:

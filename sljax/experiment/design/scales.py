@@ -78,6 +78,24 @@ class V4Design:
 
 
 @dataclasses.dataclass(frozen=True)
+class V5Design:
+  """The v5 grid at a scale (docs/plan-v5.md): each arm's objects model on all the data, its
+  epochs set by the plateau rule on calibration cells run in the grid's own OUT (budgets
+  committed here win where they exist: none are), then fine-tuned on tissue_fraction of the
+  tissue training split for finetune_steps at finetune_lr, validated every val_every steps on
+  the whole tissue validation split. Seeds first_seed.. (at most `seeds`, the pre-registered
+  count); the rule's margin and smoothing are fixed in docs/plan-v5.md."""
+  arms: tuple[str, ...]
+  tissue_fraction: str
+  finetune_steps: int
+  val_every: int
+  finetune_lr: float
+  first_seed: int
+  seeds: int
+  budgets: tuple[tuple[tuple[str, str], int], ...] = ()
+
+
+@dataclasses.dataclass(frozen=True)
 class Scale:
   """The sizes of a plan: images and patterns, data, optimiser, networks, and the schedules and
   designs of v1, v2 and v3 at this scale."""
@@ -100,6 +118,7 @@ class Scale:
   v2: V2Design = V2Design()
   v3: V3Design | None = None
   v4: V4Design | None = None
+  v5: V5Design | None = None
   # --ynn and --conv-impl of every cell: "auto" tunes and chooses per machine; the smoke scale
   # keeps XLA's defaults and lax, since its programs run for seconds (benchmarks/bench_smoke.py).
   ynn: str = "auto"
@@ -132,6 +151,9 @@ SCALES = {s.name: s for s in (
                       finetune_fractions=("1/2",), finetune_steps=4, val_every=2,
                       finetune_lr=1e-4, first_seed=200, regime=("finetune", "1/2", 4),
                       grid_seeds=3),
+          # Two arms keep the suite's end-to-end test short; the paper scale runs all five.
+          v5=V5Design(("stl", "unc"), tissue_fraction="1/4", finetune_steps=4, val_every=2,
+                      finetune_lr=1e-4, first_seed=500, seeds=2),
           ynn="on", conv_impl="lax"),
     Scale("cpu", size=64, t=6, maxdisp=16, objects_n=400, tissue_n=80, batch_size=4, lr=1e-3,
           lr_drop=True, corr_window=5, unet_width=16, unet_depth=4, max_val=40,
@@ -175,5 +197,15 @@ SCALES = {s.name: s for s in (
           lr=1e-4, lr_drop=False, corr_window=17, unet_width=32, unet_depth=4, max_val=None,
           schedule=Schedule(120, 120, 40, val_every=1, small_val_every=1),
           note="the paper's sizes (256x256, maxdisp 96, 120 epochs, Adam 1e-4); for an "
-               "accelerator"),
+               "accelerator",
+          # No budget committed: a plan calibrates in its own OUT (`experiment run`), its long
+          # runs the paper's 120 epochs on all the data (its own "balance of computation time
+          # and convergence") and three times its 1/16 and fine-tuning budgets, as at cpu.
+          v2=V2Design(test_n=500,
+                      calib_epochs=(("objects", 120), ("1/16", 360), ("finetune", 120))),
+          # docs/plan-v5.md: 25 of the 400 tissue training scenes, 4,000 steps (v4's planned
+          # fine-tuning budget), validated every 50 steps on the 100 validation scenes.
+          v5=V5Design(("stl", "unc", "cg_a", "cg_b", "epr"), tissue_fraction="1/16",
+                      finetune_steps=4000, val_every=50, finetune_lr=1e-4, first_seed=500,
+                      seeds=6)),
 )}

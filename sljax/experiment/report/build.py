@@ -30,9 +30,11 @@ import numpy as np
 from sljax.errors import SljaxError
 from sljax.evaluation.scoring import json_safe
 from sljax.experiment.design.cells import FIXED, HELDOUT, TEST_SEED, Cell, Plan
+from sljax.experiment.budget.calibrate import smooth
 from sljax.experiment.design.plans import PLANS
 from sljax.experiment.report import figures, stats
-from sljax.experiment.report.paper_claims import ALPHA, CURVE_SET, PAPER, POWER, claims
+from sljax.experiment.report.paper_claims import (ALPHA, CURVE_SET, PAPER, POWER, claims,
+                                                  mechanism)
 from sljax.experiment.records import (DONE_FILE, EVAL_DIR, WINDOWS_FILE, cell_dir, curve,
                                       plan_args, read_eval, read_json, registered_plans,
                                       train_curve)
@@ -47,7 +49,8 @@ METRICS = (("mae", "Full MAE px"), ("seg_mae", "Seg MAE px"), ("bad_2", "bad-2 %
 # v3's pseudo set (claims.CURVE_SET): a cell's own validation curve, with its overfitting rise
 # (final minus lowest validation Full MAE).
 CURVE_METRICS = (("rise", "overfitting rise px"), ("final_val", "final validation MAE px"),
-                 ("min_val", "lowest validation MAE px"))
+                 ("min_val", "lowest validation MAE px"),
+                 ("rise_rel", "smoothed rise (x its minimum)"))
 DEPTH_METRICS = (("depth_mae_mm", "depth MAE mm (capped)"), ("depth_iqr_mm", "depth IQR mm"),
                  ("depth_capped", "depth capped %"))
 HIGHER_BETTER = ("pattern_acc", "pattern_acc_right")
@@ -67,7 +70,9 @@ TITLES["v3"] = ("v3: stl, unc and epr where stl overfits (the pilot's regime; "
                 "docs/plan-v3.md)")
 TITLES["v4"] = ("v4: stl, unc and epr where stl overfits, budgets in steps (the pilot's "
                 "regime; docs/plan-v4.md)")
-CURVE_PLANS = ("v3", "v4")  # plans whose claims read each cell's own validation curve
+TITLES["v5"] = ("v5: the paper's mechanism: fine-tuning on a few tissue scenes at the paper's "
+                "scale (docs/plan-v5.md)")
+CURVE_PLANS = ("v3", "v4", "v5")  # plans whose claims read each cell's own validation curve
 
 
 def curve_metrics(out: Path, name: str) -> dict[str, float] | None:
@@ -78,7 +83,9 @@ def curve_metrics(out: Path, name: str) -> dict[str, float] | None:
   values = [v for _, v in sorted(curve(out, name)) if v is not None and math.isfinite(v)]
   if not values:
     return None
-  return {"rise": values[-1] - min(values), "final_val": values[-1], "min_val": min(values)}
+  smoothed = smooth(values)  # v5's rise (docs/plan-v5.md): smoothed, relative to the minimum
+  return {"rise": values[-1] - min(values), "final_val": values[-1], "min_val": min(values),
+          "rise_rel": (smoothed[-1] - min(smoothed)) / min(smoothed)}
 
 
 def nonfinite_curves(out: Path, cells: Sequence[Cell]) -> list[str]:
@@ -289,6 +296,14 @@ def _plan_markdown(out: Path, plan: Plan, agg: dict[str, Any], cl: list[dict[str
            f"{sc.maxdisp}, batch {sc.batch_size}, Adam {sc.lr:g}; {sc.note}. Seeds "
            f"{', '.join(map(str, plan.seeds))}; {agg['trained']} of {agg['cells']} cells "
            f"trained." + (f" Data: `{plan.data}`." if plan.data else ""), ""]
+  if plan.budgets:  # calibrated in this OUT (calibration-PLAN.json), recorded in plan.json
+    lines += ["Budgets set by the plateau rule on this folder's calibration cells "
+              f"(calibration-{plan.name}.json): " + ", ".join(
+                  f"{arm} {phase} {epochs} epochs" for (arm, phase), epochs in plan.budgets)
+              + ".", ""]
+  outcome = mechanism(plan, agg)
+  if outcome is not None:
+    lines += ["### The pre-registered outcome (docs/plan-v5.md)", "", outcome, ""]
   if cl:
     lines += ["### The paper's claims at this scale", "",
               f"One family: Holm-adjusted p over its {_family(cl)}; verdicts on the adjusted "

@@ -16,6 +16,7 @@ from sljax.experiment.report import stats
 from sljax.losses.weighting import MULTI_TASK
 
 ALPHA = 0.05
+MARGIN = 0.10  # v5: a smoothed curve overfits when it ends this far above its minimum
 CURVE_SET = "validation-curve"  # v3: each cell's own validation curve (report.py)
 POWER = 0.8
 # The paper's numbers (SPEC 5 and 2), for the tables' reference columns.
@@ -139,6 +140,13 @@ def claims(plan: Plan, agg: dict[str, Any]) -> list[dict[str, Any]]:
         f"test-{where}", "unc", "mae")
     add("validation: unc's overfitting rise (final minus lowest validation Full MAE) is "
         "smaller than stl's", g, CURVE_SET, "unc", "rise")
+  elif plan.name == "v5":
+    # docs/plan-v5.md: one family of two; cg_a, cg_b and epr against stl are exploratory.
+    g = group(setting="finetune")
+    add("tissue test set, final checkpoint: unc has a lower Full MAE than stl", g,
+        "test-tissue", "unc", "mae")
+    add("validation: unc's smoothed rise (final over lowest, relative) is smaller than stl's",
+        g, CURVE_SET, "unc", "rise_rel")
   elif base_name == "fig7":
     for where in ("tissue", "data"):
       g = group(data=where)
@@ -154,3 +162,35 @@ def claims(plan: Plan, agg: dict[str, Any]) -> list[dict[str, Any]]:
       c["p_holm"] = p_adj
       c["verdict"] = _verdict(c["difference"], p_adj)
   return out
+
+
+def curve_rise(points: list[dict[str, Any]]) -> float | None:
+  """A mean curve's smoothed rise: its last trailing mean of 3 over its lowest, minus 1."""
+  values = [p["mean"] for p in points if p.get("mean") is not None and math.isfinite(p["mean"])]
+  if not values:
+    return None
+  smoothed = [sum(values[max(0, i - 2):i + 1]) / len(values[max(0, i - 2):i + 1])
+              for i in range(len(values))]
+  return smoothed[-1] / min(smoothed) - 1.0
+
+
+def mechanism(plan: Plan, agg: dict[str, Any]) -> str | None:
+  """v5's pre-registered outcome in one paragraph: the mechanism acts when stl's seed-mean
+  curve rises by MARGIN, unc's does not, and claim (b) holds; None for other plans."""
+  if plan.name != "v5":
+    return None
+  g = next((g for g in agg["groups"] if g["factors"].get("setting") == "finetune"), None)
+  curves = {} if g is None else g.get("curves", {})
+  stl, unc = curve_rise(curves.get("stl", [])), curve_rise(curves.get("unc", []))
+  if stl is None or unc is None:
+    return "No outcome yet: stl's or unc's fine-tuning cells have not finished."
+  (b,) = [c for c in claims(plan, agg) if c["metric"] == "rise_rel"] or [{}]
+  said = (f"stl's seed-mean validation curve (smoothed, trailing mean of 3) ends {stl:+.1%} "
+          f"above its minimum, unc's {unc:+.1%} (margin {MARGIN:.0%}); claim (b): "
+          f"{b.get('verdict', 'no results yet')}. ")
+  if stl < MARGIN:
+    return said + ("**stl did not overfit**: the mechanism had nothing to prevent here, so "
+                   "it is not tested (as in v3 and v4).")
+  if unc < MARGIN and b.get("verdict") == "holds":
+    return said + "**The mechanism acts**: stl overfits, unc does not, and (b) holds."
+  return said + "**stl overfits and unc is not shown to prevent it.**"

@@ -13,7 +13,8 @@ from pathlib import Path
 
 from sljax.errors import SljaxError, require
 from sljax.experiment.design.cells import FIXED, Cell, Plan, waits_for
-from sljax.experiment.design.plans import describe
+from sljax.experiment.design.plans import (CALIB_PREFIX, build_plan, calibration_plan,
+                                           describe, needs_calibration, provisional_plan)
 from sljax.experiment.records import DONE_FILE, cell_dir, eval_record, read_json, read_record
 from sljax.experiment.running import gpu_figures as gf
 from sljax.experiment.running.runner import cell_steps, eval_scenes, validation_indices
@@ -297,10 +298,17 @@ def _sum(values) -> float | None:
   return None if None in values else sum(values)
 
 
+def _waits(names: tuple[str, ...]) -> str:
+  """What a cell waits for, in a table cell: its base, and its calibration cells counted."""
+  calib = [n for n in names if n.startswith(CALIB_PREFIX)]
+  other = [n for n in names if not n.startswith(CALIB_PREFIX)]
+  return ", ".join(other + ([f"the {len(calib)} calibration cells"] if calib else [])) or "-"
+
+
 def _cell_rows(costs: list[CellCost]) -> list[str]:
   rows = ["| cell | network | waits for | steps | validation (passes x scenes) | scored scenes "
           "| hours |", "| --- | --- | --- | ---: | ---: | ---: | ---: |"]
-  rows += [f"| {c.name} | {c.net} | {', '.join(c.waits_for) or '-'} | {c.steps:,} | "
+  rows += [f"| {c.name} | {c.net} | {_waits(c.waits_for)} | {c.steps:,} | "
            f"{c.val_passes} x {c.val_scenes:,} | {c.score_scenes:,} | "
            + ("finished" if c.done else _hours(c.total_s)) + " |" for c in costs]
   return rows
@@ -331,20 +339,29 @@ def _figure_lines(figures: Figures, costs: list[CellCost]) -> list[str]:
   return lines
 
 
+def plan_to_price(name: str, scale: str, seeds: int, data: str | None = None,
+                  eval_data: tuple[str, ...] = ()) -> tuple[Plan, int]:
+  """What a grid of the plan trains, and how many of its cells are calibration cells: a plan
+  whose budgets its OUT calibrates first (`needs_calibration`) is its calibration cells, then
+  its cells at the long runs' epochs (the most the plateau rule can give: an upper bound)."""
+  if not needs_calibration(name, scale):
+    return build_plan(name, scale, seeds, data, eval_data), 0
+  calib = calibration_plan(name, scale)
+  grid = provisional_plan(name, scale, seeds, data, eval_data)
+  return dataclasses.replace(grid, cells=calib.cells + grid.cells), len(calib.cells)
+
+
 def format_price(plan: Plan, costs: list[CellCost], figures: Figures, workers: int,
-                 stand_ins: tuple[tuple[str, str], ...] = ()) -> str:
-  """The dry run's text: the plan, stand-ins, figures, a row per cell and per network, the
-  GPU-hours and the wall time on `workers` workers."""
+                 calibrating: int = 0) -> str:
+  """The dry run's text: the plan, its calibration, figures, a row per cell and per network,
+  the GPU-hours and the wall time on `workers` workers."""
   lines = ["Dry run: nothing is trained, submitted or written.", describe(plan) + "."]
-  if stand_ins:
-    v1 = plan.scale.schedule
+  if calibrating:
     lines.append(
-        f"STAND-IN budgets: scale {plan.scale.name} has no committed v2 budget for "
-        + ", ".join(f"{a} ({p})" for a, p in stand_ins)
-        + f"; priced at v1's epochs (all data {v1.epochs}, 1/16 {v1.small_epochs}, "
-        f"fine-tuning {v1.finetune_epochs}). The grid waits on its calibration: `sljax "
-        f"experiment calibrate {plan.name} OUT --scale {plan.scale.name}`, then the budgets "
-        "committed (docs/plan-v2.md); `run` refuses the plan until then.")
+        f"UPPER BOUND: scale {plan.scale.name} has no committed budgets for {plan.name}, so "
+        f"its OUT calibrates them first: {calibrating} calibration cell(s) (calib-*, the "
+        "plateau rule of docs/plan-v2.md), then the plan's cells, which wait for them, priced "
+        "at the long runs' epochs, the most the rule can give.")
   if plan.scale.v2.test_n == 0 and any(e.kind == "fixed" for c in plan.cells for e in c.evals):
     lines.append(f"Scale {plan.scale.name} commits no fixed test-set size (V2Design.test_n = "
                  "0): the test sets are priced at 0 scenes.")
@@ -371,9 +388,9 @@ def format_price(plan: Plan, costs: list[CellCost], figures: Figures, workers: i
 
 
 def dry_run(plan: Plan, out: str | Path, workers: int, gpu: str | None = None,
-            stand_ins: tuple[tuple[str, str], ...] = ()) -> str:
+            calibrating: int = 0) -> str:
   """The dry run of a plan under OUT (read, never written) on `workers` workers of a GPU kind
   (None: this machine)."""
   out = Path(out)
   figures = gpu_figures(gpu, plan) if gpu else machine_figures(out, plan)
-  return format_price(plan, price(plan, figures, out), figures, workers, stand_ins)
+  return format_price(plan, price(plan, figures, out), figures, workers, calibrating)

@@ -27,7 +27,8 @@ from sljax import inference
 from sljax.data.dataset import FolderSource, parse_fraction, split_indices
 from sljax.errors import require
 from sljax.evaluation.scoring import evaluate, json_safe
-from sljax.experiment.design.cells import FIXED, HELDOUT, TEST_SEED, Cell, EvalSet, Plan
+from sljax.experiment.design.cells import (FIXED, HELDOUT, TEST_SEED, Cell, EvalSet, Plan,
+                                           waits_for)
 from sljax.experiment.design.plans import describe
 from sljax.experiment.records import (DIVERGED_FILE, DONE_FILE, EVAL_DIR, LOG_FILE, WINDOWS_FILE,
                                       cell_dir, eval_record, final_checkpoint, read_json,
@@ -274,28 +275,38 @@ def pending(out: Path, plan: Plan,
 
 def run(plan: Plan, out: str | os.PathLike, *, progress: bool = True,
         log: Callable[[str], None] = print, lease: float = workers.LEASE_S,
-        poll: float | None = None, log_path: str | None = None) -> dict[str, Any]:
+        poll: float | None = None, log_path: str | None = None,
+        then: Callable[[], Plan] | None = None) -> dict[str, Any]:
   """Trains and scores the plan's unfinished cells under OUT as one worker among any number on
-  the same folder (sljax.experiment.running.workers): each cell claimed by one, a fine-tuning cell once
-  its base is done. Returns {'trained', 'evaluated', 'seconds', 'diverged' (the cells left out,
-  with why), 'left' (unfinished cells other workers hold, with who), 'stopped' (the signal
-  that stopped this worker, or None)}. lease: seconds without a heartbeat after which a worker
-  on another host counts as gone; poll: seconds between looks while waiting (lease/6, at most
-  10 s); log_path: this worker's log, for `experiment status`."""
+  the same folder (sljax.experiment.running.workers): each cell claimed by one, a cell once
+  the cells it waits for are done (cells.waits_for). Returns {'trained', 'evaluated',
+  'seconds', 'diverged' (the cells left out, with why), 'left' (unfinished cells other workers
+  hold, with who), 'stopped' (the signal that stopped this worker, or None)}. lease: seconds
+  without a heartbeat after which a worker on another host counts as gone; poll: seconds
+  between looks while waiting (lease/6, at most 10 s); log_path: this worker's log, for
+  `experiment status`; then: the plan that follows once every cell of this one is finished
+  (a calibration's grid, built and registered by sljax.experiment.budget.calibrate): the
+  worker waits for the cells others hold instead of ending, then goes on with it."""
   out = Path(out)
   with workers.plan_lock(out):
     register(out, plan)
+  wait = min(10.0, lease / 6) if poll is None else poll
   with workers.Stop() as stop, workers.Worker(out, workers.identity(lease), log_path) as worker:
-    result = _run(plan, out, worker, stop, progress, log,
-                  min(10.0, lease / 6) if poll is None else poll)
+    result = _run(plan, out, worker, stop, progress, log, wait, then is not None)
+    if then is not None and stop.signum is None and not result["left"]:
+      more = _run(then(), out, worker, stop, progress, log, wait, False)
+      result = dict(more, trained=result["trained"] + more["trained"],
+                    evaluated=result["evaluated"] + more["evaluated"],
+                    seconds=result["seconds"] + more["seconds"],
+                    diverged={**result["diverged"], **more["diverged"]})
   if stop.signum is not None:
     stop.hand_over()  # under submitit: its checkpoint() and the job's requeue
   return result
 
 
 def _base_done(out: Path, cell: Cell) -> bool:
-  """Whether a cell may start: it trains from scratch, or the cell it fine-tunes is trained."""
-  return cell.init_cell is None or (cell_dir(out, cell.init_cell) / DONE_FILE).exists()
+  """Whether a cell may start: every cell it waits for (its base, its calibration) is trained."""
+  return all((cell_dir(out, name) / DONE_FILE).exists() for name in waits_for(cell))
 
 
 def _left_to_do(out: Path, cell: Cell) -> tuple[bool, list[EvalSet]] | None:
@@ -324,20 +335,26 @@ def _claim_next(out: Path, todo, worker: workers.Worker):
   return None
 
 
-def _why_wait(out: Path, todo, worker: workers.Worker) -> str | None:
-  """Why a worker with nothing to claim should wait: a fine-tuning cell whose base another
-  worker trains, or a holder that missed its heartbeats (the lease will tell whether it is
-  gone); None when nothing left can come to this worker."""
+def _why_wait(out: Path, todo, worker: workers.Worker, all_of: bool = False) -> str | None:
+  """Why a worker with nothing to claim should wait: a cell waiting for one another worker
+  trains, a holder that missed its heartbeats (the lease will tell whether it is gone), or
+  (all_of) any unfinished cell, since a plan follows them; None when nothing left can come to
+  this worker."""
   blocked = [c for c, _, _ in todo if not _base_done(out, c)]
   if blocked:
-    return f"{blocked[0].name} waits for {blocked[0].init_cell}"
+    first = next(n for n in waits_for(blocked[0])
+                 if not (cell_dir(out, n) / DONE_FILE).exists())
+    return f"{blocked[0].name} waits for {first}"
   late = workers.late_holders(out, [c.name for c, _, _ in todo], worker.clock())
-  return f"the worker of {late[0]} missed its heartbeats" if late else None
+  if late:
+    return f"the worker of {late[0]} missed its heartbeats"
+  return (f"the next plan waits for {todo[0][0].name}, which another worker holds"
+          if all_of and todo else None)
 
 
 def _run(plan: Plan, out: Path, worker: workers.Worker, stop: workers.Stop, progress: bool,
-         log: Callable[[str], None], poll: float) -> dict[str, Any]:
-  """run() as a worker."""
+         log: Callable[[str], None], poll: float, all_of: bool) -> dict[str, Any]:
+  """run() as a worker; all_of: wait until every cell is finished (a plan follows them)."""
   skipped = diverged(out, plan)
   todo = pending(out, plan, skipped)
   log(describe(plan) + f"; {len(plan.cells) - len(todo) - len(skipped)} cell(s) already "
@@ -369,7 +386,7 @@ def _run(plan: Plan, out: Path, worker: workers.Worker, stop: workers.Stop, prog
       now_todo = pending(out, plan, skipped)
       claimed = _claim_next(out, now_todo, worker) if now_todo else None
       if claimed is None:
-        waiting = _why_wait(out, now_todo, worker) if now_todo else None
+        waiting = _why_wait(out, now_todo, worker, all_of) if now_todo else None
         if waiting is None:
           left = workers.held_by(out, [c.name for c, _, _ in now_todo])
           break

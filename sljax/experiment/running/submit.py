@@ -254,12 +254,14 @@ def submit(job: WorkerJob, out: Path, res: Resources, local: bool, wait: bool, n
 
 def submit_grid(plan: Plan, out: Path, res: Resources, *, local: bool, wait: bool,
                 lease: float, entry: Callable[[list[str]], int],
-                log: Callable[[str], None] = print) -> None:
+                log: Callable[[str], None] = print, grid: Plan | None = None) -> None:
   """Records the plan under OUT (refused in one line here, as a worker would be, rather than
-  in N job logs) and submits res.workers workers of it (see `submit`)."""
+  in N job logs) and submits res.workers workers of it (see `submit`); grid: the plan the
+  workers run when `plan` is its calibration (the workers go on to it)."""
   check_available(local)
   with workers.plan_lock(out):
     records.register(out, plan)
-  argv = worker_argv(plan.name, out, plan.scale.name, len(plan.seeds), plan.data,
-                     list(plan.eval_data), lease)
-  submit(WorkerJob(argv, entry), out, res, local, wait, f"sljax-{plan.name}", log)
+  target = plan if grid is None else grid
+  argv = worker_argv(target.name, out, target.scale.name, len(target.seeds), target.data,
+                     list(target.eval_data), lease)
+  submit(WorkerJob(argv, entry), out, res, local, wait, f"sljax-{target.name}", log)

@@ -67,14 +67,34 @@ def _node_matrix(node) -> np.ndarray | None:
     if node.empty():
       return None
     if node.isMap():
+      if not _whole_matrix(node):  # OpenCV would overrun its buffer (heap damage, an abort)
+        return None
       m = node.mat()
       return None if m is None else np.asarray(m, np.float64)
     if node.isSeq():
       values = [node.at(i).real() for i in range(node.size())]
       return np.asarray(values, np.float64) if values else None
-  except cv2.error:
+  except (cv2.error, UnicodeDecodeError):  # the binding decodes strings (a dt) as UTF-8
     return None
   return None
+
+
+_MATRIX_TYPE = re.compile(r"^([1-4]?)[ucswifdh]$")  # an !!opencv-matrix's dt: channels, depth
+
+
+def _whole_matrix(node) -> bool:
+  """Whether an !!opencv-matrix node holds integer rows and cols, a dt OpenCV knows and exactly
+  rows x cols x channels numbers: OpenCV 5.0 writes the data into a Mat of rows x cols before it
+  checks the count, so a matrix without cols or with too many values damages the heap."""
+  rows, cols, dt, data = (node.getNode(k) for k in ("rows", "cols", "dt", "data"))
+  if not (rows.isInt() and cols.isInt() and dt.isString() and data.isSeq()):
+    return False
+  kind = _MATRIX_TYPE.match(dt.string())
+  if kind is None or rows.real() < 0 or cols.real() < 0:
+    return False
+  need = int(rows.real()) * int(cols.real()) * int(kind.group(1) or 1)
+  return data.size() == need and all(
+      data.at(i).isInt() or data.at(i).isReal() for i in range(data.size()))
 
 
 def _node_number(node) -> float | None:
@@ -111,7 +131,12 @@ def _storage_entries(path: str) -> dict[str, np.ndarray]:
     if not root.isMap():
       return {}
     out = {}
-    for key in root.keys():
+    try:
+      keys = root.keys()
+    except UnicodeDecodeError as e:  # the binding decodes key names as UTF-8
+      raise SljaxError(f"{path}: a key name is not UTF-8 text (byte "
+                       f"{e.object[e.start:e.start + 1]!r}); expected {_needs()}") from None
+    for key in keys:
       node = fs.getNode(key)
       m = _node_matrix(node)
       if m is None:

@@ -74,10 +74,12 @@ class FolderSource:
     self._meta: dict[int, dict[str, Any]] = {}
     self.info = self._read_dataset_json()
     self.splits: dict[str, list[str]] | None = self.info.get("splits")
+    # Named by the file it came from: dataset.json's, else the first scene's meta.json.
+    where = self.root / "dataset.json" if "code" in self.info else self.paths[0] / "meta.json"
     code = self.info.get("code", self._meta_of(0).get("code"))
-    self.code: str | None = None if code is None else str(code)
-    if self.code not in (None, "binary", "gray"):
-      raise SljaxError(f"{self.root}: code {self.code!r} must be 'binary' or 'gray'")
+    if code not in (None, "binary", "gray"):
+      raise SljaxError(f"{where}: code {code!r} must be 'binary' or 'gray'")
+    self.code: str | None = code
     t = self.info.get("patterns")
     if t is None:
       sl0 = self.paths[0] / "sl0"

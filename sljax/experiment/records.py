@@ -24,6 +24,7 @@ per-scene evaluation reports are written compressed, and the committed grids
 
 import json
 import lzma
+import math
 from pathlib import Path
 from typing import Any
 
@@ -69,10 +70,28 @@ def read_text(path: Path) -> str | None:
   try:
     data = found.read_bytes()
     if found.name.endswith(COMPRESSED):
-      data = lzma.decompress(data)
+      data = _decompress(data, found)
     return data.decode("utf-8")
   except (OSError, lzma.LZMAError, UnicodeDecodeError) as e:
     raise SljaxError(f"{found}: unreadable record ({e})") from None
+
+
+# What decompressing a record may take: xz's decoder allocates the dictionary its header
+# claims (8 MiB for the preset write_eval uses; a damaged header can claim 4 GiB), and a
+# record's JSON compresses about 5 times, so 256 times its size is no record of sljax's.
+XZ_MEMLIMIT = 64 << 20
+XZ_MAX_RATIO = 256
+
+
+def _decompress(data: bytes, path: Path) -> bytes:
+  """An .xz record's bytes, within XZ_MEMLIMIT and XZ_MAX_RATIO (SljaxError naming path)."""
+  d = lzma.LZMADecompressor(memlimit=XZ_MEMLIMIT)
+  most = XZ_MAX_RATIO * len(data) + (1 << 20)
+  out = d.decompress(data, max_length=most)
+  if not d.eof:
+    why = "is truncated" if d.needs_input else f"decompresses to more than {most} bytes"
+    raise SljaxError(f"{path}: unreadable record (it {why})")
+  return out
 
 
 def read_json(path: Path) -> dict[str, Any] | None:
@@ -89,9 +108,39 @@ def read_json(path: Path) -> dict[str, Any] | None:
 
 
 def read_lines(path: Path) -> list[dict[str, Any]]:
-  """The rows of a JSON-lines record (PATH or PATH.xz; [] when absent)."""
+  """The rows of a JSON-lines record (PATH or PATH.xz; [] when absent); a last line without
+  its line end (being written) is left out, any other that is not a JSON object is an
+  SljaxError naming the file and line."""
   text = read_text(path) or ""
-  return [json.loads(line) for line in text.splitlines() if line.strip()]
+  lines = text.splitlines()
+  rows = []
+  for n, line in enumerate(lines, 1):
+    if not line.strip():
+      continue
+    try:
+      row = json.loads(line)
+    except ValueError:
+      row = None
+    if not isinstance(row, dict):
+      if n == len(lines) and not text.endswith("\n"):
+        break
+      raise SljaxError(f"{stored(path)}: line {n} is not a JSON object")
+    rows.append(row)
+  return rows
+
+
+def _points(path: Path, rows: list[dict[str, Any]], x: str, y: str) -> list[tuple[int, float]]:
+  """(row[x], row[y]) of the rows with a y; SljaxError naming the file for a row whose x is
+  no integer or whose y is no number."""
+  out = []
+  for row in rows:
+    if row.get(y) is None:
+      continue
+    if type(row.get(x)) is not int or type(row[y]) not in (int, float):
+      raise SljaxError(f"{stored(path)}: a row has {x}={row.get(x)!r}, {y}={row[y]!r}; "
+                       f"expected an integer and a number")
+    out.append((row[x], row[y]))
+  return out
 
 
 def write_json(path: Path, obj: Any) -> None:
@@ -231,16 +280,16 @@ def _first_difference(old: Any, new: Any, path: str = "") -> str:
 def curve(out: Path, name: str) -> list[tuple[int, float]]:
   """(epoch, validation MAE) of a cell's training log, or (step, ...) if it validated by steps."""
   if stored(cell_dir(out, name) / VALIDATION_FILE) is not None:
-    return [(r["step"], r["val_mae"]) for r in step_curve(out, name)
-            if r.get("val_mae") is not None]
-  recs = read_lines(cell_dir(out, name) / EPOCHS_FILE)
-  return [(r["epoch"], r["val_mae"]) for r in recs if r.get("val_mae") is not None]
+    return _points(cell_dir(out, name) / VALIDATION_FILE, step_curve(out, name), "step",
+                   "val_mae")
+  path = cell_dir(out, name) / EPOCHS_FILE
+  return _points(path, read_lines(path), "epoch", "val_mae")
 
 
 def train_curve(out: Path, name: str) -> list[tuple[int, float]]:
   """(step, mean training L_disp since the previous validation) of a cell validated by steps."""
-  return [(r["step"], r["train_loss_disp"]) for r in step_curve(out, name)
-          if r.get("train_loss_disp") is not None]
+  return _points(cell_dir(out, name) / VALIDATION_FILE, step_curve(out, name), "step",
+                 "train_loss_disp")
 
 
 def step_curve(out: Path, name: str) -> list[dict[str, Any]]:
@@ -249,14 +298,31 @@ def step_curve(out: Path, name: str) -> list[dict[str, Any]]:
   return read_lines(cell_dir(out, name) / VALIDATION_FILE)
 
 
+def read_done(out: Path, name: str) -> dict[str, Any] | None:
+  """A cell's done.json (None: not finished); SljaxError naming it when its step, best step,
+  seconds or machine are not of their types."""
+  path = cell_dir(out, name) / DONE_FILE
+  done = read_json(path)
+  if done is None:
+    return None
+  step, best = done.get("step"), done.get("best_step")
+  seconds = done.get("train_seconds")
+  ok = (type(step) is int and step >= 0 and (best is None or (type(best) is int and best >= 0))
+        and (seconds is None or (type(seconds) in (int, float) and math.isfinite(seconds)))
+        and isinstance(done.get("machine"), (str, type(None))))
+  require(ok, f"{stored(path)}: not a record of a finished cell (expected {{\"step\": N, "
+          "\"train_seconds\": S, ...}); delete it to train the cell again")
+  return done
+
+
 def final_checkpoint(out: Path, name: str, which: str = "final") -> Path:
   """The checkpoint folder of a finished cell's last step, or of its best by validation MAE
   (which="best"; kept and recorded in done.json when the plan scores it)."""
-  done = read_json(cell_dir(out, name) / DONE_FILE)
+  done = read_done(out, name)
   require(done is not None, f"{cell_dir(out, name)}: cell {name} has not finished training")
   if which == "best":
     require(done.get("best_step") is not None,
-            f"{cell_dir(out, name)}: cell {name} kept no best checkpoint (it finished under a "
-            "plan that scores the final one only)")
+            f"{stored(cell_dir(out, name) / DONE_FILE)}: cell {name} kept no best checkpoint "
+            "(it finished under a plan that scores the final one only)")
     return cell_dir(out, name) / ckpt.CHECKPOINT_DIR / str(done["best_step"])
   return cell_dir(out, name) / ckpt.CHECKPOINT_DIR / str(done["step"])

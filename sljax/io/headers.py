@@ -29,6 +29,9 @@ _PNG_COLOURS = {0: (1, (1, 2, 4, 8, 16)), 2: (3, (8, 16)), 3: (1, (1, 2, 4, 8)),
 _ADAM7 = ((0, 0, 8, 8), (0, 4, 8, 8), (4, 0, 8, 4), (0, 2, 4, 4), (2, 0, 4, 2), (0, 1, 2, 2),
           (1, 0, 2, 1))
 _INFLATE_STEP = 1 << 20  # bytes inflated at a time: memory stays small whatever the size
+# Deflate's largest ratio: one 258-byte match in about two bits (RFC 1951), so a PNG's image
+# data needs at least 1/1032 of its inflated size in the file.
+DEFLATE_MAX_RATIO = 1032
 
 
 def pixel_problem(width: int, height: int) -> str | None:
@@ -172,7 +175,47 @@ def check_image_size(path: str | os.PathLike, want_hw: tuple[int, int] | None = 
   if want_hw is not None and (height, width) != tuple(want_hw):
     raise SljaxError(f"{path}: size {width}x{height} differs from {against} "
                      f"({want_hw[1]}x{want_hw[0]})")
+  problem = _png_room_problem(path, width, height)
+  if problem is not None:  # OpenCV would allocate the claim before finding the data short
+    raise SljaxError(f"{path}: {problem}")
   return height, width
+
+
+def _chunk_overrun(f: BinaryIO, size: int) -> str | None:
+  """Why a PNG's chunks do not fit in its file (a length claiming more bytes than follow it),
+  from their 8-byte headers alone; None when each fits, up to IEND or the file's end."""
+  pos = 8
+  while pos + 8 <= size:
+    f.seek(pos)
+    length, kind = struct.unpack(">I4s", f.read(8))
+    if pos + 12 + length > size:
+      return (f"truncated: chunk {kind.decode('latin-1')!r} at byte {pos} claims {length} bytes, "
+              f"the file has {size}")
+    if kind == b"IEND":
+      break
+    pos += 12 + length
+  return None
+
+
+def _png_room_problem(path: str, width: int, height: int) -> str | None:
+  """Why a PNG cannot hold the width x height its header claims (its file is smaller than its
+  image data, inflated, compresses to at best); None when it can, or for another format."""
+  with open(path, "rb") as f:
+    head = f.read(26)
+    size = os.fstat(f.fileno()).st_size
+    if head[:8] != PNG_SIGNATURE or len(head) < 26:
+      return None
+    overrun = _chunk_overrun(f, size)
+  if overrun is not None:  # OpenCV allocates and reads what a chunk's length claims
+    return overrun
+  depth, colour = head[24], head[25]
+  samples = _PNG_COLOURS.get(colour, (1, ()))[0]
+  bits = depth * samples if depth in (1, 2, 4, 8, 16) else 1  # unknown: the smallest
+  inflated = height * (1 + -(-width * bits // 8))
+  if inflated <= DEFLATE_MAX_RATIO * size:
+    return None
+  return (f"corrupt: its header claims {width}x{height} pixels, whose image data cannot fit in "
+          f"a file of {size} bytes")
 
 
 # ----------------------------------------------------------------------------- PNG, whole

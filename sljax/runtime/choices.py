@@ -195,12 +195,14 @@ def measured_choice(path: Path | None = None) -> KernelChoice | None:
   """This machine's measured choice, or None: none measured, or a provisional one (measured on a
   busy machine) while the machine is quiet now."""
   entry = read_measurements(path).get(measurement_key())
-  if not entry or entry.get("rule") != RULE:
+  if not isinstance(entry, dict) or entry.get("rule") != RULE:
     return None
   try:
     found = KernelChoice(**entry["choice"])
   except (KeyError, TypeError):
     return None  # written by another version of this module: measure again
+  if not all(type(v) is bool for v in dataclasses.astuple(found)):
+    return None  # edited by hand (NAMES knows booleans only): measure again
   if busy(entry.get("others")) and not busy(machine.others_now()):
     return None
   return found

@@ -93,7 +93,7 @@ def resolve(args: argparse.Namespace, backend: str) -> tuple[TrainConfig, str, P
   config = dataclasses.replace(base, **given)
   workdir = Path(args.workdir) if args.workdir else default_workdir(config)
   if args.resume:
-    saved = config_from_json(saved_config(workdir))
+    saved = config_from_json(saved_config(workdir), str(workdir / ckpt.CONFIG_FILE))
     config = dataclasses.replace(saved, **given)
     if "data" not in given:
       check_saved_data(workdir, config.data)

@@ -7,6 +7,7 @@ flag parses (`option`); `sljax.train.cli` generates the flags from the fields.
 import argparse
 import dataclasses
 import json
+import math
 from pathlib import Path
 from typing import Any
 
@@ -240,16 +241,40 @@ def diff_configs(saved: dict[str, Any], new: dict[str, Any],
   return [k for k in keys if k not in ignore and saved.get(k) != new.get(k)]
 
 
-def config_from_json(d: dict[str, Any]) -> TrainConfig:
-  """TrainConfig from the dict written by to_json (unknown keys ignored)."""
+def _json_type_problem(value: Any, default: Any) -> str | None:
+  """What a saved value must be, judged by its field's default (None: it is that, or the
+  default is None and any JSON scalar is let through to validate)."""
+  if type(default) is bool:
+    return None if type(value) is bool else "true or false"
+  if type(default) is int:
+    return None if type(value) is int else "an integer"
+  if type(default) is float:
+    ok = type(value) in (int, float) and math.isfinite(value)
+    return None if ok else "a finite number"
+  if type(default) is str:
+    return None if isinstance(value, str) else "a string"
+  if isinstance(default, tuple):
+    ok = isinstance(value, list) and len(value) == len(default) and all(
+        type(v) is int for v in value)
+    return None if ok else f"a list of {len(default)} integers"
+  return None if value is None or type(value) in (bool, int, float, str) else "a JSON scalar"
+
+
+def config_from_json(d: dict[str, Any], where: str = "config.json") -> TrainConfig:
+  """TrainConfig from the dict written by to_json (unknown keys ignored); SljaxError starting
+  with `where` (the file) for a value of the wrong type."""
   kw = {k: v for k, v in d.items() if k in FIELDS}
   kw.setdefault("ynn", "on")  # written before the option existed: XLA's default was used
+  for name, value in kw.items():  # a hand edit would otherwise fail far from the file
+    problem = _json_type_problem(value, FIELDS[name].default)
+    if problem is not None:
+      raise SljaxError(f"{where}: {name} must be {problem}, got {value!r}")
   if "size" in kw:
     kw["size"] = tuple(kw["size"])
   try:
     return TrainConfig(**kw)
   except TypeError as e:
-    raise SljaxError(f"config.json: {e}") from None
+    raise SljaxError(f"{where}: {e}") from None
 
 
 def dumps(d: dict[str, Any]) -> str:

@@ -175,8 +175,12 @@ def _truncate_jsonl(path: Path, keep: Callable[[dict[str, Any]], bool]) -> None:
   object (a torn last line, or outside damage)."""
   if not path.exists():
     return
+  try:
+    data = path.read_bytes()
+  except OSError as e:  # a folder in its place: resuming would end in a traceback
+    raise SljaxError(f"{path}: cannot read the run's log ({e.strerror or e})") from None
   lines = []
-  for raw in path.read_bytes().splitlines():
+  for raw in data.splitlines():
     try:  # line by line: damaged bytes drop their line, not the resume
       line = raw.decode("utf-8")
       rec = json.loads(line)
@@ -191,9 +195,16 @@ def restart_logs(workdir: Path, step: int, steps_per_epoch: int) -> None:
   """Drops the log lines after the checkpoint resumed from (all of them for a fresh start)."""
   if jax.process_index() != 0:
     return
-  _truncate_jsonl(workdir / METRICS_FILE, lambda r: r.get("step", 0) <= step)
-  _truncate_jsonl(workdir / EPOCHS_FILE, lambda r: r.get("epoch", 0) <= step // steps_per_epoch)
-  _truncate_jsonl(workdir / VALIDATION_FILE, lambda r: r.get("step", 0) <= step)
+  _truncate_jsonl(workdir / METRICS_FILE, lambda r: _at_most(r, "step", step))
+  _truncate_jsonl(workdir / EPOCHS_FILE, lambda r: _at_most(r, "epoch", step // steps_per_epoch))
+  _truncate_jsonl(workdir / VALIDATION_FILE, lambda r: _at_most(r, "step", step))
+
+
+def _at_most(row: dict[str, Any], key: str, limit: int) -> bool:
+  """Whether a log row is from before limit (a row without the key counts as 0); a row whose
+  key is no number is damage, dropped like a torn line."""
+  value = row.get(key, 0)
+  return type(value) in (int, float) and value <= limit
 
 
 class MetricWriter:

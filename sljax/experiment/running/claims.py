@@ -18,6 +18,7 @@ need not agree.
 import dataclasses
 import errno
 import json
+import math
 import os
 import secrets
 import time
@@ -70,13 +71,32 @@ def read_claim(path: Path) -> dict[str, Any] | None:
     text = path.read_text(encoding="utf-8")
   except FileNotFoundError:
     return None
+  except (OSError, ValueError):  # a folder in its place, non-UTF-8 bytes
+    text = ""
   try:
     rec = json.loads(text)
   except ValueError:
     rec = None
-  if not isinstance(rec, dict) or rec.get("kind") not in (CLAIM, RELEASE):
+  if not isinstance(rec, dict) or rec.get("kind") not in (CLAIM, RELEASE) or not is_identity(rec):
     raise SljaxError(f"{path}: not an sljax claim (delete it if nothing else wrote it)")
   return rec
+
+
+# The fields of a worker's identity (workers.Identity) that take-over and status compute with,
+# and the types they must have: a hand-edited or foreign file would otherwise end in a TypeError.
+_IDENTITY = {"token": (str,), "host": (str,), "pid": (int,), "started": (str, type(None)),
+             "job": (str, type(None)), "lease": (int, float), "since": (int, float, type(None))}
+
+
+def is_identity(rec: dict[str, Any]) -> bool:
+  """Whether a claim or worker record's identity fields (those present) have their types, with
+  a pid and a lease in range and finite times."""
+  for key, types in _IDENTITY.items():
+    if key in rec and (type(rec[key]) not in types):
+      return False
+  numbers = [rec.get(k) for k in ("lease", "since") if isinstance(rec.get(k), (int, float))]
+  return (all(math.isfinite(v) and abs(v) < 1e12 for v in numbers)
+          and 0 < rec.get("pid", 1) < 2**31 and rec.get("lease", 1) > 0)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -31,7 +31,7 @@ from sljax.experiment.design.cells import (FIXED, HELDOUT, TEST_SEED, Cell, Eval
                                            waits_for)
 from sljax.experiment.design.plans import describe
 from sljax.experiment.records import (DIVERGED_FILE, DONE_FILE, EVAL_DIR, LOG_FILE, WINDOWS_FILE,
-                                      cell_dir, eval_record, final_checkpoint, read_json,
+                                      cell_dir, eval_record, final_checkpoint, read_done, read_json,
                                       register, write_eval, write_json)
 from sljax.experiment.running import workers
 from sljax.models import checkpoint as ckpt
@@ -142,7 +142,9 @@ def _predictor(out: Path, cell: Cell, which: str = "final") -> inference.Predict
   saved = trained.read_config(cell_dir(out, cell.name))
   return inference.load(final_checkpoint(out, cell.name, which), mode="resize",
                         kernels=choices.KernelChoice.from_name(saved.get("ynn", "on")),
-                        conv_impl=config_from_json(saved).model_conv_impl)
+                        conv_impl=config_from_json(
+                            saved, str(cell_dir(out, cell.name) / trained.CONFIG_FILE)
+                        ).model_conv_impl)
 
 
 def choose_window(out: Path, cell: Cell) -> int | None:
@@ -413,7 +415,7 @@ def _run(plan: Plan, out: Path, worker: workers.Worker, stop: workers.Stop, prog
             continue
           trained += 1
         else:
-          done = read_json(cell_dir(out, cell.name) / DONE_FILE)
+          done = read_done(out, cell.name)
         worker.progress(done["step"])
         scores = []
         for evalset in evals:

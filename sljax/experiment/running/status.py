@@ -13,7 +13,7 @@ import json
 from pathlib import Path
 
 from sljax.experiment.design.cells import Cell, Plan
-from sljax.experiment.records import (DONE_FILE, cell_dir, eval_record, read_json, read_text,
+from sljax.experiment.records import (cell_dir, eval_record, read_done, read_text,
                                       registered_plans)
 from sljax.experiment.running import workers
 from sljax.experiment.running.runner import diverged
@@ -64,7 +64,7 @@ def last_epoch(workdir: Path) -> tuple[int, int]:
     try:
       row = json.loads(line)
       return int(row["epoch"]), int(row.get("step", 0))
-    except (ValueError, KeyError, TypeError):
+    except (ValueError, KeyError, TypeError, OverflowError):  # OverflowError: int(Infinity)
       continue
   return 0, 0
 
@@ -72,7 +72,7 @@ def last_epoch(workdir: Path) -> tuple[int, int]:
 def cell_state(out: Path, cell: Cell) -> CellState:
   """The state of one cell under OUT."""
   wd = cell_dir(out, cell.name)
-  done = read_json(wd / DONE_FILE)
+  done = read_done(out, cell.name)
   if done is None:
     epoch, step = last_epoch(wd)
     return CellState(cell, TRAINING if epoch or (wd / CHECKPOINT_DIR).exists() else WAITING,

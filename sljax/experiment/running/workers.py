@@ -299,7 +299,8 @@ def live_workers(out: Path) -> list[str]:
       rec, age = json.loads(path.read_text(encoding="utf-8")), now - path.stat().st_mtime
     except (OSError, ValueError):
       continue  # ended (removed) while read
-    if not isinstance(rec, dict):
+    if not isinstance(rec, dict) or not claims.is_identity(rec):
+      said.append(f"{path}: not an sljax worker file (delete it if nothing else wrote it)")
       continue
     dead = (not pid_alive(int(rec.get("pid", -1)), rec.get("started"))
             if rec.get("host") == host_name() else age > float(rec.get("lease", LEASE_S)))

@@ -311,3 +311,25 @@ def make_folder(path: Path) -> None:
   if path.exists():
     path.unlink()
   path.mkdir()
+
+
+FOLDER = b"<a folder>"  # drawn instead of bytes: a folder where the file goes
+
+
+def place(path: Path, data: bytes) -> None:
+  """Writes data at path (its folders made), or puts a folder there for FOLDER."""
+  path.parent.mkdir(parents=True, exist_ok=True)
+  if data == FOLDER:
+    make_folder(path)
+  else:
+    write(path, data)
+
+
+@contextlib.contextmanager
+def placed(name: str, data: bytes):
+  """A path called name in a fresh temporary folder, holding data (a folder for FOLDER)."""
+  import tempfile  # pylint: disable=import-outside-toplevel
+  with tempfile.TemporaryDirectory() as d:
+    path = Path(d) / name
+    place(path, data)
+    yield path

@@ -21,20 +21,13 @@ from sljax.capture import rig as rigs
 from sljax.depth import video
 from sljax.io import images
 
-FOLDER = b"<a folder>"
+FOLDER = fk.FOLDER
 SIZE = (16, 12)  # (W, H) of the frames
 CAL = rigs.StereoCalibration(
     m1=np.array([[20.0, 0, 8], [0, 20, 6], [0, 0, 1]]), d1=np.zeros((1, 5)),
     m2=np.array([[20.0, 0, 8], [0, 20, 6], [0, 0, 1]]), d2=np.zeros((1, 5)), r=np.eye(3),
     t=np.array([[-50.0], [0], [0]]), size=SIZE)
 
-
-def _place(path: Path, data: bytes) -> None:
-  """Writes data at path, or puts a folder there for FOLDER."""
-  if data == FOLDER:
-    fk.make_folder(path)
-  else:
-    fk.write(path, data)
 
 
 @functools.cache
@@ -52,9 +45,7 @@ def valid_yaml() -> bytes:
 @example(valid_yaml().replace(b"dt: d\n   data: [ 1.", b"dt:\x80d\n   data: [ 1."))  # and its dt
 def test_calibration_yaml(data):
   """read_calibration: a checked calibration or one line naming the file."""
-  with tempfile.TemporaryDirectory() as d:
-    path = Path(d) / "calib.yml"
-    _place(path, data)
+  with fk.placed("calib.yml", data) as path:
     cal = fk.check(lambda: rigs.read_calibration(path), path, fk.allowance(path))
     if cal is not fk.REFUSED:
       for m in (cal.m1, cal.m2, cal.r, cal.t, cal.d1, cal.d2):
@@ -128,7 +119,7 @@ def test_capture_folders(damage):
       shutil.rmtree(folder)
       path.write_bytes(data)
     else:
-      _place(path, data)
+      fk.place(path, data)
     out = Path(d) / "scene"
     config = captures.ImportConfig(layout="sljax", row_check=False)
     bound = fk.allowance(left, right, per_byte=fk.IMAGE_PER_BYTE)
@@ -160,9 +151,7 @@ def valid_video() -> bytes:
 def test_video(data):
   """open_video and read_frames of a damaged video: frames of the stated size, or one line
   naming the file."""
-  with tempfile.TemporaryDirectory() as d:
-    path = Path(d) / "v.mp4"
-    _place(path, data)
+  with fk.placed("v.mp4", data) as path:
     bound = fk.allowance(path, per_byte=fk.IMAGE_PER_BYTE)
 
     def read():

@@ -14,15 +14,8 @@ import fuzz_kit as fk
 from sljax.data import camera, dataset, pfm, scene
 from sljax.io import images
 
-FOLDER = b"<a folder>"  # drawn instead of bytes: a folder where the file goes
+FOLDER = fk.FOLDER
 
-
-def _place(path: Path, data: bytes) -> None:
-  """Writes data at path, or puts a folder there for FOLDER."""
-  if data == FOLDER:
-    fk.make_folder(path)
-  else:
-    fk.write(path, data)
 
 
 def _valid(write, name: str) -> bytes:
@@ -74,9 +67,7 @@ def pngs() -> st.SearchStrategy[bytes]:
 @example(valid_png()[:33] + (0xFFFE0000).to_bytes(4, "big") + valid_png()[37:])  # IDAT claims
 def test_image(data):  # 4 GiB: OpenCV took seconds over it (found by the deadline)
   """read_image of a damaged PNG: the right image or one line naming it."""
-  with tempfile.TemporaryDirectory() as d:
-    path = Path(d) / "im0.png"
-    _place(path, data)
+  with fk.placed("im0.png", data) as path:
     bound = fk.allowance(path, per_byte=fk.IMAGE_PER_BYTE)
     with fk.opencv_claims(bound):
       img = fk.check(lambda: images.read_image(path), path, bound)
@@ -95,9 +86,7 @@ def pfms() -> st.SearchStrategy[bytes]:
 @given(pfms())
 def test_pfm(data):
   """read_pfm: the header's array or one line naming the file."""
-  with tempfile.TemporaryDirectory() as d:
-    path = Path(d) / "disp0.pfm"
-    _place(path, data)
+  with fk.placed("disp0.pfm", data) as path:
     out = fk.check(lambda: pfm.read_pfm(path), path, fk.allowance(path))
     if data == valid_pfm():
       assert out.shape == (12, 16)
@@ -115,9 +104,7 @@ def calibs() -> st.SearchStrategy[bytes]:
 @given(calibs())
 def test_calib(data):
   """read_calib: a Calib whose numbers are usable, or one line naming the file."""
-  with tempfile.TemporaryDirectory() as d:
-    path = Path(d) / "calib.txt"
-    _place(path, data)
+  with fk.placed("calib.txt", data) as path:
     out = fk.check(lambda: camera.read_calib(path), path, fk.allowance(path))
     if out is not fk.REFUSED:
       assert camera.calib_problem(out) is None
@@ -146,7 +133,7 @@ def test_meta(data):
   with tempfile.TemporaryDirectory() as d:
     folder = _scene(Path(d))
     path = folder / "meta.json"
-    _place(path, data)
+    fk.place(path, data)
     bound = fk.allowance(folder)
     out = fk.check(lambda: scene.load_scene(folder, parts={"meta"}), path, bound)
     if out is not fk.REFUSED:
@@ -168,7 +155,7 @@ def test_dataset_json(data):
   with tempfile.TemporaryDirectory() as d:
     _scene(Path(d))
     path = Path(d) / "dataset.json"
-    _place(path, data)
+    fk.place(path, data)
     bound = fk.allowance(Path(d))
     src = fk.check(lambda: dataset.FolderSource(d), path, bound)
     if src is not fk.REFUSED:

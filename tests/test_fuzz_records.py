@@ -23,16 +23,8 @@ from sljax.runtime import choices, kept_programs
 from sljax.train import config as train_config
 from sljax.train import workdir
 
-FOLDER = b"<a folder>"
+FOLDER = fk.FOLDER
 
-
-def _place(path: Path, data: bytes) -> None:
-  """Writes data at path (its folders made), or puts a folder there for FOLDER."""
-  path.parent.mkdir(parents=True, exist_ok=True)
-  if data == FOLDER:
-    fk.make_folder(path)
-  else:
-    fk.write(path, data)
 
 
 def records_of(value) -> st.SearchStrategy[bytes]:
@@ -54,7 +46,7 @@ def test_config_json(data):
   """A workdir's config.json as resume and loading read it: a config or one line naming it."""
   with tempfile.TemporaryDirectory() as d:
     path = Path(d) / load.CONFIG_FILE
-    _place(path, data)
+    fk.place(path, data)
 
     def read():
       saved = load.read_config(d)
@@ -89,7 +81,7 @@ def test_epochs_jsonl(data):
     out = Path(d)
     wd = records.cell_dir(out, "c")
     path = wd / workdir.EPOCHS_FILE
-    _place(path, data)
+    fk.place(path, data)
     bound = fk.allowance(path)
     fk.check(lambda: records.curve(out, "c"), path, bound)
     fk.check(lambda: status.last_epoch(wd), path, bound)
@@ -109,7 +101,7 @@ def test_validation_jsonl(data):
   with tempfile.TemporaryDirectory() as d:
     out = Path(d)
     path = records.cell_dir(out, "c") / workdir.VALIDATION_FILE
-    _place(path, data)
+    fk.place(path, data)
     bound = fk.allowance(path)
     fk.check(lambda: records.curve(out, "c"), path, bound)
     fk.check(lambda: records.train_curve(out, "c"), path, bound)
@@ -136,7 +128,7 @@ def test_checkpoint_digest(which, draw):
     valid = path.read_bytes()
     data = draw.draw(fk.mutated_json(json.loads(valid)) if which == "digest"
                      else fk.mutated_bytes(valid) | st.just(FOLDER))
-    _place(path, data)
+    fk.place(path, data)
     ok = fk.check(lambda: checkpoint.verify(folder.parent, 4), folder, fk.allowance(folder))
     if ok is not fk.REFUSED and which != "digest":
       assert data == valid  # a changed file never passes its digest
@@ -155,7 +147,7 @@ def test_plan_json(data):
   """OUT/plan.json: the record or one line naming it."""
   with tempfile.TemporaryDirectory() as d:
     path = Path(d) / records.PLAN_FILE
-    _place(path, data)
+    fk.place(path, data)
     fk.check(lambda: records.read_record(Path(d)), path, fk.allowance(path))
 
 
@@ -179,8 +171,8 @@ def test_claims_and_beats(claim, beat):
     out = Path(d)
     path = claims.claim_path(out, "c", 0)
     assert claims.create_exclusive(path, CLAIM)
-    _place(path, claim)
-    _place(claims.beat_path(path), beat)
+    fk.place(path, claim)
+    fk.place(claims.beat_path(path), beat)
     me = workers.Identity(token="me", host=workers.host_name(), pid=1, started=None, job="7_1",
                           lease=60.0, since=0.0)
     bound = fk.allowance(path.parent)
@@ -199,7 +191,7 @@ def test_worker_files(data):
   """OUT/workers/*.json as `experiment status` lists the live workers."""
   with tempfile.TemporaryDirectory() as d:
     path = Path(d) / workers.WORKERS_DIR / "w.json"
-    _place(path, data)
+    fk.place(path, data)
     fk.check(lambda: workers.live_workers(Path(d)), path, fk.allowance(path))
 
 
@@ -223,7 +215,7 @@ def test_done_json(data):
   with tempfile.TemporaryDirectory() as d:
     out = Path(d)
     path = records.cell_dir(out, "c") / records.DONE_FILE
-    _place(path, data)
+    fk.place(path, data)
     bound = fk.allowance(path)
     fk.check(lambda: status.cell_state(out, _cell()), path, bound)
     for which in ("final", "best"):
@@ -237,7 +229,7 @@ def test_diverged_json(data):
   with tempfile.TemporaryDirectory() as d:
     out = Path(d)
     path = records.cell_dir(out, "c") / records.DIVERGED_FILE
-    _place(path, data)
+    fk.place(path, data)
     plan = types.SimpleNamespace(cells=[_cell("c"), _cell("f", init_cell="c")])
     fk.check(lambda: runner.diverged(out, plan), path, fk.allowance(path))
 
@@ -267,7 +259,7 @@ def test_eval_records(record):
   with tempfile.TemporaryDirectory() as d:
     out = Path(d)
     path = records.cell_dir(out, "c") / records.EVAL_DIR / ("s.json" + (".xz" * compressed))
-    _place(path, data)
+    fk.place(path, data)
     # xz's decoder takes the dictionary its header claims, up to the reader's limit.
     bound = (fk.allowance(path, per_byte=fk.PER_BYTE * records.XZ_MAX_RATIO)
              + records.XZ_MEMLIMIT if compressed else fk.allowance(path))
@@ -302,9 +294,7 @@ def test_tune_json_edited_by_hand(measured, tmp_path):
 def test_tune_json(measured, draw):
   """tune.json: a measured choice, or none (measure again); never an error."""
   data = draw.draw(records_of(measured))
-  with tempfile.TemporaryDirectory() as d:
-    path = Path(d) / "tune.json"
-    _place(path, data)
+  with fk.placed("tune.json", data) as path:
     got = fk.check(lambda: choices.measured_choice(path), path, fk.allowance(path))
     assert got is not fk.REFUSED  # a cache: unreadable means measure again
     if got is not None:
@@ -321,7 +311,7 @@ def test_kept_program_index(data):
     kept_programs._state.update(folder=where, root=where)
     try:
       path = kept_programs.index_path(where, "p", "desc")
-      _place(path, data)
+      fk.place(path, data)
       got = fk.check(lambda: kept_programs.remembered("p", "desc"), path, fk.allowance(path))
       assert got is not fk.REFUSED and all(isinstance(s, str) for s in got)
     finally:

@@ -188,36 +188,37 @@ def _other(gpu: str) -> str:
   return next(g for g in gf.GPUS if g != gpu)
 
 
-def _gpu_step(gpu: str, net: str) -> tuple[float, str]:
-  """A network's step on a GPU: measured, else the stand-in rule."""
-  m = gf.measured(gpu, net, "step")
+def _measured_or_scaled(gpu: str, net: str, what: str) -> tuple[float, str] | None:
+  """A network's step or forward on a GPU: measured; else unet-sl's for unet-disp (the same
+  UNet with a disparity head); else the other GPU's, scaled by PSMNet's step there and here;
+  else None."""
+  m = gf.measured(gpu, net, what)
   if m is not None:
     return m.seconds, "measured: " + m.cite()
   if net == "unet-disp":
-    s, _ = _gpu_step(gpu, "unet-sl")
-    return s, "STAND-IN: unet-sl's step (the same UNet with a disparity head)"
+    s, _ = _measured_or_scaled(gpu, "unet-sl", what)
+    return s, f"STAND-IN: unet-sl's {what} (the same UNet with a disparity head)"
   other = _other(gpu)
-  there = gf.measured(other, net, "step")
-  require(there is not None, f"no step time of {net} on any GPU measured")
+  there = gf.measured(other, net, what)
+  if there is None:
+    return None
   ratio = gf.measured(gpu, "psmnet", "step").seconds / gf.measured(other, "psmnet", "step").seconds
-  return there.seconds * ratio, (f"STAND-IN: the {other.upper()}'s {there.seconds:.4f} s x "
+  return there.seconds * ratio, (f"STAND-IN: the {other.upper()}'s {there.seconds:.4g} s x "
                                  f"{ratio:.3f}, PSMNet's step {gpu.upper()}/{other.upper()}")
 
 
+def _gpu_step(gpu: str, net: str) -> tuple[float, str]:
+  """A network's step on a GPU: measured, else the stand-in rule."""
+  found = _measured_or_scaled(gpu, net, "step")
+  require(found is not None, f"no step time of {net} on any GPU measured")
+  return found
+
+
 def _gpu_forward(gpu: str, net: str) -> tuple[float, str]:
-  """A scene's forward pass of a network on a GPU: measured, else the stand-in rule."""
-  m = gf.measured(gpu, net, "forward")
-  if m is not None:
-    return m.seconds, "measured: " + m.cite()
-  if net == "unet-disp":
-    s, _ = _gpu_forward(gpu, "unet-sl")
-    return s, "STAND-IN: unet-sl's forward"
-  other = _other(gpu)
-  there = gf.measured(other, net, "forward")
-  if there is not None:
-    ratio = _gpu_step(gpu, "psmnet")[0] / _gpu_step(other, "psmnet")[0]
-    return there.seconds * ratio, (f"STAND-IN: the {other.upper()}'s x {ratio:.3f}, PSMNet's "
-                                   f"step {gpu.upper()}/{other.upper()}")
+  """A scene's forward pass of a network on a GPU: measured, else the stand-in rules."""
+  found = _measured_or_scaled(gpu, net, "forward")
+  if found is not None:
+    return found
   if net == "psmnet-mtl":
     base, ratio = _gpu_forward(gpu, "psmnet")[0], _gpu_step(gpu, net)[0] / _gpu_step(gpu, "psmnet")[0]
     return base * ratio, f"STAND-IN: PSMNet's forward x {ratio:.3f}, the twin's step / PSMNet's"

@@ -86,6 +86,9 @@ KNOWN = {
     # reductions kept) the probe chooses off for both as well (training off/on 0.81-0.86,
     # forward 0.67-0.80, idle, 2026-11-28): a measured entry no longer disagrees with this one.
     "amd-epyc-f26-m2-avx512": ("off", "Zen 5, the main job's step and start-up, 2026-11-27"),
+    # forward off/on 0.80-0.89, training 0.84-0.97 by round, 39 s, idle.
+    "intel-r-xeon-r-processor-f6-m167-avx512": ("off", "Intel Xeon family 6 model 167, "
+                                                "`sljax tune` idle, 2026-11-29"),
 }
 UNKNOWN = "off"
 
@@ -94,10 +97,15 @@ UNKNOWN = "off"
 # chosen with the fusions on). Without YNNPACK's fusions XLA hands the gradients' blocked
 # convolutions to another library, which wants larger blocks: on Zen 5, PSMNet's training step
 # at 256x256, batch 2 took 3.58-3.59 s in 1 Mi-value blocks against 4.73-4.92 s (fusions on:
-# 3.48-3.71 s), and the main job's step the same 0.74-0.77 s with 2 s less compile. Not yet
-# measured on Zen 3 or Zen 4 (benchmarks/bench_nets.py --part micro --grad-blocks).
+# 3.48-3.71 s), and the main job's step the same 0.74-0.77 s with 2 s less compile. On a Zen 4
+# (issue 61, alternating in one process, huge pages) 6.05-6.99 s against 9.55-11.61 s; on an
+# Intel Xeon family 6 model 167, 4.53 s against 6.29 s (bench_nets.py against the reference:
+# 1.09x instead of 1.58x). Not yet measured on Zen 3 (bench_nets.py --part micro --grad-blocks).
 GRAD_BLOCKS = {
     ("amd-epyc-f26-m2-avx512", False): (1 << 20, "Zen 5, bench_nets.py, 2026-11-28"),
+    ("amd-epyc-f25-m17-avx512", False): (1 << 20, "Zen 4, issue 61's measurement, 2026-11-29"),
+    ("intel-r-xeon-r-processor-f6-m167-avx512", False): (1 << 20, "Intel Xeon family 6 "
+                                                          "model 167, bench_nets.py, 2026-11-29"),
 }
 
 KINDS = ("forward", "train")  # the program kinds a choice is made for

@@ -250,8 +250,9 @@ def list_plans(args: argparse.Namespace) -> int:
           f"fine-tuning {scale.schedule.finetune_epochs} epochs on {scale.tissue_n} tissue "
           f"scenes; {scale.note}"
           + (f"; v2: test sets of {scale.v2.test_n} scenes per domain, windows "
-             f"{', '.join(map(str, scale.v2.windows))}, budgets "
-             + (", ".join(f"{a} {p}: {e}" for (a, p), e in scale.v2.budgets) or "not calibrated")
+             f"{', '.join(map(str, scale.v2.windows)) or 'none set'}, budgets "
+             + (", ".join(f"{a} {p}: {e}" for (a, p), e in scale.v2.budgets)
+                or "not committed (a grid's OUT calibrates them first)")
              if scale.v2.test_n else "")
           + (f"; v3: pilot at {', '.join(scale.v3.fractions)}, {scale.v3.pilot_epochs} epochs"
              if scale.v3 else ""))

@@ -130,6 +130,19 @@ def test_skip_damaged_resumes_from_the_step_before_with_a_line(damage, base, tmp
   assert (checkpoints / "9").is_dir()  # the run went on past the skipped step
 
 
+@pytest.mark.parametrize("damage", ["two flipped bytes", "every file emptied"])
+def test_skip_damaged_with_every_step_damaged_is_one_line(damage, base, tmp_path, capsys):
+  """Nothing intact is left: one line, not a traceback (every file emptied: orbax's opening
+  moves each step aside before any is restored)."""
+  wd = _copy(base, tmp_path)
+  for step in ckpt.step_entries(wd / "checkpoints"):
+    DAMAGE[damage](wd / "checkpoints" / str(step))
+  code, _, err = _run(["--workdir", str(wd), "--resume", "--resume-skip-damaged", "--epochs",
+                       "3", "--no-progress"], capsys)
+  assert code == 2 and "no intact checkpoint is left" in err, err
+  assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
+
+
 def test_skip_damaged_needs_resume(base, tmp_path, capsys):
   code, _, err = _run(["--workdir", str(tmp_path / "x"), "--resume-skip-damaged"], capsys)
   assert code == 2 and "--resume-skip-damaged: only with --resume" in err

@@ -88,6 +88,13 @@ def test_a_recorded_budget_never_changes(tmp_path):
     records.register(out, b)
 
 
+def test_a_damaged_calibration_record_is_one_line_naming_it(tmp_path):
+  path = cal.calibration_file(tmp_path, "v5")
+  path.write_text(json.dumps({"a": 1}))
+  with pytest.raises(SljaxError, match=r"calibration-v5.json: not a calibration record"):
+    cal.settled(tmp_path, "v5", "smoke")
+
+
 def test_a_plan_waits_for_its_calibration(tmp_path):
   out = tmp_path / "out"
   first, then = cal.worker_plan("v5", "smoke", 1, None, (), out)

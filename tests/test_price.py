@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from sljax import cli
+from sljax.errors import SljaxError
 from sljax.experiment.design import cells, plans
 from sljax.experiment.records import DONE_FILE, cell_dir, register, write_json
 from sljax.experiment.running import gpu_figures as gf, price, submit
@@ -143,6 +144,16 @@ def test_dry_run_writes_nothing(tmp_path, capsys):
   assert "unet-sl: 2 s a training step (measured: 1 cell(s) finished here" in text
   assert "unet-disp: no figure" in text
   assert _tree(out) == before
+
+
+def test_a_damaged_done_json_is_one_line_naming_it(tmp_path):
+  out = tmp_path / "grid"
+  register(out, plans.build_plan("table1-v2", "smoke", 1))
+  cell_dir(out, "unet-sl-objects-s0").mkdir(parents=True)
+  write_json(cell_dir(out, "unet-sl-objects-s0") / DONE_FILE,
+             {"step": 30, "train_seconds": "x", "machine": machine.cpu_description()})
+  with pytest.raises(SljaxError, match=r"unet-sl-objects-s0/done.json: not a record"):
+    price.dry_run(plans.build_plan("table1-v2", "smoke", 1), out, 2)
 
 
 def test_submit_dry_run_submits_nothing(tmp_path, monkeypatch, capsys):

@@ -101,3 +101,17 @@ def test_bad_flags_are_argparse_errors(argv, capsys):
     cli.build_parser().parse_args(argv)
   assert e.value.code == 2
   assert "error" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("field, value, kind", [("steps", "x", "an integer"),
+                                                ("synth_t", 1.5, "an integer"),
+                                                ("init_from", 3, "a string")])
+def test_config_json_optional_fields_are_checked_by_their_type(field, value, kind):
+  """A field whose default is None (optional) is judged by its flag's type once it has a value:
+  a hand edit is one line naming config.json, not a TypeError in validation."""
+  from sljax.errors import SljaxError  # pylint: disable=import-outside-toplevel
+  from sljax.train import config  # pylint: disable=import-outside-toplevel
+  saved = config.normalized({})
+  assert config.config_from_json({**saved, field: None}).__getattribute__(field) is None
+  with pytest.raises(SljaxError, match=f"W/config.json: {field} must be {kind}"):
+    config.config_from_json({**saved, field: value}, "W/config.json")

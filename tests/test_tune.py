@@ -358,6 +358,19 @@ def test_cli_show_prints_the_cached_table(cache_dir, capsys):
   assert Path(str(choices.measurements_path())).name in out
 
 
+def test_cli_show_an_entry_edited_into_nonsense_is_one_line(cache_dir, capsys):
+  """A choice that is not true/false (a hand edit): one line, as runs ignore it."""
+  choices.write_measurement(choices.measurement_key(), choices.KernelChoice(True, True), [], 1.0)
+  path = choices.measurements_path()
+  data = json.loads(path.read_text())
+  data[choices.measurement_key()]["choice"]["forward_ynn"] = "yes"
+  path.write_text(json.dumps(data))
+  assert cli.main(["tune", "--show"]) == 2
+  err = capsys.readouterr().err
+  assert "has no readable choice" in err and len(err.strip().splitlines()) == 1
+  assert choices.measured_choice() is None
+
+
 def test_cli_show_a_hand_written_entry_shows_its_note(cache_dir, capsys):
   """An entry whose table holds a note, not measurements (was KeyError 'ynn')."""
   note = "set by hand to the setting of every earlier cell, not measured"

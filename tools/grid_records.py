@@ -63,7 +63,7 @@ def copy_finished(src: Path, dst: Path) -> list[str]:
       seen.add(cell.name)
       if not (d / records.DONE_FILE).exists():
         _copy_kept(s, d, KEPT)
-        done = json.loads((s / records.DONE_FILE).read_text())
+        done = records.read_done(src, cell.name)  # a damaged one: one line naming it
         if not done.get("machine"):
           done["machine"] = cpu_description()
           (s / records.DONE_FILE).write_text(json.dumps(done, indent=1))

@@ -119,10 +119,10 @@ def _decode_all(src: FolderSource, todo: list[int], codes: dict[int, str],
   """Decodes (and matches) every scene; all scenes' outputs are moved in together at the end.
   Returns the counts the summary prints."""
   written_disp, kept_disp, coverage, disp_known, swaps = 0, [], [], [], []
-  # The checks above read every capture's header, but some failures show only while decoding
-  # (or are a full disk, or Ctrl-C), and checking for them would mean decoding every scene
-  # twice. So each scene's outputs are staged inside its folder and moved in only once every
-  # scene has succeeded: a failure in the last scene leaves the first ones as they were.
+  # The checks above find damaged files, but some failures show only while decoding (codes
+  # that do not decode, a full disk, Ctrl-C). So each scene's outputs are staged inside its
+  # folder and moved in only once every scene has succeeded: a failure in the last scene
+  # leaves the first ones as they were.
   with contextlib.ExitStack() as stack:
     for i in tqdm(todo, desc="decode", unit="scene", file=sys.stderr, disable=None):
       path = src.paths[i]
@@ -163,9 +163,9 @@ def _decode_all(src: FolderSource, todo: list[int], codes: dict[int, str],
 
 def _check_capture_files(src: FolderSource, todo: list[int]) -> None:
   """SljaxError naming the first damaged capture or view, or one of another size, of any scene."""
-  # The pre-flight check reads PNG headers and CRCs, not pixels: cheap next to decoding, and a
-  # bad file in a later scene no longer stops the run after earlier scenes were written (a rerun
-  # would then refuse them without --overwrite).
+  # The pre-flight check inflates every capture (headers, CRCs, the zlib stream), so that every
+  # damaged file of every scene is named in one line before a scene is decoded, not the first
+  # one found after minutes of decoding (the staging below keeps the folders as they were).
   problems, _ = preflight.scan(src, [(todo, {"raw"})], progress=False, use_cache=False)
   if problems:
     more = f" (and {len(problems) - 1} more bad scene(s))" if len(problems) > 1 else ""

@@ -77,8 +77,8 @@ def _scene_row(path: Path, problems: list[str], name: str, group: str) -> dict:
     problems.append(f"{name}: im0.png: {e}")
     return row
   row["size"], row["kind"] = (w, h), f"{depth}-bit {colour}"
-  if pixel_problem(w, h) is not None:
-    problems.append(f"{name}: im0.png: {pixel_problem(w, h)}")
+  if (problem := pixel_problem(w, h)) is not None:
+    problems.append(f"{name}: im0.png: {problem}")
   for f in _FILES:
     if (path / f).exists():
       row["files"].add(f)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from sljax.errors import SljaxError, require
+from sljax.errors import require
 from sljax.nets.workload import workload
 from sljax.runtime import choices, machine
 
@@ -39,11 +39,9 @@ def run(args: argparse.Namespace) -> int:
       print(f"not measured on this machine: runs take {choices.describe(best)}, {where}; "
             "`sljax tune` measures it")
       return 0
-    try:
-      best = choices.KernelChoice(**entry["choice"])
-    except (KeyError, TypeError, AttributeError):  # an entry edited by hand or by another version
-      raise SljaxError(f"{path}: the entry for {key} has no readable choice; run `sljax tune` "
-                       "to measure again") from None
+    best = choices.entry_choice(entry)
+    require(best is not None, f"{path}: the entry for {key} has no readable choice; run "
+            "`sljax tune` to measure again")
     table = entry.get("table") if isinstance(entry.get("table"), list) else []
     others = entry.get("others")
     print(f"measured {entry.get('time', '?')} in {entry.get('seconds', '?')} s"

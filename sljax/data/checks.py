@@ -9,7 +9,10 @@ import numpy as np
 def negative_share(disparity: np.ndarray) -> float | None:
   """The share of a disparity map's known (finite) values that are negative, when it is more
   than half (a flipped sign: sljax reads x_left - x_right >= 0); None otherwise."""
-  known = disparity[np.isfinite(disparity)]
+  return _negative_share(disparity[np.isfinite(disparity)])
+
+
+def _negative_share(known: np.ndarray) -> float | None:
   negative = np.count_nonzero(known < 0)
   return negative / known.size if negative * 2 > known.size else None
 
@@ -28,18 +31,17 @@ def disparity_problem(disparity: np.ndarray, hw: tuple[int, int]) -> str | None:
     return f"disparity must have one channel, got shape {d.shape}"
   if d.shape != tuple(hw):
     return f"size {d.shape[1]}x{d.shape[0]} differs from im0.png ({hw[1]}x{hw[0]})"
-  share = negative_share(d)
+  known = d[np.isfinite(d)]  # once: the loader runs this on every map of every batch
+  share = _negative_share(known)
   if share is not None:  # training would ignore them all, evaluation score them
     return (f"{share:.0%} of its known disparities are negative; disparities are x_left - "
             "x_right >= 0 in both views, unknown pixels inf or NaN (is the sign flipped?)")
-  with np.errstate(invalid="ignore"):
-    known = np.isfinite(d)
-    beyond = int(np.count_nonzero(known & (d > d.shape[1])))
+  beyond = int(np.count_nonzero(known > d.shape[1]))
   # Mostly beyond: a large number marking unknown pixels, or a map of another scale. Training
   # ignores them, evaluation would score them as errors that large (1e30 px); the importer
   # makes such matches unknown (capture.refusals.plausible), by the same bound.
-  if beyond * 2 > np.count_nonzero(known):
-    return (f"{beyond / np.count_nonzero(known):.0%} of its known disparities are more than "
+  if beyond * 2 > known.size:
+    return (f"{beyond / known.size:.0%} of its known disparities are more than "
             f"{d.shape[1]} px, the image's width (no match lies that far; unknown pixels must "
             "be inf or NaN, not a large number)")
   return None

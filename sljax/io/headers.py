@@ -142,15 +142,20 @@ def image_size(path: str | os.PathLike) -> tuple[int, int] | None:
   """(width, height) from an image file's header, without decoding; None for a format whose
   header is not read here (OpenCV then decodes it, guarded); ValueError for a broken header."""
   with open(path, "rb") as f:
-    head = f.read(8)
-    reader = _reader(head)
-    if reader is None:
-      return None
-    f.seek(0)
-    try:
-      return reader(f)
-    except struct.error:
-      raise ValueError("truncated image header") from None
+    return _size_of(f)
+
+
+def _size_of(f: BinaryIO) -> tuple[int, int] | None:
+  """image_size of an open file (read from its start)."""
+  f.seek(0)
+  reader = _reader(f.read(8))
+  if reader is None:
+    return None
+  f.seek(0)
+  try:
+    return reader(f)
+  except struct.error:
+    raise ValueError("truncated image header") from None
 
 
 def check_image_size(path: str | os.PathLike, want_hw: tuple[int, int] | None = None,
@@ -159,11 +164,19 @@ def check_image_size(path: str | os.PathLike, want_hw: tuple[int, int] | None = 
   file when it is above MAX_PIXELS or, given want_hw, not the size of `against`."""
   path = os.fspath(path)
   try:
-    size = image_size(path)
+    with open(path, "rb") as f:  # once: the loader reads every view of every batch this way
+      return _checked_size(f, path, want_hw, against)
   except FileNotFoundError:
     raise SljaxError(f"{path}: missing") from None
   except OSError as e:
     raise SljaxError(f"{path}: cannot read ({e.strerror or e})") from None
+
+
+def _checked_size(f: BinaryIO, path: str, want_hw: tuple[int, int] | None,
+                  against: str) -> tuple[int, int] | None:
+  """check_image_size of the open file f."""
+  try:
+    size = _size_of(f)
   except ValueError as e:
     raise SljaxError(f"{path}: not a readable image ({e})") from None
   if size is None:
@@ -175,7 +188,7 @@ def check_image_size(path: str | os.PathLike, want_hw: tuple[int, int] | None = 
   if want_hw is not None and (height, width) != tuple(want_hw):
     raise SljaxError(f"{path}: size {width}x{height} differs from {against} "
                      f"({want_hw[1]}x{want_hw[0]})")
-  problem = _png_room_problem(path, width, height)
+  problem = _png_room_problem(f, width, height)
   if problem is not None:  # OpenCV would allocate the claim before finding the data short
     raise SljaxError(f"{path}: {problem}")
   return height, width
@@ -197,15 +210,15 @@ def _chunk_overrun(f: BinaryIO, size: int) -> str | None:
   return None
 
 
-def _png_room_problem(path: str, width: int, height: int) -> str | None:
+def _png_room_problem(f: BinaryIO, width: int, height: int) -> str | None:
   """Why a PNG cannot hold the width x height its header claims (its file is smaller than its
   image data, inflated, compresses to at best); None when it can, or for another format."""
-  with open(path, "rb") as f:
-    head = f.read(26)
-    size = os.fstat(f.fileno()).st_size
-    if head[:8] != PNG_SIGNATURE or len(head) < 26:
-      return None
-    overrun = _chunk_overrun(f, size)
+  f.seek(0)
+  head = f.read(26)
+  size = os.fstat(f.fileno()).st_size
+  if head[:8] != PNG_SIGNATURE or len(head) < 26:
+    return None
+  overrun = _chunk_overrun(f, size)
   if overrun is not None:  # OpenCV allocates and reads what a chunk's length claims
     return overrun
   depth, colour = head[24], head[25]

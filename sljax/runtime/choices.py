@@ -205,15 +205,22 @@ def measured_choice(path: Path | None = None) -> KernelChoice | None:
   entry = read_measurements(path).get(measurement_key())
   if not isinstance(entry, dict) or entry.get("rule") != RULE:
     return None
-  try:
-    found = KernelChoice(**entry["choice"])
-  except (KeyError, TypeError):
-    return None  # written by another version of this module: measure again
-  if not all(type(v) is bool for v in dataclasses.astuple(found)):
-    return None  # edited by hand (NAMES knows booleans only): measure again
+  found = entry_choice(entry)
+  if found is None:
+    return None
   if busy(entry.get("others")) and not busy(machine.others_now()):
     return None
   return found
+
+
+def entry_choice(entry: Any) -> KernelChoice | None:
+  """The choice a measurements entry holds, or None where it holds none that is readable (written
+  by another version of this module, or edited by hand: NAMES knows booleans only)."""
+  try:
+    found = KernelChoice(**entry["choice"])
+  except (KeyError, TypeError, AttributeError):
+    return None
+  return found if all(type(v) is bool for v in dataclasses.astuple(found)) else None
 
 
 def tuned(workload: Workload, repeats: int = 5

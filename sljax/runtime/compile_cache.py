@@ -87,12 +87,12 @@ def enable_compile_cache(programs: bool = False) -> Path | None:
       jax.config.update("jax_compilation_cache_dir", None)
       kept_programs.enable(None)
       return None
-    kept_programs.enable(folder if programs else None, root=folder)
+    kept_programs.enable(folder if programs else None, root=folder, checked=True)
     return folder
-  folder = compile_cache_dir()
-  if folder is not None and not trusted(folder, compile_cache_root()):
+  folder, root = compile_cache_dir(), compile_cache_root()
+  if folder is not None and not trusted(folder, root):
     folder = None  # compiled here, never loaded nor written there
-  kept_programs.enable(folder if programs else None, root=compile_cache_root())
+  kept_programs.enable(folder if programs else None, root=root, checked=True)
   if folder is None:
     return None
   jax.config.update("jax_compilation_cache_dir", str(folder))

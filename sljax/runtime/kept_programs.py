@@ -69,14 +69,15 @@ FRESH_OPTION = {"xla_dump_large_constants": True}
 _state = {"folder": None, "root": None}
 
 
-def enable(folder: Path | None, root: Path | None = None) -> Path | None:
+def enable(folder: Path | None, root: Path | None = None, checked: bool = False) -> Path | None:
   """Keeps compiled programs in `folder` (the compile cache's; None turns it off) unless
   $SLJAX_PROGRAM_CACHE is off or the folder is not trusted (sljax.runtime.cache_trust, its
-  parents checked up to `root`, by default the folder itself); returns the folder in use."""
+  parents checked up to `root`, by default the folder itself; `checked`: the caller has just
+  made that check, which scans every entry); returns the folder in use."""
   off = os.environ.get(ENV, "").strip().lower() in ("0", "off", "false", "no")
   _state["folder"] = None if off or folder is None else Path(folder)
   _state["root"] = None if _state["folder"] is None else Path(root or folder)
-  if _state["folder"] is not None and _untrusted(
+  if _state["folder"] is not None and not checked and _untrusted(
       cache_trust.untrusted_folder(_state["folder"], _state["root"])):
     return None
   return _state["folder"]

@@ -266,7 +266,11 @@ def config_from_json(d: dict[str, Any], where: str = "config.json") -> TrainConf
   kw = {k: v for k, v in d.items() if k in FIELDS}
   kw.setdefault("ynn", "on")  # written before the option existed: XLA's default was used
   for name, value in kw.items():  # a hand edit would otherwise fail far from the file
-    problem = _json_type_problem(value, FIELDS[name].default)
+    field = FIELDS[name]
+    like = field.default
+    if like is None and value is not None and field.metadata["parse"] in (int, float, str):
+      like = field.metadata["parse"]()  # an optional number or string: judged as one
+    problem = _json_type_problem(value, like)
     if problem is not None:
       raise SljaxError(f"{where}: {name} must be {problem}, got {value!r}")
   if "size" in kw:

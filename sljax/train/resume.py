@@ -39,14 +39,11 @@ def restore_checkpoint(manager, state: st.TrainState, sharding, skip_damaged: bo
       if not skip_damaged:
         raise SljaxError(f"{e}; {resume_advice(checkpoints, step)}") from None
       skipped.append((step, e))
-  else:
-    raise SljaxError(f"{skipped[-1][1]}; no intact checkpoint is left; start again with "
-                     "--overwrite")
+  else:  # every step damaged, or the only one already moved aside by open_manager
+    raise SljaxError(f"{skipped[-1][1] if skipped else checkpoints}: no intact checkpoint is "
+                     "left; start again with --overwrite")
   for bad, e in skipped:
-    aside = checkpoints / f"{bad}.damaged"
-    if jax.process_index() == 0:  # kept for a look, out of orbax's way (a save reuses N)
-      (checkpoints / str(bad)).rename(aside)
-    log(f"--resume-skip-damaged: skipped {e} (moved to {aside.name})")
+    _move_aside(checkpoints, bad, e, log)
   if skipped:
     manager.reload()  # orbax listed the moved steps when it opened the folder
   return state, loop
@@ -61,9 +58,16 @@ def open_manager(checkpoints: Path, keep: int, skip_damaged: bool, log: Callable
     except ckpt.CheckpointUnreadable as e:
       if not skip_damaged:
         raise SljaxError(f"{e}; {resume_advice(checkpoints, e.step)}") from None
-      aside = checkpoints / f"{e.step}.damaged"
-      (checkpoints / str(e.step)).rename(aside)
-      log(f"--resume-skip-damaged: skipped {e} (moved to {aside.name})")
+      _move_aside(checkpoints, e.step, e, log)
+
+
+def _move_aside(checkpoints: Path, step: int, why: Exception, log: Callable[[str], None]) -> None:
+  """--resume-skip-damaged: step N renamed N.damaged, kept for a look and out of orbax's way (a
+  later save reuses N), by the first process only; said in a line."""
+  aside = checkpoints / f"{step}.damaged"
+  if jax.process_index() == 0:
+    (checkpoints / str(step)).rename(aside)
+  log(f"--resume-skip-damaged: skipped {why} (moved to {aside.name})")
 
 
 def _restore_step(manager, step: int, abstract, log: Callable[[str], None]
@@ -78,12 +82,11 @@ def _restore_step(manager, step: int, abstract, log: Callable[[str], None]
   return state, loop
 
 
-
 def resume_advice(checkpoints: Path, step: int) -> str:
   """What a user can do about a damaged latest checkpoint: never a silent fallback (it would
   quietly repeat steps), but the earlier checkpoints and how to resume from one."""
-  earlier = sorted(int(p.name) for p in checkpoints.iterdir()
-                   if p.name.isdigit() and p.is_dir() and int(p.name) < step)
+  earlier = [s for s in ckpt.step_entries(checkpoints)
+             if s < step and (checkpoints / str(s)).is_dir()]
   if not earlier:
     return "no earlier checkpoint exists; start again with --overwrite"
   return (f"earlier checkpoints: steps {', '.join(map(str, earlier))}; delete the damaged folder "

@@ -70,11 +70,10 @@ def budgets(out: Path, plan: Plan) -> dict[str, Any]:
     if not (records.cell_dir(out, cell.name) / records.DONE_FILE).exists():
       missing.append(cell.name)
       continue
-    phase = plans.phase_of(cell)
-    res = plateau(records.curve(out, cell.name), cell.config.epochs,
-                  drop=plan.scale.lr_drop and phase != "finetune")
+    phase, curve = plans.phase_of(cell), records.curve(out, cell.name)
+    res = plateau(curve, cell.config.epochs, drop=plan.scale.lr_drop and phase != "finetune")
     rows[cell.name] = dict(res, arm=cell.arm, phase=phase, epochs=cell.config.epochs,
-                           curve=records.curve(out, cell.name))
+                           curve=curve)
   return {"plan": plan.name, "scale": plan.scale.name, "tolerance": PLATEAU_TOL,
           "smooth": SMOOTH, "cells": rows, "missing": missing,
           "budgets": [[r["arm"], r["phase"], r["budget"]] for r in rows.values()]}
@@ -92,8 +91,12 @@ def settled(out: Path, name: str, scale: str) -> dict[str, Any] | None:
   path = calibration_file(out, name)
   with workers.plan_lock(out):
     result = records.read_json(path)
-    if result is not None and not result["missing"]:
-      return result
+    if result is not None:
+      ok = isinstance(result.get("missing"), list) and isinstance(result.get("budgets"), list) \
+          and all(isinstance(r, list) and len(r) == 3 for r in result["budgets"])
+      require(ok, f"{path}: not a calibration record (delete it to apply the rule again)")
+      if not result["missing"]:
+        return result
     plan = plans.calibration_plan(name, scale)
     left_out = runner.diverged(out, plan)
     require(not left_out, f"{out}: calibration cell {next(iter(left_out), '')} diverged, so "
@@ -112,8 +115,8 @@ def calibrated_plan(name: str, scale: str, seeds: int, data: str | None,
   (refused there if it was recorded with other budgets)."""
   result = settled(out, name, scale)
   require(result is not None, f"{out}: the calibration of {name} is not finished")
-  found = tuple(((arm, phase), int(epochs)) for arm, phase, epochs in result["budgets"])
-  plan = plans.build_plan(name, scale, seeds, data, eval_data, found)
+  plan = plans.build_plan(name, scale, seeds, data, eval_data,
+                          records.budget_pairs(result["budgets"]))
   with workers.plan_lock(out):
     records.register(out, plan)
   return plan

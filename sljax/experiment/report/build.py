@@ -36,8 +36,8 @@ from sljax.experiment.report import figures, stats
 from sljax.experiment.report.paper_claims import (ALPHA, CURVE_SET, PAPER, POWER, claims,
                                                   mechanism)
 from sljax.experiment.records import (DONE_FILE, EVAL_DIR, WINDOWS_FILE, cell_dir, curve,
-                                      plan_args, read_eval, read_json, registered_plans,
-                                      train_curve)
+                                      plan_args, read_done, read_eval, read_json,
+                                      registered_plans, train_curve)
 from sljax.experiment.running.runner import diverged
 from sljax.io import files, tables
 from sljax.train.config import dumps
@@ -133,7 +133,7 @@ def cell_times(out: Path, plan: Plan) -> dict[tuple[str, str, str], dict[str, An
   times neither."""
   groups: dict[tuple[str, str, str], dict[str, Any]] = {}
   for c in plan.cells:
-    done = read_json(cell_dir(out, c.name) / DONE_FILE)
+    done = read_done(out, c.name)
     if done is None or done.get("train_seconds") is None:
       continue
     key = (c.arm, ", ".join(v for _, v in c.factors), done.get("machine", "not recorded"))

@@ -15,7 +15,8 @@ from sljax.errors import SljaxError, require
 from sljax.experiment.design.cells import FIXED, Cell, Plan, waits_for
 from sljax.experiment.design.plans import (CALIB_PREFIX, build_plan, calibration_plan,
                                            describe, needs_calibration, provisional_plan)
-from sljax.experiment.records import DONE_FILE, cell_dir, eval_record, read_json, read_record
+from sljax.experiment.records import (DONE_FILE, PLAN_FILE, cell_dir, eval_record, read_done,
+                                      read_record)
 from sljax.experiment.running import gpu_figures as gf
 from sljax.experiment.running.runner import cell_steps, eval_scenes, validation_indices
 from sljax.runtime import machine
@@ -39,11 +40,6 @@ class NetFigure:
   step_from: str
   forward_from: str
   validation_in_step: bool = False  # a finished cell's seconds a step include its validation
-
-  @property
-  def stand_in(self) -> bool:
-    """Whether either figure is a stand-in rather than a measurement."""
-    return "STAND-IN" in self.step_from + self.forward_from
 
 
 @dataclasses.dataclass(frozen=True)
@@ -261,13 +257,14 @@ def machine_figures(out: Path, plan: Plan) -> Figures:
   seconds: dict[str, list[float]] = {}
   steps: dict[str, list[int]] = {}
   for name, spec in (record or {}).get("cells", {}).items():
-    done = read_json(cell_dir(out, name) / DONE_FILE)
+    done = read_done(out, name)  # a damaged one: one line naming it
     if done is None or done.get("machine") != here or not done.get("step"):
       continue
-    config = spec["config"]
+    config = spec.get("config") if isinstance(spec, dict) else None
+    require(isinstance(config, dict), f"{out / PLAN_FILE}: cell {name} has no configuration")
     net = dataclasses.replace(QUICK, model=config.get("model", QUICK.model),
                               strategy=config.get("strategy", QUICK.strategy)).net
-    seconds.setdefault(net, []).append(float(done.get("train_seconds", 0.0)))
+    seconds.setdefault(net, []).append(float(done.get("train_seconds") or 0.0))
     steps.setdefault(net, []).append(int(done["step"]))
   batch = plan.scale.batch_size
   figs = []

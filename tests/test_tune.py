@@ -2,10 +2,12 @@
 settings compute the same function, and that training and inference use the choice."""
 
 import dataclasses
+import importlib
 import json
 from pathlib import Path
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -66,10 +68,13 @@ def test_off_keeps_ynnpack_for_reductions_only():
 def test_the_measured_programs_take_the_choice_they_time(monkeypatch):
   """`sljax tune` times what runs: each program compiled with that setting's options (off:
   YNNPACK for the reductions only), the training one traced with that setting's kernel-gradient
-  blocks (choices.grad_blocks_for), the forward one with the layers' own; and it runs."""
+  blocks (choices.grad_blocks_for), the forward one with a plain program's (no gradient runs
+  there); and it runs."""
   from sljax import kernels
   seen, jit = {}, jax.jit
   monkeypatch.setattr(choices, "grad_blocks_for", lambda k: 1000 + k.train_ynn)
+  kernels.blocks.context_free_blocks.cache_clear()
+  monkeypatch.setattr(kernels.blocks, "context_free_blocks", lambda: 7)
 
   def spy(fn, **kw):
     seen["options"] = kw.get("compiler_options")
@@ -179,7 +184,8 @@ def test_rounds_that_keep_disagreeing_keep_the_default_and_say_so(tmp_path, monk
   assert note.startswith("forward: the rounds disagreed") and "sljax tune" in note
   # `sljax tune` prints it, so a user knows the default was kept, not chosen.
   monkeypatch.setenv(compile_cache.ENV_DIR, str(tmp_path))
-  monkeypatch.setattr(choices, "tuned", lambda workload, repeats: (best, table, None))
+  monkeypatch.setattr(choices, "tuned",
+                      lambda workload, repeats, blocks: (best, table, None, None))
   assert cli.main(["tune", "--repeats", "1"]) == 0
   assert note in capsys.readouterr().out
 
@@ -418,7 +424,8 @@ def test_a_choice_measured_beside_other_work_is_provisional(cache_dir, monkeypat
   assert "`sljax tune`" in lines[-1]
   # Measured again on the quiet machine: final, no look at the load any more.
   snapshots = iter([(0.0, 0.0, 0.0), (100.0, 51.0, 50.0)])
-  monkeypatch.setattr(choices, "tuned", lambda workload, repeats: (choices.KernelChoice(False, True), [], 0.01))
+  monkeypatch.setattr(choices, "tuned", lambda workload, repeats, blocks: (
+      choices.KernelChoice(False, True), [], 0.01, None))
   assert cli.main(["tune", "--repeats", "1"]) == 0
   monkeypatch.setattr(choices.machine, "others_now", lambda: pytest.fail("a kept choice is final"))
   assert choices.choice(log=lines.append) == choices.KernelChoice(False, True)
@@ -434,7 +441,7 @@ def test_busy_threshold_and_unknown_load():
 
 def test_cli_tune_says_the_load_beside_it(cache_dir, capsys, monkeypatch):
   best, table = choices.measure(timings=fake({("forward", False): 0.5}))
-  monkeypatch.setattr(choices, "tuned", lambda workload, repeats: (best, table, 0.62))
+  monkeypatch.setattr(choices, "tuned", lambda workload, repeats, blocks: (best, table, 0.62, None))
   assert cli.main(["tune", "--repeats", "1"]) == 0
   out = capsys.readouterr().out
   assert "other processes using 62% of the CPUs meanwhile" in out and "provisional" in out
@@ -444,16 +451,104 @@ def test_cli_tune_says_the_load_beside_it(cache_dir, capsys, monkeypatch):
   assert "other processes using 62% of the CPUs meanwhile" in out and "provisional" in out
 
 
-def test_grad_blocks_for_come_from_the_table(monkeypatch):
-  """The kernel gradients' blocks follow the CPU kind and the training programs' fusions; a
-  kind or a choice not in the table keeps each layer's blocks (None)."""
-  (key, train_ynn), (values, _) = next(iter(choices.GRAD_BLOCKS.items()))
-  listed = choices.KernelChoice(forward_ynn=True, train_ynn=train_ynn)
-  other = choices.KernelChoice(forward_ynn=True, train_ynn=not train_ynn)
-  assert choices.grad_blocks_for(listed, key) == values
-  assert choices.grad_blocks_for(other, key) is None
-  assert choices.grad_blocks_for(listed, "some-cpu-never-measured") is None
-  monkeypatch.setattr(choices.machine, "cpu_key", lambda: key)
-  assert choices.grad_blocks_for(listed) == values
+def test_grad_blocks_follow_the_fusions_unless_measured_here(cache_dir, monkeypatch):
+  """The kernel gradients' blocks: 1 Mi values without the fusions, 128 Ki with them (every kind
+  measured agrees); `sljax tune`'s measurement for the same fusions' setting wins; an entry of
+  another setting, rule or an edited value does not; off the CPU none."""
+  on, off = choices.KernelChoice(), choices.KernelChoice.from_name("off")
+  assert choices.grad_blocks_for(on) == 1 << 17 and choices.grad_blocks_for(off) == 1 << 20
+  blocks = {"train_ynn": True, "values": 1 << 20, "table": []}
+  choices.write_measurement(choices.measurement_key(), on, [], 1.0, blocks=blocks)
+  assert choices.grad_blocks_for(on) == 1 << 20  # measured for the fusions on
+  assert choices.grad_blocks_for(off) == 1 << 20  # the rule: not measured for off
+  for edit in ({"values": 12345}, {"values": "1048576"}, {"train_ynn": 1}, {"values": True}):
+    choices.write_measurement(choices.measurement_key(), on, [], 1.0, blocks={**blocks, **edit})
+    assert choices.grad_blocks_for(on) == 1 << 17, edit
+  choices.write_measurement(choices.measurement_key(), on, [], 1.0, blocks=blocks)
+  data = json.loads(choices.measurements_path().read_text())
+  data[choices.measurement_key()]["rule"] = choices.RULE - 1
+  choices.measurements_path().write_text(json.dumps(data))
+  assert choices.grad_blocks_for(on) == 1 << 17
   monkeypatch.setattr(choices.jax, "default_backend", lambda: "gpu")
-  assert choices.grad_blocks_for(listed) is None
+  assert choices.grad_blocks_for(on) is None
+
+
+@pytest.mark.skipif(jax.default_backend() != "cpu", reason="the CPU kernels' blocks")
+def test_a_gradient_traced_without_a_context_takes_this_machines_blocks(cache_dir):
+  """A plain `jax.jit(jax.grad(...))` takes the blocks training takes with XLA's default options
+  (the fusions on), `sljax tune`'s measured ones included; a context still wins; the value is
+  the same to float rounding whatever the blocks."""
+  from sljax import kernels
+  kernels.blocks.context_free_blocks.cache_clear()
+  try:
+    assert kernels.grad_block_values(7) == choices.grad_blocks_for(choices.DEFAULT) == 1 << 17
+    with kernels.grad_blocks(5):
+      assert kernels.grad_block_values(7) == 5
+    blocks = {"train_ynn": True, "values": 1 << 20, "table": []}
+    choices.write_measurement(choices.measurement_key(), choices.DEFAULT, [], 1.0, blocks=blocks)
+    kernels.blocks.context_free_blocks.cache_clear()  # read once per process
+    assert kernels.grad_block_values(7) == 1 << 20
+    seen = []
+    real = kernels.blocks.grad_block_values
+
+    def spy(values):
+      seen.append(real(values))
+      return seen[-1]
+    rng = np.random.default_rng(0)
+    x = rng.standard_normal((1, 4, 8, 8, 3)).astype(np.float32)
+    k = rng.standard_normal((3, 3, 3, 3, 4)).astype(np.float32)
+    loss = lambda k: jnp.sum(kernels.conv3d(x, k, (1, 1, 1), ((1, 1),) * 3) ** 2)
+    ref = lambda k: jnp.sum(kernels.lax_conv3d(x, k, (1, 1, 1), ((1, 1),) * 3) ** 2)
+    conv3d_module = importlib.import_module("sljax.kernels.conv3d")  # the name is a function too
+    with pytest.MonkeyPatch.context() as mp:
+      mp.setattr(conv3d_module, "grad_block_values", spy)
+      g = jax.jit(jax.grad(loss))(k)
+    assert seen and set(seen) == {1 << 20}
+    np.testing.assert_allclose(g, jax.grad(ref)(k), rtol=1e-4, atol=1e-3)
+  finally:
+    kernels.blocks.context_free_blocks.cache_clear()
+
+
+def _fake_blocks(table):
+  """A fake block timing: seconds per block size, 1.0 where the table is silent."""
+  return lambda values: table.get(values, 1.0)
+
+
+def test_blocks_measured_keep_the_default_unless_clearly_faster():
+  small, large = choices.BLOCK_CANDIDATES
+  got = choices.measure_blocks(None, train_ynn=False, timings=_fake_blocks({small: 1.6}))
+  assert got["values"] == large and got["train_ynn"] is False  # the default without fusions
+  got = choices.measure_blocks(None, train_ynn=True, timings=_fake_blocks({large: 0.97}))
+  assert got["values"] == small  # 3% is within the margin
+  got = choices.measure_blocks(None, train_ynn=True, timings=_fake_blocks({large: 0.6}))
+  assert got["values"] == large
+  assert [r["values"] for r in got["table"]] == list(choices.BLOCK_CANDIDATES)
+  times = iter([1.0, 0.6, 1.0, 0.6, 1.0, 1.2])  # rounds (small, large): the last disagrees
+  got = choices.measure_blocks(None, train_ynn=True, timings=lambda values: next(times))
+  assert got["values"] == small
+  table = choices.format_blocks(choices.measure_blocks(None, False, timings=_fake_blocks({})))
+  assert "1024 Ki values (chosen)" in table and "128 Ki values" in table
+  assert choices.format_blocks({"values": "x", "table": []}) == ""
+
+
+@pytest.mark.skipif(jax.default_backend() != "cpu", reason="XLA:CPU's fusions")
+def test_the_block_measurement_compiles_what_it_times(monkeypatch):
+  """Each candidate is compiled with the training fusions' options and traced in its blocks."""
+  from sljax import kernels
+  seen, jit = [], jax.jit
+
+  def spy(fn, **kw):
+    seen.append(kw.get("compiler_options"))
+    return jit(fn, **kw)
+  monkeypatch.setattr(jax, "jit", spy)
+  traced = []
+  x = np.ones((4, 4), np.float32)
+
+  def workload():
+    def fn(a):
+      traced.append(kernels.grad_block_values(7))
+      return a * 2
+    return fn, (x,)
+  got = choices.measure_blocks(workload, train_ynn=False, repeats=1)
+  assert seen == [choices.YNN_OFF] * 2 and traced == list(choices.BLOCK_CANDIDATES)
+  assert got["values"] in choices.BLOCK_CANDIDATES and len(got["table"]) == 2

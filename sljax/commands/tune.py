@@ -6,7 +6,7 @@ import argparse
 import time
 
 from sljax.errors import require
-from sljax.nets.workload import workload
+from sljax.nets.workload import gradient_workload, workload
 from sljax.runtime import choices, machine
 
 
@@ -15,9 +15,11 @@ def register(subparsers) -> None:
   p = subparsers.add_parser(
       "tune",
       description="Compiles PSMNet as a forward-only and as a training program with XLA:CPU's "
-                  "YNNPACK fusions on and off, times them, prints the table and keeps the "
-                  "choice for this CPU kind and jax version, where training (--ynn auto) and "
-                  "inference find it. Without it they take the choice measured on this CPU "
+                  "YNNPACK fusions on and off, times them, then times the 3D layers' gradients "
+                  "at the runs' shapes in each kernel-gradient block size under the chosen "
+                  "training fusions; prints the tables and keeps the choices for this CPU kind "
+                  "and jax version, where training (--ynn auto), inference and gradients traced "
+                  "without a context find them. Without it they take the choice measured on this CPU "
                   "kind before (sljax.runtime.choices.KNOWN) or the default for kinds not measured yet; "
                   "SLJAX_TUNE=0 or --ynn on keeps XLA's defaults.")
   p.add_argument("--show", action="store_true",
@@ -46,20 +48,29 @@ def run(args: argparse.Namespace) -> int:
     others = entry.get("others")
     print(f"measured {entry.get('time', '?')} in {entry.get('seconds', '?')} s"
           f"{_beside(others)}\n\n{choices.format_table(table, best)}\n\n"
-          f"choice: {choices.describe(best)}")
+          f"{_blocks(entry.get('grad_blocks'))}choice: {choices.describe(best)}")
     _notes(table, others)
     return 0
   t0 = time.perf_counter()
-  best, table, others = choices.tuned(workload, repeats=args.repeats)
+  best, table, others, blocks = choices.tuned(workload, args.repeats, gradient_workload)
   seconds = time.perf_counter() - t0
   print(f"measured in {seconds:.0f} s{_beside(others)}\n\n{choices.format_table(table, best)}\n\n"
-        f"choice: {choices.describe(best)}")
+        f"{_blocks(blocks)}choice: {choices.describe(best)}")
   _notes(table, others)
   try:
-    choices.write_measurement(key, best, table, seconds, others=others)
+    choices.write_measurement(key, best, table, seconds, others=others, blocks=blocks)
   except OSError as e:
     print(f"not kept ({path}: {e.strerror or e})")
   return 0
+
+
+def _blocks(blocks) -> str:
+  """The block measurement's table and its choice, then a blank line ('' where none)."""
+  table = choices.format_blocks(blocks)
+  if not table:
+    return ""
+  return (f"{table}\n\nkernel-gradient blocks: {blocks['values'] >> 10} Ki values in training "
+          f"programs with the fusions {'on' if blocks['train_ynn'] else 'off'}\n")
 
 
 def _beside(others) -> str:

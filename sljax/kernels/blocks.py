@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
+import functools
 from collections.abc import Callable, Iterator, Sequence
 
 import jax
@@ -20,12 +21,12 @@ DIMS_2D = ("NHWC", "HWIO", "NHWC")
 # every `block_values` argument.
 BLOCK_VALUES = 1 << 17
 
-# The blocks of the kernel gradients (fold_kernel_grad, conv2d's), where a program sets them:
-# None takes the layer's `block_values`. Which size is fastest depends on the library XLA
-# hands the convolutions to, i.e. on the compiler choice (sljax.runtime.choices.grad_blocks_for): with
-# YNNPACK's fusions off, Zen 5 ran PSMNet's kernel gradients 2-3x faster in 1 Mi-value blocks
-# than in 128 Ki ones, while YNNPACK's were slower in them. Blocking never changes a value
-# beyond float rounding (the sums' order), so this only selects the speed of a trace.
+# The blocks of the kernel gradients (fold_kernel_grad, conv2d's), where a program sets them.
+# Which size is fastest depends on the library XLA hands the convolutions to, i.e. on the
+# compiler options (sljax.runtime.choices.grad_blocks_for): with YNNPACK's fusions off, PSMNet's
+# kernel gradients ran 1.4-2x faster in 1 Mi-value blocks than in 128 Ki ones (Zen 5, Zen 4, an
+# Intel Xeon), while YNNPACK's were slower in them. Blocking never changes a value beyond
+# float rounding (the sums' order), so this only selects the speed of a trace.
 _GRAD_BLOCKS: contextvars.ContextVar[int | None] = contextvars.ContextVar("grad_blocks",
                                                                          default=None)
 
@@ -44,9 +45,23 @@ def grad_blocks(values: int | None) -> Iterator[None]:
 
 def grad_block_values(block_values: int) -> int:
   """The kernel-gradient block size of a layer traced now: the enclosing `grad_blocks`, else
-  the layer's own `block_values`."""
+  this machine's for XLA's default compiler options (`context_free_blocks`), else the layer's
+  own `block_values`."""
   values = _GRAD_BLOCKS.get()
+  if values is None:
+    values = context_free_blocks()
   return block_values if values is None else values
+
+
+@functools.cache
+def context_free_blocks() -> int | None:
+  """The blocks a gradient traced outside any `grad_blocks` takes: those of this CPU kind for a
+  program compiled with XLA's default options (a plain `jax.jit(jax.grad(loss))`), as training
+  would take them (sljax.runtime.choices.grad_blocks_for: `sljax tune`'s measurement, else the
+  rule by fusions); None off the CPU. Read once per process."""
+  # Imported here: the choices' module imports this one (its programs set `grad_blocks`).
+  from sljax.runtime import choices  # noqa: PLC0415
+  return choices.grad_blocks_for(choices.DEFAULT)
 
 
 def plain_conv2d(x: jax.Array, kernel: jax.Array, strides: Sequence[int], padding,

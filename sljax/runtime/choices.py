@@ -9,11 +9,12 @@ slower without them. So the choice is made per program kind: forward-only progra
 (inference, validation, evaluation) and training steps. Both settings compute the same
 function (only float rounding differs), and the choice is an explicit argument of the programs
 that use it (`KernelChoice.compiler_options(kind)`, passed to `jax.jit`), never process state.
-The convolution kernels themselves are not tuned, because measuring them found no CPU that
-disagrees: the folded kernels train 3x faster than `lax` on Zen 3 (the main job) and were made
-because `lax` was several times slower on Zen 5, and block sizes of 16 Ki to 1 Mi values are
-within the noise on both (docs/benchmarks/cpu-kernels.md). They are chosen where
-the model is built (its `conv_impl`, `sljax.kernels`).
+The fusions also decide the kernel gradients' block size (`sljax.kernels.grad_blocks`): XLA's
+own convolutions want 1 Mi-value blocks, YNNPACK's the layers' 128 Ki, on every kind measured
+(`BLOCKS_BY_FUSIONS`); `sljax tune` measures it too. The convolution kernels themselves are not
+tuned: the folded kernels train 3x faster than `lax` on Zen 3 and were made because `lax` was
+several times slower on Zen 5 (docs/benchmarks/cpu-kernels.md); they are chosen where the model
+is built (its `conv_impl`, `sljax.kernels`).
 
 Where a choice comes from. A run never measures: on a fresh 2-core Zen 3 the measurement
 took 106 s, more than the compile it tunes, and measured beside other work it chose wrongly.
@@ -24,8 +25,15 @@ It takes, in order: this machine's own measurement (`sljax tune`), else `KNOWN`,
 
 How `sljax tune` measures. `measure` compiles PSMNet itself (128x128, maxdisp 48, batch 1: the
 real mix of 2D and 3D convolutions) as a forward and as a training program, with the fusions
-on and off, and times them in interleaved rounds: about a minute on a 2-core CPU, most of it
-compiling. A setting replaces XLA's default only when it was faster in every round and by more
+on and off, and times them in interleaved rounds; then `measure_blocks` times the 3D layers'
+gradients at the shapes runs use (PSMNet's at 256x256 and the main job's) in each block size,
+under the training fusions chosen: 52 s on a 2-core Intel Xeon, most of it compiling. The blocks
+are measured at the runs' shapes because a block's size is relative to the planes it holds (at
+128x128 a 1 Mi-value block is a whole volume); the fusions on the probe, which compiles 4x
+faster. When the probe and a benchmark at the runs' shapes disagree, the runs' shapes are
+trusted: `KNOWN` holds their verdict for machines not tuned, and the probe's rule changes until
+it agrees (it disagreed on Zen 5 until RULE 5; since then every kind measured both ways agrees).
+A setting replaces XLA's default only when it was faster in every round and by more
 than `MARGIN` in the median round (two tunings on a busy Zen 3 once disagreed when one fastest
 call decided); when the median says faster but a round disagrees, a fresh batch of rounds
 decides (up to `RETRIES`). Load that lasts the whole measurement can turn the choice around
@@ -67,8 +75,8 @@ RETRIES = 3  # fresh batches of rounds for a kind whose rounds disagreed
 # The decision rule's version: choices measured under another rule are measured again (3: the
 # load beside the measurement is recorded; older entries may have been measured on a busy machine;
 # 4: the training probe runs with the kernel-gradient blocks of GRAD_BLOCKS; 5: "off" keeps
-# YNNPACK's reductions).
-RULE = 5
+# YNNPACK's reductions; 6: the kernel gradients' block size is measured too).
+RULE = 6
 BUSY = 0.1  # other processes' share of the CPUs above which a measurement is provisional
 
 
@@ -80,6 +88,8 @@ BUSY = 0.1  # other processes' share of the CPUs above which a measurement is pr
 KNOWN = {
     "amd-epyc-f25-m1-avx2": ("off", "Zen 3, `sljax tune` idle, 2026-11-27"),
     "amd-epyc-f25-m17-avx2": ("off", "Zen 4 showing AVX2 only, `sljax tune` idle, 2026-11-27"),
+    # issue 61: `sljax tune` chose the fusions off for both programs in 67 s.
+    "amd-epyc-f25-m17-avx512": ("off", "Zen 4 with AVX-512, `sljax tune` idle, 2026-11-29"),
     # `sljax tune`'s probe (128x128, batch 1) kept the fusions in training (off/on 1.03-1.10),
     # but at the main job's preset the step without them was 5% faster (0.79-0.83 s against
     # 0.84-0.93 s) and loaded from the cache in 3.0 s against 9.6-10.0 s. Since RULE 5 (the
@@ -92,25 +102,25 @@ KNOWN = {
 }
 UNKNOWN = "off"
 
-# The kernel gradients' block size (sljax.kernels.grad_blocks) per CPU kind and --ynn value of
-# the training programs, measured idle; elsewhere each layer's BLOCK_VALUES (128 Ki values,
-# chosen with the fusions on). Without YNNPACK's fusions XLA hands the gradients' blocked
-# convolutions to another library, which wants larger blocks: on Zen 5, PSMNet's training step
-# at 256x256, batch 2 took 3.58-3.59 s in 1 Mi-value blocks against 4.73-4.92 s (fusions on:
-# 3.48-3.71 s), and the main job's step the same 0.74-0.77 s with 2 s less compile. On a Zen 4
-# (issue 61, alternating in one process, huge pages) 6.05-6.99 s against 9.55-11.61 s; on an
-# Intel Xeon family 6 model 167, 4.53 s against 6.29 s (bench_nets.py against the reference:
-# 1.09x instead of 1.58x). Not yet measured on Zen 3 (bench_nets.py --part micro --grad-blocks).
-GRAD_BLOCKS = {
-    ("amd-epyc-f26-m2-avx512", False): (1 << 20, "Zen 5, bench_nets.py, 2026-11-28"),
-    ("amd-epyc-f25-m17-avx512", False): (1 << 20, "Zen 4, issue 61's measurement, 2026-11-29"),
-    ("intel-r-xeon-r-processor-f6-m167-avx512", False): (1 << 20, "Intel Xeon family 6 "
-                                                          "model 167, bench_nets.py, 2026-11-29"),
-}
+# The kernel gradients' block size (sljax.kernels.grad_blocks) by the training programs' fusions,
+# where `sljax tune` has not measured this machine. Which size is fastest depends on the library
+# XLA hands the gradients' blocked convolutions to, i.e. on the fusions, and on every kind
+# measured the same way (PSMNet's forward + backward at 256x256, maxdisp 96, batch 2):
+# * fusions off (XLA's own convolutions) want 1 Mi values: Zen 5 3.58-3.59 s against 4.73-4.92 s
+#   in 128 Ki; Zen 4 (issue 61, alternating, huge pages) 6.05-6.99 s against 9.55-11.61 s; the
+#   Intel Xeon family 6 model 167 4.68 s against 6.61 s (4 Mi 4.92 s, 256 Ki 5.79 s);
+# * fusions on (YNNPACK's convolutions) want the layers' 128 Ki: Zen 5 slower in 1 Mi; the Xeon
+#   5.39 s against 7.06 s in 1 Mi (256 Ki 5.21 s, 3% faster, 64 Ki 5.73 s).
+# (benchmarks/bench_blocks.py, 2026-11-29; docs/benchmarks/cpu-kernels.md.) Zen 3 and Zen 4's
+# fusions-on step are not measured: they take this rule until `sljax tune` measures them.
+BLOCKS_BY_FUSIONS = {True: 1 << 17, False: 1 << 20}
+BLOCK_CANDIDATES = (1 << 17, 1 << 20)  # what `sljax tune` times at the runs' shapes
 
 KINDS = ("forward", "train")  # the program kinds a choice is made for
 # () -> ({kind: f(*args)}, args): the programs a measurement times (sljax.nets.workload)
 Workload = Callable[[], tuple[dict[str, Callable], tuple]]
+# () -> (f, args): the kernel gradients the block size is measured on (the same module)
+BlocksWorkload = Callable[[], tuple[Callable, tuple]]
 NAMES = {(True, True): "on", (False, False): "off", (False, True): "forward-off",
          (True, False): "train-off"}  # (forward_ynn, train_ynn) -> the --ynn value
 
@@ -173,12 +183,15 @@ def read_measurements(path: Path | None = None) -> dict:
 
 
 def write_measurement(key: str, choice: KernelChoice, table: list[dict], seconds: float,
-                      path: Path | None = None, others: float | None = None) -> Path:
-  """Stores one key's choice, its measurements and the share of the CPUs other processes used
-  meanwhile (None: unknown) atomically: write, then rename."""
+                      path: Path | None = None, others: float | None = None,
+                      blocks: dict | None = None) -> Path:
+  """Stores one key's choice, its measurements, the share of the CPUs other processes used
+  meanwhile (None: unknown) and the kernel gradients' measured blocks (`measure_blocks`; None:
+  not measured) atomically: write, then rename."""
   path = path or measurements_path()
   data = read_measurements(path)
   data[key] = {"choice": dataclasses.asdict(choice), "rule": RULE, "table": table,
+               "grad_blocks": blocks,
                "seconds": round(seconds, 1), "cpu": machine.cpu_description(),
                "others": None if others is None else round(others, 3),
                "time": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
@@ -223,12 +236,15 @@ def entry_choice(entry: Any) -> KernelChoice | None:
   return found if all(type(v) is bool for v in dataclasses.astuple(found)) else None
 
 
-def tuned(workload: Workload, repeats: int = 5
-          ) -> tuple[KernelChoice, list[dict], float | None]:
-  """`measure`, and the share of the CPUs other processes used meanwhile (None: unknown)."""
+def tuned(workload: Workload, repeats: int = 5, blocks_workload: BlocksWorkload | None = None
+          ) -> tuple[KernelChoice, list[dict], float | None, dict | None]:
+  """`measure`; the share of the CPUs other processes used meanwhile (None: unknown); and
+  `measure_blocks` for the chosen training fusions where a `blocks_workload` is given (else
+  None)."""
   before = machine.cpu_snapshot()
   best, table = measure(workload, repeats=repeats)
-  return best, table, machine.others_share(before, machine.cpu_snapshot())
+  blocks = None if blocks_workload is None else measure_blocks(blocks_workload, best.train_ynn)
+  return best, table, machine.others_share(before, machine.cpu_snapshot()), blocks
 
 
 def busy_note(others: float | None) -> str:
@@ -249,13 +265,26 @@ def known_choice(key: str | None = None) -> tuple[KernelChoice, str]:
   return KernelChoice.from_name(UNKNOWN), "the default for CPU kinds not measured yet"
 
 
-def grad_blocks_for(kernels: "KernelChoice", key: str | None = None) -> int | None:
+def grad_blocks_for(kernels: "KernelChoice", path: Path | None = None) -> int | None:
   """The kernel gradients' block size for training programs compiled with `kernels` on this
-  CPU kind (`GRAD_BLOCKS`), or None: each layer's own. Off the CPU the fast kernels do not run."""
+  machine: what `sljax tune` measured here for that fusions' setting, else `BLOCKS_BY_FUSIONS`;
+  None off the CPU (the fast kernels do not run there)."""
   if jax.default_backend() != "cpu":
     return None
-  entry = GRAD_BLOCKS.get((key or machine.cpu_key(), bool(kernels.train_ynn)))
-  return entry[0] if entry else None
+  return measured_blocks(kernels.train_ynn, path) or BLOCKS_BY_FUSIONS[bool(kernels.train_ynn)]
+
+
+def measured_blocks(train_ynn: bool, path: Path | None = None) -> int | None:
+  """The block size `sljax tune` measured on this machine for training programs with the fusions
+  `train_ynn`, or None (not measured, measured under another rule, or edited into nonsense)."""
+  entry = read_measurements(path).get(measurement_key())
+  if not isinstance(entry, dict) or entry.get("rule") != RULE:
+    return None
+  blocks = entry.get("grad_blocks")
+  if not isinstance(blocks, dict) or blocks.get("train_ynn") is not bool(train_ynn):
+    return None
+  values = blocks.get("values")
+  return values if type(values) is int and values in BLOCK_CANDIDATES else None
 
 
 def choice(tune: bool | None = None, log: Callable[[str], None] = print) -> KernelChoice:
@@ -339,6 +368,66 @@ def measure(workload: Workload | None = None, repeats: int = 5,
             "batches": batches[kind], "verdict": verdict(_ratios(samples, kind))}
            for kind, ynn in keys]
   return best, table
+
+
+def measure_blocks(workload: BlocksWorkload | None, train_ynn: bool, repeats: int = 3,
+                   clock: Callable[[], float] = time.perf_counter,
+                   timings: Callable[[int], float] | None = None) -> dict:
+  """Times `workload()` (the 3D layers' gradients at the runs' shapes) in each of
+  `BLOCK_CANDIDATES`, compiled with the training fusions `train_ynn`, in `repeats` interleaved
+  rounds. The setting's default (`BLOCKS_BY_FUSIONS`) stays unless another size was faster in
+  every round and by more than `MARGIN` in the median round (`verdict`). Returns
+  {"train_ynn", "values" (the choice), "table"}; `timings(values) -> seconds` replaces one timed
+  call (tests)."""
+  default = BLOCKS_BY_FUSIONS[bool(train_ynn)]
+  if timings is None:
+    fn, args = workload()
+    options = KernelChoice(train_ynn, train_ynn).compiler_options("train")
+
+    def program(values):
+      def blocked(*a):
+        with grad_blocks(values):
+          return fn(*a)
+      return jax.jit(blocked, compiler_options=options).lower(*args).compile()
+    programs = {v: program(v) for v in BLOCK_CANDIDATES}
+    for p in programs.values():
+      jax.block_until_ready(p(*args))  # warm-up
+
+    def timings(values):
+      t0 = clock()
+      jax.block_until_ready(programs[values](*args))
+      return clock() - t0
+  samples = {v: [] for v in BLOCK_CANDIDATES}
+  for _ in range(repeats):
+    for v in BLOCK_CANDIDATES:
+      samples[v].append(timings(v))
+  ratios = {v: [a / b for a, b in zip(samples[v], samples[default])] for v in BLOCK_CANDIDATES}
+  winners = [v for v in BLOCK_CANDIDATES if v != default and verdict(ratios[v]) == "off"]
+  values = min(winners, key=lambda v: float(np.median(samples[v])), default=default)
+  table = [{"values": v, "seconds": round(float(np.median(samples[v])), 5),
+            "vs_default": [round(r, 3) for r in ratios[v]]} for v in BLOCK_CANDIDATES]
+  return {"train_ynn": bool(train_ynn), "values": values, "table": table}
+
+
+def format_blocks(blocks: Any) -> str:
+  """The block measurement as a Markdown table ('' where there is none readable)."""
+  if (not isinstance(blocks, dict) or not isinstance(blocks.get("table"), list)
+      or type(blocks.get("values")) is not int):
+    return ""
+  rows = [r for r in blocks["table"] if isinstance(r, dict) and type(r.get("values")) is int
+          and _positive_number(r.get("seconds"))]
+  if not rows:
+    return ""
+  lines = [f"| kernel-gradient blocks (3D layers at the runs' shapes, training fusions "
+           f"{'on' if blocks.get('train_ynn') else 'off'}) | ms | by round vs the default |",
+           "| --- | ---: | --- |"]
+  for r in rows:
+    mark = " (chosen)" if r["values"] == blocks.get("values") else ""
+    ratios = [x for x in r.get("vs_default") or [] if _positive_number(x)]
+    spread = f"{min(ratios):.2f}-{max(ratios):.2f}" if ratios else ""
+    lines.append(f"| {r['values'] >> 10} Ki values{mark} | {r['seconds'] * 1e3:.1f} | "
+                 f"{spread} |")
+  return "\n".join(lines)
 
 
 def _rounds(timings: Callable[[str, bool], float], keys: list[tuple[str, bool]],

@@ -88,7 +88,7 @@ def make_train_step(model: nn.Module, config: ModelConfig, *, disp_loss: str,
   w_sl / w_disp (effective weights), sigma_sl / sigma_disp, grad_norm and the training batch's
   MAE for disparity networks. grad_block_values: the CPU kernels' gradient blocks
   (sljax.kernels.grad_blocks; sljax.runtime.choices.grad_blocks_for gives the one for the compiler
-  options), None: each layer's.
+  options), None: those of a gradient traced without a context (context_free_blocks).
   """
   dtype, maxdisp = config.dtype, config.maxdisp
 

@@ -90,6 +90,8 @@ def child_run(train_args: list[str]) -> None:
       else:  # the later steps, each waited for: the step time a compile choice costs
         marks.setdefault("later", []).append(time.perf_counter() - t0)
       return out
+    if hasattr(train_step, "ahead"):  # what the loop asks of a kept program
+      first_timed.ahead, first_timed.prefetching = train_step.ahead, train_step.prefetching
     return model, tx, first_timed, eval_step
 
   loop.compiled_steps = timed_steps  # the bench's own hook: the loop calls the module's name

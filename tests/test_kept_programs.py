@@ -292,6 +292,14 @@ def test_train_py_twice_loads_the_steps_and_trains_identically(tmp_path):
   assert first.returncode == 0, first.stderr[-2000:]
   names = {p.name.split("-")[2] for p in (tmp_path / "xla").rglob("sljax-program-*-cache")}
   assert {"init", "train", "eval"} <= names, names
+  # The first run compiled its step ahead, beside the initialisation (Program.ahead), for the
+  # shapes the real call had (one program kept, not a second for other shapes): the same rows
+  # as a run that keeps no programs, compiling the step at its first call.
+  assert len(list((tmp_path / "xla").rglob("sljax-program-train-step-*-cache"))) == 1
+  plain = _train(tmp_path / "p", dict(env, SLJAX_PROGRAM_CACHE="off",
+                                      SLJAX_COMPILE_CACHE=str(tmp_path / "plain")))
+  assert plain.returncode == 0, plain.stderr[-2000:]
+  assert _rows(tmp_path / "p") == _rows(tmp_path / "a")
   second = _train(tmp_path / "b", env)
   assert second.returncode == 0, second.stderr[-2000:]
   assert "first step (loaded the compiled step)" in second.stderr
@@ -432,6 +440,41 @@ def test_prefetch_loads_the_remembered_signatures_before_the_first_call(folder):
   kept_programs.index_path(folder, "step", "demo").write_text("{garbage")
   assert kept_programs.remembered("step", "demo") == []
   _equal(_run(kept_programs.Program(_jitted(), "step", "demo").prefetch()), _reference())
+
+
+def _shapes(args):
+  return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, weak_type=x.weak_type),
+                      args)
+
+
+def test_a_program_compiled_ahead_from_shapes_serves_the_first_call(folder, monkeypatch):
+  """`ahead` compiles (and keeps) the program for arguments known by their shapes on a
+  background thread; the first real call takes it, with the plain function's numbers; a call
+  of another signature compiles its own; a failure ahead is raised by the real call."""
+  program = kept_programs.Program(_jitted(), "step", "ahead")
+  program.ahead(*_shapes(_args()))
+  assert program.prefetching
+  compiled_now = []
+  real = kept_programs.compile_and_keep
+  monkeypatch.setattr(kept_programs, "compile_and_keep",
+                      lambda *a, **k: compiled_now.append(a[3]) or real(*a, **k))
+  _equal(_run(program), _reference())
+  assert program.origin == "compiled" and not program.prefetching
+  assert all(isinstance(x, jax.ShapeDtypeStruct) for x in jax.tree.leaves(compiled_now))
+  assert len(_entries(folder, "step")) == 1  # kept: a later process loads it
+  _equal(_run(program, rows=6), _reference(rows=6))  # another signature: its own program
+  assert len(_entries(folder, "step")) == 2
+  # A program whose trace fails ahead: the real call fails the same way, where it is made.
+  def broken(state, x):
+    raise ValueError("traced and failed")
+  failing = kept_programs.Program(jax.jit(broken), "broken", "ahead")
+  failing.ahead(*_shapes(_args()))
+  with pytest.raises(ValueError, match="traced and failed"):
+    failing(*_args())
+  # Off the cache nothing starts (jit's own cache would not see it).
+  kept_programs.enable(None)
+  off = kept_programs.Program(_jitted(), "step", "off")
+  assert not off.ahead(*_shapes(_args())).prefetching
 
 
 def test_a_damaged_prefetched_entry_is_compiled_again_with_one_line(folder):

@@ -329,7 +329,10 @@ class Program:
 
   `prefetch` starts loading, on background threads, the programs kept for the signatures this
   program was last used with: XLA's load releases the GIL, so on a 2-core CPU it runs beside
-  the run's initialisation, and the first call waits only for what is left. Keys are always
+  the run's initialisation, and the first call waits only for what is left. `ahead` does the
+  same for arguments known only by their shapes: it loads, else compiles and keeps, the
+  program for them on a background thread, so that XLA compiles while the caller initialises
+  (a fresh run's first step). Keys are always
   computed on the calling thread (jax's settings can be thread-local). `device` names the one
   device a program runs on when that is not the default backend's (the caller places its
   arguments there): it is part of the key, and kept programs load for it."""
@@ -340,6 +343,7 @@ class Program:
     self.description = (description if device is None
                         else (description, f"{device.platform}:{device.id}"))
     self._by_signature: dict[str, Any] = {}
+    # signature -> (key, future of (program or None, how it came)): prefetched or compiled ahead
     self._loading: dict[str, tuple[str, concurrent.futures.Future]] = {}
     self._unproven: set[int] = set()  # loaded programs not yet run once
     self._last = None
@@ -356,26 +360,63 @@ class Program:
       for sig in remembered(self.name, self.description):
         if sig not in self._by_signature and sig not in self._loading:
           key = entry_key(self.name, self.description, sig)
-          self._loading[sig] = (key, _POOL.submit(load, self.name, key, self.log,
-                                                    self.device))
+          self._loading[sig] = (key, _POOL.submit(self._loaded, key))
     return self
+
+  def ahead(self, *args) -> "Program":
+    """Starts getting the program for arguments given by their shapes and dtypes
+    (`jax.ShapeDtypeStruct`s, with the weak types the real ones will have) on a background
+    thread: loaded where kept, else traced, compiled and kept. The call with the real arguments
+    then waits for it; one whose signature differs gets its own program as before. Off the
+    cache (or across processes) nothing starts: jit's own cache would not see the result."""
+    if folder() is None or jax.process_count() > 1:
+      return self
+    sig = signature(args)
+    with self._lock:
+      if sig not in self._by_signature and sig not in self._loading:
+        key = entry_key(self.name, self.description, sig)
+        self._loading[sig] = (key, _POOL.submit(self._got, key, args))
+    return self
+
+  @property
+  def prefetching(self) -> bool:
+    """Whether a program for some signature is being loaded or compiled in the background."""
+    with self._lock:
+      return bool(self._loading)
+
+  def _loaded(self, key: str):
+    """(the kept program under `key` or None, 'loaded')."""
+    return load(self.name, key, self.log, self.device), "loaded"
+
+  def _got(self, key: str, args: tuple):
+    """(the program, how it came): loaded, else compiled and kept; (None, None) where that
+    fails, so that the real call compiles and reports the failure itself."""
+    compiled, origin = self._loaded(key)
+    if compiled is not None:
+      return compiled, origin
+    try:
+      return compile_and_keep(self.jitted, self.name, key if folder() else None, args, self.log)
+    except Exception:  # noqa: BLE001  the real call raises it where the caller sees it
+      return None, None
 
   def _program(self, sig: str, args: tuple):
     """The program for this signature: prefetched, loaded, or compiled and kept."""
     where = folder()
     key = None if where is None or jax.process_count() > 1 else entry_key(
         self.name, self.description, sig)
-    compiled = None
+    compiled = origin = None
     if sig in self._loading:
       prefetched, future = self._loading.pop(sig)
-      compiled = future.result() if prefetched == key else None
+      if prefetched == key:
+        compiled, origin = future.result()
     if compiled is None and key is not None:
-      compiled = load(self.name, key, self.log, self.device)
+      compiled, origin = self._loaded(key)
     if folder() is None:  # a trust check in a load turned the cache off: keep nothing there
       where = key = None
     if compiled is not None:
-      self.origin = "loaded"
-      self._unproven.add(id(compiled))
+      self.origin = origin
+      if origin == "loaded":
+        self._unproven.add(id(compiled))
     else:
       compiled, self.origin = compile_and_keep(self.jitted, self.name, key, args, self.log)
     if key is not None and self.origin != "compiled, not kept":

@@ -89,6 +89,22 @@ def compiled_steps(model_config: ModelConfig, disp_loss: str, lr: float,
               "eval-step", (model_config, choice.compiler_options("forward"), repr(mesh))))
 
 
+def step_shapes(run: Setup, model, tx, rows) -> tuple:
+  """The training step's arguments (state, batch, weights) as shapes and dtypes, so that its
+  program can be compiled while the state is initialised (`kept_programs.Program.ahead`); the
+  batch's from one of the run's scenes (`rows` caches it for the first batch)."""
+  config = run.config
+  x = jax.ShapeDtypeStruct((1, *config.size, run.info.channels), jnp.float32)
+  variables = jax.eval_shape(lambda k, x: model.init(k, x, x, train=False),
+                             jax.random.PRNGKey(0), x)
+  state = jax.eval_shape(lambda v: st.create_state(v, tx), dict(variables))
+  one = rows.batch([run.train_idx[0]])
+  batch = {k: jax.ShapeDtypeStruct((config.batch_size, *v.shape[1:]), v.dtype)
+           for k, v in one.items()}
+  weights = jax.ShapeDtypeStruct((len(registry.TASKS) + 1,), jnp.float32)
+  return state, batch, weights
+
+
 def first_step_origin(train_step) -> str:
   """How the first step's program came, for the progress bar."""
   origin = getattr(train_step, "origin", None)
@@ -176,6 +192,12 @@ def _train(config: TrainConfig, workdir: Path, resume: bool, overwrite: bool,
   drop = None if config.lr_drop_epoch is None else config.lr_drop_epoch * spe
   model, tx, train_step, eval_step = compiled_steps(run.model, config.disp_loss, config.lr,
                                                     drop, mesh, run.config.ynn)
+  train_rows, val_rows = row_caches(run.source, config, run.info)
+  if (kept_programs.folder() is not None and jax.process_count() == 1
+      and not getattr(train_step, "prefetching", True)):
+    # Nothing kept to load: XLA compiles the step on another core while the state is made (the
+    # same program as the first call's would be), and keeps it.
+    train_step.ahead(*step_shapes(run, model, st.make_optimizer(config.lr, drop), train_rows))
   state = create_train_state(run, model, tx)
   manager = open_manager(workdir / ckpt.CHECKPOINT_DIR, config.keep, run.resume and skip_damaged,
                          log)
@@ -191,7 +213,6 @@ def _train(config: TrainConfig, workdir: Path, resume: bool, overwrite: bool,
   restart_logs(workdir, loop.step, spe)
   state = jax.device_put(state, repl)
 
-  train_rows, val_rows = row_caches(run.source, config, run.info)
   batches = train_batches(train_rows, run.train_idx, config, spe, loop.step, run.total_steps,
                           mesh)
   own_bar = progress is None or isinstance(progress, bool)

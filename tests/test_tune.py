@@ -476,18 +476,21 @@ def test_grad_blocks_follow_the_fusions_unless_measured_here(cache_dir, monkeypa
 @pytest.mark.skipif(jax.default_backend() != "cpu", reason="the CPU kernels' blocks")
 def test_a_gradient_traced_without_a_context_takes_this_machines_blocks(cache_dir):
   """A plain `jax.jit(jax.grad(...))` takes the blocks training takes with XLA's default options
-  (the fusions on), `sljax tune`'s measured ones included; a context still wins; the value is
-  the same to float rounding whatever the blocks."""
+  (the fusions on), `sljax tune`'s measured ones included; a context still wins, and so does a
+  layer's own choice; the value is the same to float rounding whatever the blocks."""
   from sljax import kernels
+  default = kernels.BLOCK_VALUES  # a layer that chose nothing
   kernels.blocks.context_free_blocks.cache_clear()
   try:
-    assert kernels.grad_block_values(7) == choices.grad_blocks_for(choices.DEFAULT) == 1 << 17
+    assert kernels.grad_block_values(default) == choices.grad_blocks_for(choices.DEFAULT)
+    assert choices.grad_blocks_for(choices.DEFAULT) == 1 << 17
     with kernels.grad_blocks(5):
-      assert kernels.grad_block_values(7) == 5
+      assert kernels.grad_block_values(default) == kernels.grad_block_values(7) == 5
     blocks = {"train_ynn": True, "values": 1 << 20, "table": []}
     choices.write_measurement(choices.measurement_key(), choices.DEFAULT, [], 1.0, blocks=blocks)
     kernels.blocks.context_free_blocks.cache_clear()  # read once per process
-    assert kernels.grad_block_values(7) == 1 << 20
+    assert kernels.grad_block_values(default) == 1 << 20
+    assert kernels.grad_block_values(7) == 7  # the layer's own choice
     seen = []
     real = kernels.blocks.grad_block_values
 

@@ -44,13 +44,16 @@ def grad_blocks(values: int | None) -> Iterator[None]:
 
 
 def grad_block_values(block_values: int) -> int:
-  """The kernel-gradient block size of a layer traced now: the enclosing `grad_blocks`, else
-  this machine's for XLA's default compiler options (`context_free_blocks`), else the layer's
-  own `block_values`."""
+  """The kernel-gradient block size of a layer traced now: the enclosing `grad_blocks`; else
+  the layer's own `block_values` where it chose one; else this machine's for XLA's default
+  compiler options (`context_free_blocks`, off the CPU the default `BLOCK_VALUES`)."""
   values = _GRAD_BLOCKS.get()
-  if values is None:
-    values = context_free_blocks()
-  return block_values if values is None else values
+  if values is not None:
+    return values
+  if block_values != BLOCK_VALUES:
+    return block_values
+  machine = context_free_blocks()
+  return block_values if machine is None else machine
 
 
 @functools.cache

@@ -555,3 +555,21 @@ def test_the_block_measurement_compiles_what_it_times(monkeypatch):
   got = choices.measure_blocks(workload, train_ynn=False, repeats=1)
   assert seen == [choices.YNN_OFF] * 2 and traced == list(choices.BLOCK_CANDIDATES)
   assert got["values"] in choices.BLOCK_CANDIDATES and len(got["table"]) == 2
+
+
+def test_cli_tune_keeps_and_shows_the_blocks_it_measured(cache_dir, capsys, monkeypatch):
+  """`sljax tune` prints the block table, keeps the size where training finds it, and --show
+  prints it again."""
+  best, table = choices.measure(timings=fake({("train", False): 0.5, ("forward", False): 0.5}))
+  # Without the fusions the rule says 1 Mi; this machine measured 128 Ki faster.
+  blocks = choices.measure_blocks(None, best.train_ynn,
+                                  timings=_fake_blocks({choices.BLOCK_CANDIDATES[0]: 0.5}))
+  monkeypatch.setattr(choices, "tuned", lambda workload, repeats, gradients: (
+      best, table, 0.0, blocks))
+  assert cli.main(["tune", "--repeats", "1"]) == 0
+  out = capsys.readouterr().out
+  assert "| 128 Ki values (chosen) |" in out
+  assert "kernel-gradient blocks: 128 Ki values in training programs with the fusions off" in out
+  assert choices.grad_blocks_for(best) == 1 << 17  # the measurement, not the rule
+  assert cli.main(["tune", "--show"]) == 0
+  assert "| 128 Ki values (chosen) |" in capsys.readouterr().out

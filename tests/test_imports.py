@@ -158,3 +158,14 @@ def test_the_architecture_page_names_every_room_and_root_module():
 
 if __name__ == "__main__":
   sys.stdout.write(drawing())
+
+
+def test_a_training_run_starts_without_matplotlib():
+  """train.py's imports leave matplotlib out (0.25 s of every start, for pictures a run never
+  draws): it is imported where a figure is made (sljax.io.pictures.new_figure)."""
+  import subprocess
+  code = ("import sys, sljax.train.cli, sljax.train.loop; "
+          "print(sorted(m for m in sys.modules if m.split('.')[0] == 'matplotlib'))")
+  out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                       cwd=ROOT.parent, check=True).stdout
+  assert out.strip() == "[]", out

@@ -10,12 +10,10 @@ disparity error with Pearson and Spearman correlation and a least-squares line (
 import os
 
 import numpy as np
-from matplotlib import colors as mcolors
-from matplotlib.figure import Figure
 
 from sljax.errors import require
 from sljax.io import files
-from sljax.io.pictures import Panel, save_panels
+from sljax.io.pictures import Panel, new_figure, save_panels
 
 
 def view_uncertainty(p: np.ndarray) -> np.ndarray:
@@ -106,7 +104,8 @@ def plot_uncertainty_histogram(path: str | os.PathLike, uncertainty: np.ndarray,
   require(keep.sum() >= 2, f"{os.fspath(path)}: fewer than 2 valid pixels to plot")
   un, en = _normalise(u[keep]), _normalise(e[keep])
   stats = analyse_uncertainty(un, en)
-  fig = Figure(figsize=(5.5, 4.5))
+  from matplotlib import colors as mcolors  # noqa: PLC0415  drawn only here (io.pictures.new_figure)
+  fig = new_figure(figsize=(5.5, 4.5))
   ax = fig.subplots()
   counts, _, _ = np.histogram2d(un, en, bins=bins, range=((0, 1), (0, 1)))
   img = ax.imshow(np.ma.masked_equal(counts.T, 0), origin="lower", extent=(0, 1, 0, 1),

@@ -72,6 +72,8 @@ def child_run(train_args: list[str]) -> None:
 
   monitoring.register_event_duration_secs_listener(on_duration)
   monitoring.register_event_listener(on_event)
+  from sljax.runtime.compile_cache import load_last_programs
+  load_last_programs(train_args)  # as train.py does, before the heavy imports
   from sljax.train import loop
   marks = {}
   original = loop.compiled_steps
@@ -171,7 +173,8 @@ def part_run(args) -> list[dict]:
     for i in range(args.runs):
       cache_dir = Path(tmp) / f"cache{i}"
       for kind in ("cold", "warm"):
-        data = run_once(train_args, cache_dir, Path(tmp) / f"run{i}-{kind}", env_extra)
+        # One workdir for both: the warm run is the same command line again, as a user's is.
+        data = run_once(train_args, cache_dir, Path(tmp) / f"run{i}", env_extra)
         rows.append(dict(kind=kind, **phases(data)))
         args.where = data["where"]
         print(format_run_row(rows[-1]), flush=True)

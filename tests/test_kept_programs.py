@@ -477,6 +477,41 @@ def test_a_program_compiled_ahead_from_shapes_serves_the_first_call(folder, monk
   assert not off.ahead(*_shapes(_args())).prefetching
 
 
+def test_a_launch_loads_what_the_last_same_launch_ran(folder, monkeypatch):
+  """At launch, before anything is imported or parsed, the programs the last launch with the
+  same arguments ran start loading; a program takes that load only when its own key is the
+  same; other arguments, another program or a damaged record load nothing early."""
+  monkeypatch.setitem(kept_programs._state, "launch", None)  # pylint: disable=protected-access
+  monkeypatch.setattr(kept_programs, "_early", {})
+  early = lambda: kept_programs._early  # pylint: disable=protected-access
+  kept_programs.load_early(["--a"], ("step",))
+  assert not early()  # nothing remembered yet
+  _run(kept_programs.Program(_jitted(), "step", "demo"))
+  record = json.loads((folder / kept_programs.LAUNCHES).read_text())
+  launch = kept_programs.launch_digest(["--a"])
+  assert list(record) == [launch] and record[launch]["step"].startswith("sljax-program-step-")
+  # The same launch again: loading before the program exists, which then takes that load.
+  kept_programs.load_early(["--a"], ("step",))
+  assert early()["step"][0] == record[launch]["step"]
+  second = kept_programs.Program(_jitted(), "step", "demo").prefetch()
+  assert not early()
+  second.jitted = None  # neither lowered nor compiled
+  _equal(_run(second), _reference())
+  assert second.origin == "loaded"
+  # Other arguments: nothing early. A program whose key differs leaves the early load alone.
+  kept_programs.load_early(["--b"], ("step",))
+  assert not early()
+  kept_programs.load_early(["--a"], ("step",))
+  other = kept_programs.Program(_jitted(), "step", "another description").prefetch()
+  assert "step" in early()
+  _equal(_run(other), _reference())
+  assert other.origin == "compiled"
+  early().clear()
+  (folder / kept_programs.LAUNCHES).write_text("{garbage")
+  kept_programs.load_early(["--a"], ("step",))
+  assert not early()
+
+
 def test_a_damaged_prefetched_entry_is_compiled_again_with_one_line(folder):
   _run(kept_programs.Program(_jitted(), "step", "demo"), calls=1)
   (path,) = _entries(folder, "step")

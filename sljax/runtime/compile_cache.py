@@ -128,3 +128,14 @@ def add_missing_atimes(folder: Path) -> int:
         atime.write_bytes(entry.stat().st_mtime_ns.to_bytes(8, "little"))
         added += 1
   return added
+
+
+def load_last_programs(argv: list[str], names: tuple[str, ...] = ("train-step", "init")) -> None:
+  """At a command line's launch, before its heavy imports: the compile cache on (as the command
+  will turn it on) and the programs `names` its last launch with these arguments ran loading in
+  the background (sljax.runtime.kept_programs.load_early). Not for distributed runs (nothing is
+  kept across processes)."""
+  if "--distributed" in argv:
+    return
+  enable_compile_cache(programs=True)
+  kept_programs.load_early(argv, names)

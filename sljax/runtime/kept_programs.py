@@ -66,7 +66,12 @@ _IGNORED_SETTINGS = ("jax_compilation_cache", "jax_persistent_cache", "jax_log_c
 # compiled under it misses jax's cache, so XLA compiles it afresh (`compile_and_keep`).
 FRESH_OPTION = {"xla_dump_large_constants": True}
 
-_state = {"folder": None, "root": None}
+LAUNCHES = f"{PREFIX}launches.json"  # {launch digest: {program name: entry key}}, in the folder
+KEPT_LAUNCHES = 16  # launches remembered (the newest first)
+
+_state = {"folder": None, "root": None, "launch": None}
+# program name -> (entry key, future of (program or None, 'loaded')): loads started at launch
+_early: dict[str, tuple[str, concurrent.futures.Future]] = {}
 
 
 def enable(folder: Path | None, root: Path | None = None, checked: bool = False) -> Path | None:
@@ -319,6 +324,72 @@ def compile_and_keep(jitted, name: str, key: str | None, args: tuple,
   return compiled, "compiled"
 
 
+# ----------------------------------------------------------------------------- at launch
+
+
+def launch_digest(argv: list[str]) -> str:
+  """What a command line's programs depend on before anything is parsed: its arguments, the
+  environment variables sljax, jax and XLA read, and sljax's source."""
+  env = {k: v for k, v in sorted(os.environ.items())
+         if k.startswith(("SLJAX_", "JAX_", "XLA_", "LIBTPU_"))}
+  return _digest({"argv": list(argv), "env": env, "sljax": source_digest()})
+
+
+def load_early(argv: list[str], names: tuple[str, ...]) -> None:
+  """Starts loading, on background threads, the programs `names` that the last launch with the
+  same arguments ran (its key, remembered in the folder's LAUNCHES), before the caller has
+  imported, parsed or set up anything: a warm run's first step waited for its 3.3 s load. A
+  program takes such a load only when its own key, computed as ever, is the same
+  (`Program.prefetch`); otherwise it is dropped."""
+  where = folder()
+  if where is None:
+    return
+  _state["launch"] = launch_digest(argv)
+  keys = _read_launches(where).get(_state["launch"])
+  for name in names:
+    key = keys.get(name) if isinstance(keys, dict) else None
+    if isinstance(key, str) and key.startswith(f"{PREFIX}{name}-") and name not in _early:
+      _early[name] = (key, _POOL.submit(lambda n=name, k=key: (load(n, k, _stderr), "loaded")))
+
+
+def _take_early(name: str, key: str) -> concurrent.futures.Future | None:
+  """The load started at launch for this program if it is of `key`, else None."""
+  entry = _early.get(name)
+  if entry is None or entry[0] != key:
+    return None
+  del _early[name]
+  return entry[1]
+
+
+def _read_launches(where: Path) -> dict:
+  try:
+    data = json.loads((where / LAUNCHES).read_text(encoding="utf-8"))
+  except (OSError, ValueError):
+    return {}
+  return data if isinstance(data, dict) else {}
+
+
+def _remember_launch(where: Path, name: str, key: str) -> None:
+  """Notes that this launch ran `name` as `key`, the launch first (a failure only misses the
+  next early load)."""
+  launch = _state["launch"]
+  if launch is None:
+    return
+  data = _read_launches(where)
+  entry = data.get(launch)
+  entry = dict(entry) if isinstance(entry, dict) else {}
+  if next(iter(data), None) == launch and entry.get(name) == key:
+    return
+  entry[name] = key
+  others = [(k, v) for k, v in data.items() if k != launch][:KEPT_LAUNCHES - 1]
+  try:
+    tmp = where / f"{LAUNCHES}.{os.getpid()}.tmp"
+    tmp.write_text(json.dumps(dict([(launch, entry), *others])), encoding="utf-8")
+    os.replace(tmp, where / LAUNCHES)
+  except OSError:
+    pass
+
+
 def _stderr(line: str) -> None:
   print(line, file=sys.stderr, flush=True)
 
@@ -360,7 +431,8 @@ class Program:
       for sig in remembered(self.name, self.description):
         if sig not in self._by_signature and sig not in self._loading:
           key = entry_key(self.name, self.description, sig)
-          self._loading[sig] = (key, _POOL.submit(self._loaded, key))
+          early = _take_early(self.name, key) if self.device is None else None
+          self._loading[sig] = (key, early or _POOL.submit(self._loaded, key))
     return self
 
   def ahead(self, *args) -> "Program":
@@ -421,6 +493,7 @@ class Program:
       compiled, self.origin = compile_and_keep(self.jitted, self.name, key, args, self.log)
     if key is not None and self.origin != "compiled, not kept":
       _remember(where, self.name, self.description, sig)
+      _remember_launch(where, self.name, key)
     return compiled, key
 
   def _first_run(self, compiled, key: str, args: tuple):

@@ -58,6 +58,9 @@ def main(argv: list[str] | None = None) -> int:
   if argv is None:  # the command line itself: start again with huge pages where that helps
     reexec()
     argv = sys.argv[1:]
+  if argv[:1] == ["train"]:  # as train.py: the last such launch's step loads while train imports
+    from sljax.runtime.compile_cache import load_last_programs  # pylint: disable=import-outside-toplevel
+    load_last_programs(argv[1:])
   args = build_parser(argv).parse_args(argv)
   quiet_libraries()
   # Imported here, at the command-line edge, so that `sljax --help` does not import jax.

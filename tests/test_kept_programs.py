@@ -521,3 +521,17 @@ def test_a_damaged_prefetched_entry_is_compiled_again_with_one_line(folder):
   program = kept_programs.Program(_jitted(), "step", "demo", log=lines.append).prefetch()
   _equal(_run(program), _reference())
   assert program.origin == "compiled" and len(lines) == 1 and "unusable" in lines[0]
+
+
+def test_both_training_command_lines_start_the_early_load(monkeypatch):
+  """`sljax train ARGS` and `python train.py ARGS` start the same early load, keyed by ARGS,
+  before the training modules are imported."""
+  from sljax import cli
+  from sljax.runtime import compile_cache
+  seen = []
+  monkeypatch.setattr(compile_cache, "load_last_programs", seen.append)
+  with pytest.raises(SystemExit):
+    cli.main(["train", "--strategy", "epr", "--help"])
+  assert seen == [["--strategy", "epr", "--help"]]
+  text = (ROOT / "train.py").read_text()
+  assert text.index("load_last_programs(sys.argv[1:])") < text.index("from sljax.train.cli")

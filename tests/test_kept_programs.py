@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from sljax.errors import SljaxError
-from sljax.runtime import compile_cache, kept_programs
+from sljax.runtime import compile_cache, kept_programs, program_keys
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -102,45 +102,48 @@ def test_a_genuine_error_is_raised_not_swallowed(folder):
 
 
 def test_the_key_changes_with_everything_that_changes_the_program(folder, monkeypatch):
-  sig = kept_programs.signature(_args())
-  base = kept_programs.entry_key("step", ("demo", 1), sig)
-  assert kept_programs.entry_key("step", ("demo", 1), sig) == base  # deterministic
-  assert kept_programs.entry_key("step", ("demo", 2), sig) != base  # the caller's description
-  assert kept_programs.entry_key("eval", ("demo", 1), sig) != base  # the program's name
-  assert kept_programs.entry_key("step", ("demo", 1), kept_programs.signature(_args(rows=5))) != base
+  sig = program_keys.signature(_args())
+  base = program_keys.entry_key("step", ("demo", 1), sig)
+  assert program_keys.entry_key("step", ("demo", 1), sig) == base  # deterministic
+  assert program_keys.entry_key("step", ("demo", 2), sig) != base  # the caller's description
+  assert program_keys.entry_key("eval", ("demo", 1), sig) != base  # the program's name
+  assert program_keys.entry_key("step", ("demo", 1), program_keys.signature(_args(rows=5))) != base
   f64 = (_args()[0], np.zeros((4, 3), np.float64))
-  assert kept_programs.signature(f64) != sig  # dtypes
+  assert program_keys.signature(f64) != sig  # dtypes
   with monkeypatch.context() as m:
     m.setenv("XLA_FLAGS", os.environ.get("XLA_FLAGS", "") + " --xla_cpu_enable_fast_math=true")
-    assert kept_programs.entry_key("step", ("demo", 1), sig) != base
+    assert program_keys.entry_key("step", ("demo", 1), sig) != base
   with jax.default_matmul_precision("bfloat16"):
-    assert kept_programs.entry_key("step", ("demo", 1), sig) != base  # a jax setting
+    assert program_keys.entry_key("step", ("demo", 1), sig) != base  # a jax setting
   with monkeypatch.context() as m:
-    m.setattr(kept_programs, "source_digest", lambda: "edited")
-    assert kept_programs.entry_key("step", ("demo", 1), sig) != base  # sljax's own code
+    m.setattr(program_keys, "source_digest", lambda: "edited")
+    assert program_keys.entry_key("step", ("demo", 1), sig) != base  # sljax's own code
   with monkeypatch.context() as m:
-    m.setattr(kept_programs, "_versions", lambda: {"jax": "0.0"})
-    assert kept_programs.entry_key("step", ("demo", 1), sig) != base  # the libraries
+    m.setattr(program_keys, "_versions", lambda: {"jax": "0.0"})
+    assert program_keys.entry_key("step", ("demo", 1), sig) != base  # the libraries
   # Where caches go and what is logged do not change a program: the same key.
   with jax.log_compiles(True):
-    assert kept_programs.entry_key("step", ("demo", 1), sig) == base
-  assert kept_programs.entry_key("step", ("demo", 1), sig) == base
+    assert program_keys.entry_key("step", ("demo", 1), sig) == base
+  assert program_keys.entry_key("step", ("demo", 1), sig) == base
 
 
 def test_source_digest_changes_with_any_file(tmp_path):
-  assert len(kept_programs.source_digest()) == 64
+  assert len(program_keys.source_digest()) == 64
+  # By default the whole package: an edit of a network changes every key, not only of runtime/.
+  import sljax
+  assert program_keys.SOURCE_ROOT == Path(sljax.__file__).resolve().parent
   for name in ("a.py", "sub/b.py", "notes.txt"):
     (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
     (tmp_path / name).write_text("x = 1\n")
-  base = kept_programs.source_digest.__wrapped__(tmp_path)
+  base = program_keys.source_digest.__wrapped__(tmp_path)
   (tmp_path / "sub/b.py").write_text("x = 2\n")
-  assert kept_programs.source_digest.__wrapped__(tmp_path) != base
+  assert program_keys.source_digest.__wrapped__(tmp_path) != base
   (tmp_path / "sub/b.py").write_text("x = 1\n")
-  assert kept_programs.source_digest.__wrapped__(tmp_path) == base
+  assert program_keys.source_digest.__wrapped__(tmp_path) == base
   (tmp_path / "notes.txt").write_text("not code")  # only Python files count
-  assert kept_programs.source_digest.__wrapped__(tmp_path) == base
+  assert program_keys.source_digest.__wrapped__(tmp_path) == base
   (tmp_path / "sub/b.py").rename(tmp_path / "b.py")  # a file moved is another program
-  assert kept_programs.source_digest.__wrapped__(tmp_path) != base
+  assert program_keys.source_digest.__wrapped__(tmp_path) != base
 
 
 @pytest.mark.parametrize("damage", ["flip", "truncate", "other-key", "garbage"])
@@ -423,8 +426,8 @@ def test_prefetch_loads_the_remembered_signatures_before_the_first_call(folder):
   first = kept_programs.Program(_jitted(), "step", "demo")
   _run(first, rows=4)
   _run(first, rows=6)
-  assert kept_programs.remembered("step", "demo") == [kept_programs.signature(_args(rows=6)),
-                                                    kept_programs.signature(_args(rows=4))]
+  assert kept_programs.remembered("step", "demo") == [program_keys.signature(_args(rows=6)),
+                                                    program_keys.signature(_args(rows=4))]
   second = kept_programs.Program(_jitted(), "step", "demo").prefetch()
   assert len(second._loading) == 2  # pylint: disable=protected-access
   second.jitted = None  # neither lowered nor compiled
@@ -535,3 +538,15 @@ def test_both_training_command_lines_start_the_early_load(monkeypatch):
   assert seen == [["--strategy", "epr", "--help"]]
   text = (ROOT / "train.py").read_text()
   assert text.index("load_last_programs(sys.argv[1:])") < text.index("from sljax.train.cli")
+
+
+def test_variable_shapes_are_the_initialisers_tree():
+  """`variable_shapes` (what the step is compiled ahead for, and --init-from is checked
+  against) is `init_variables`' tree, shapes and dtypes, without running it."""
+  from sljax.nets.model_config import ModelConfig, init_variables, variable_shapes
+  model = ModelConfig.of("unet-disp", depth=2, base_width=4).build()
+  real = init_variables(model, 0, 32, 32, 3)
+  shapes = variable_shapes(model, 32, 32, 3)
+  assert jax.tree.structure(shapes) == jax.tree.structure(real)
+  assert all(jax.tree.leaves(jax.tree.map(lambda a, b: (a.shape, a.dtype) == (b.shape, b.dtype),
+                                          shapes, real)))

@@ -223,11 +223,11 @@ def test_a_bad_file_is_named_before_any_tuning_or_compiling(tmp_path, monkeypatc
   """A 24-scene folder with one corrupt im0.png, on a CPU kind with empty tuning and pre-flight
   caches (the cache_dir fixture): `train` names the file and stops before it tunes XLA's
   settings (minutes on a new CPU kind) or compiles anything."""
-  from sljax.runtime import choices
+  from sljax.runtime import choices, measuring
   monkeypatch.delenv("SLJAX_TUNE", raising=False)
   assert choices.enabled(None) and choices.measured_choice() is None  # a first run on this CPU kind
   tuned = []
-  monkeypatch.setattr(choices, "measure", lambda *a, **k: tuned.append(1) or pytest.fail("tuned"))
+  monkeypatch.setattr(measuring, "measure", lambda *a, **k: tuned.append(1) or pytest.fail("tuned"))
   monkeypatch.setattr(loop, "compiled_steps",
                       lambda *a, **k: pytest.fail("compiled before the data check"))
   root = _dataset(tmp_path / "data", 24)

@@ -15,7 +15,7 @@ from sljax import cli, inference
 from sljax.models import checkpoint as ckpt
 from sljax.nets import ModelConfig
 from sljax.nets.model_config import init_variables
-from sljax.runtime import choices, compile_cache, machine
+from sljax.runtime import choices, compile_cache, machine, measuring
 from sljax.train import loop
 from sljax.train import step as stp
 from sljax.train.config import QUICK, config_from_json
@@ -90,25 +90,25 @@ def test_the_measured_programs_take_the_choice_they_time(monkeypatch):
   fns = {kind: traced(kind) for kind in choices.KINDS}
   for kind in choices.KINDS:
     for ynn in (True, False):
-      compiled = choices._compiled(fns, (x,), kind, ynn)  # pylint: disable=protected-access
+      compiled = measuring._compiled(fns, (x,), kind, ynn)  # pylint: disable=protected-access
       assert seen["options"] == (None if ynn else choices.YNN_OFF), (kind, ynn)
       assert seen[kind] == (1000 + ynn if kind == "train" else 7), (kind, ynn, seen)
       np.testing.assert_allclose(compiled(x), (x.astype(np.float64) ** 2).sum(0), rtol=1e-5)
 
 
 def test_default_kept_unless_clearly_faster():
-  best, table = choices.measure(timings=fake({("forward", False): 0.97, ("train", False): 0.96}))
+  best, table = measuring.measure(timings=fake({("forward", False): 0.97, ("train", False): 0.96}))
   assert best == choices.DEFAULT  # 3-4% is within the margin
   assert [(r["kind"], r["ynn"]) for r in table] == [("forward", True), ("forward", False),
                                                      ("train", True), ("train", False)]
-  best, _ = choices.measure(timings=fake({("forward", False): 0.5}))
+  best, _ = measuring.measure(timings=fake({("forward", False): 0.5}))
   assert best == choices.KernelChoice(forward_ynn=False, train_ynn=True) and best.name == "forward-off"
-  best, _ = choices.measure(timings=fake({("train", False): 0.9, ("forward", True): 0.5}))
+  best, _ = measuring.measure(timings=fake({("train", False): 0.9, ("forward", True): 0.5}))
   assert best.name == "train-off"
 
 
 def test_a_choice_cached_under_another_rule_is_measured_again(cache_dir):
-  best, table = choices.measure(timings=fake({("forward", False): 0.5}))
+  best, table = measuring.measure(timings=fake({("forward", False): 0.5}))
   path = choices.write_measurement(choices.measurement_key(), best, table, 1.0)
   assert choices.measured_choice() == best
   data = json.loads(path.read_text())
@@ -121,20 +121,20 @@ def test_a_round_that_disagrees_keeps_the_default():
   on = [1.0, 1.0, 1.0, 1.0, 1.0]
   consistent = {("forward", True): on, ("forward", False): [0.6, 0.7, 0.62, 0.65, 0.9],
                 ("train", True): on, ("train", False): [0.9, 0.91, 0.92, 0.9, 0.93]}
-  assert choices.choose(consistent) == choices.KernelChoice(forward_ynn=False, train_ynn=False)
+  assert measuring.choose(consistent) == choices.KernelChoice(forward_ynn=False, train_ynn=False)
   # Faster in the median round, slower in one (a burst of load): not consistent evidence.
   burst = {**consistent, ("forward", False): [0.6, 0.7, 1.05, 0.65, 0.6]}
-  assert choices.choose(burst).forward_ynn
+  assert measuring.choose(burst).forward_ynn
   # Faster in every round but within the margin in the median one.
   small = {**consistent, ("train", False): [0.99, 0.9, 0.97, 0.96, 0.98]}
-  assert choices.choose(small).train_ynn
+  assert measuring.choose(small).train_ynn
 
 
 def test_verdict_by_hand():
-  assert choices.verdict([0.6, 0.7, 0.62, 0.65, 0.9]) == "off"
-  assert choices.verdict([0.6, 0.7, 1.05, 0.65, 0.6]) == "undecided"  # median 0.65, one round 1.05
-  assert choices.verdict([0.99, 0.9, 0.97, 0.96, 0.98]) == "on"  # median 0.97: within 5%
-  assert choices.verdict([0.7, 1.2, 1.1, 1.3, 0.6]) == "on"      # median 1.1
+  assert measuring.verdict([0.6, 0.7, 0.62, 0.65, 0.9]) == "off"
+  assert measuring.verdict([0.6, 0.7, 1.05, 0.65, 0.6]) == "undecided"  # median 0.65, one round 1.05
+  assert measuring.verdict([0.99, 0.9, 0.97, 0.96, 0.98]) == "on"  # median 0.97: within 5%
+  assert measuring.verdict([0.7, 1.2, 1.1, 1.3, 0.6]) == "on"      # median 1.1
 
 
 def scripted(batches_of_forward_off):
@@ -153,7 +153,7 @@ def scripted(batches_of_forward_off):
 def test_rounds_that_disagree_are_measured_again():
   burst = [0.7, 0.7, 1.05, 0.7, 0.66]  # a burst of load in the third round
   timings, calls = scripted([burst, [0.7, 0.71, 0.69, 0.72, 0.7]])
-  best, table = choices.measure(timings=timings)
+  best, table = measuring.measure(timings=timings)
   assert best.name == "forward-off"
   # Only the undecided kind is measured again, on and off alike; training is decided at once.
   assert calls == {("forward", True): 10, ("forward", False): 10,
@@ -161,9 +161,9 @@ def test_rounds_that_disagree_are_measured_again():
   rows = {(r["kind"], r["ynn"]): r for r in table}
   assert rows[("forward", False)]["batches"] == 2 and rows[("train", False)]["batches"] == 1
   assert rows[("forward", False)]["off_vs_on"] == [0.7, 0.71, 0.69, 0.72, 0.7]  # the last batch
-  assert rows[("forward", False)]["verdict"] == "off" and choices.undecided_note(table) == ""
+  assert rows[("forward", False)]["verdict"] == "off" and measuring.undecided_note(table) == ""
   assert "forward: the first rounds disagreed, measured again (2 batches" in \
-      choices.format_table(table, best)
+      measuring.format_table(table, best)
 
 
 @pytest.fixture
@@ -176,23 +176,23 @@ def on_cpu(monkeypatch):
 def test_rounds_that_keep_disagreeing_keep_the_default_and_say_so(tmp_path, monkeypatch, on_cpu,
                                                                    capsys):
   burst = [0.7, 0.7, 1.05, 0.7, 0.66]
-  timings, calls = scripted([burst] * (1 + choices.RETRIES))
-  best, table = choices.measure(timings=timings)
+  timings, calls = scripted([burst] * (1 + measuring.RETRIES))
+  best, table = measuring.measure(timings=timings)
   assert best == choices.DEFAULT
-  assert calls[("forward", False)] == 5 * (1 + choices.RETRIES)
-  note = choices.undecided_note(table)
+  assert calls[("forward", False)] == 5 * (1 + measuring.RETRIES)
+  note = measuring.undecided_note(table)
   assert note.startswith("forward: the rounds disagreed") and "sljax tune" in note
   # `sljax tune` prints it, so a user knows the default was kept, not chosen.
   monkeypatch.setenv(compile_cache.ENV_DIR, str(tmp_path))
-  monkeypatch.setattr(choices, "tuned",
+  monkeypatch.setattr(measuring, "tuned",
                       lambda workload, repeats, blocks: (best, table, None, None))
   assert cli.main(["tune", "--repeats", "1"]) == 0
   assert note in capsys.readouterr().out
 
 
 def test_format_table_marks_the_choice():
-  best, table = choices.measure(timings=fake({("forward", False): 0.5}))
-  text = choices.format_table(table, best)
+  best, table = measuring.measure(timings=fake({("forward", False): 0.5}))
+  text = measuring.format_table(table, best)
   assert text.count("(chosen)") == 2
   assert "| forward | off | 500.0 | 1.00x (chosen) | 0.50-0.50 |" in text
   assert "| forward | on | 1000.0 | 2.00x |  |" in text
@@ -232,7 +232,7 @@ def test_corrupt_cache_is_ignored(cache_dir):
 def test_a_run_takes_the_table_and_never_measures(cache_dir, monkeypatch):
   """Issue 49: a CPU kind measured before starts at once with its choice, one never measured
   with UNKNOWN; nothing is measured or written, and the line says how to measure."""
-  monkeypatch.setattr(choices, "measure", lambda *_, **__: pytest.fail("a run must not measure"))
+  monkeypatch.setattr(measuring, "measure", lambda *_, **__: pytest.fail("a run must not measure"))
   monkeypatch.setattr(choices, "write_measurement", lambda *a, **k: pytest.fail("nor write"))
   monkeypatch.setitem(choices.KNOWN, "amd-epyc-f26-m2-avx512", ("forward-off", "Zen 5, by hand"))
   monkeypatch.setattr(choices.machine, "cpu_key", lambda: "amd-epyc-f26-m2-avx512")
@@ -266,7 +266,7 @@ def test_a_measured_entry_wins_over_the_table(cache_dir, monkeypatch):
 
 
 def test_choice_off_by_flag_or_environment(cache_dir, monkeypatch):
-  monkeypatch.setattr(choices, "measure", lambda *_, **__: pytest.fail("must not measure"))
+  monkeypatch.setattr(measuring, "measure", lambda *_, **__: pytest.fail("must not measure"))
   assert choices.choice(tune=False) == choices.DEFAULT
   monkeypatch.setenv(choices.ENV_TUNE, "0")
   assert choices.choice() == choices.DEFAULT
@@ -279,7 +279,7 @@ def test_no_tuning_off_the_cpu(tmp_path, monkeypatch):
   monkeypatch.setenv(compile_cache.ENV_DIR, str(tmp_path))
   monkeypatch.setenv(choices.ENV_TUNE, "1")
   monkeypatch.setattr(choices.jax, "default_backend", lambda: "gpu")
-  monkeypatch.setattr(choices, "measure", lambda *_, **__: pytest.fail("must not measure"))
+  monkeypatch.setattr(measuring, "measure", lambda *_, **__: pytest.fail("must not measure"))
   assert choices.choice() == choices.DEFAULT
   assert not (tmp_path / "tune.json").exists()
 
@@ -356,7 +356,7 @@ def test_cli_show_without_a_measurement_names_what_runs_take(cache_dir, capsys, 
 
 
 def test_cli_show_prints_the_cached_table(cache_dir, capsys):
-  best, table = choices.measure(timings=fake({("forward", False): 0.5}))
+  best, table = measuring.measure(timings=fake({("forward", False): 0.5}))
   choices.write_measurement(choices.measurement_key(), best, table, 42.0)
   assert cli.main(["tune", "--show"]) == 0
   out = capsys.readouterr().out
@@ -385,13 +385,13 @@ def test_cli_show_a_hand_written_entry_shows_its_note(cache_dir, capsys):
   out = capsys.readouterr().out
   assert f"in 0.0 s\n\nnote: {note}\n\nchoice: " in out
   # A measured table with a note row keeps its table and adds the note.
-  best, table = choices.measure(timings=fake({("forward", False): 0.5}))
-  text = choices.format_table(table + [{"note": "checked by hand"}], best)
-  assert text.startswith(choices.format_table(table, best)) and text.endswith("\n\nnote: checked "
+  best, table = measuring.measure(timings=fake({("forward", False): 0.5}))
+  text = measuring.format_table(table + [{"note": "checked by hand"}], best)
+  assert text.startswith(measuring.format_table(table, best)) and text.endswith("\n\nnote: checked "
                                                                             "by hand")
   # A measurement edited into nonsense is shown as a note, not a TypeError.
   bad = dict(table[0], seconds="fast")
-  text = choices.format_table([bad] + table[1:], best)
+  text = measuring.format_table([bad] + table[1:], best)
   assert f"note: {bad}" in text and "| forward | on |" not in text
   path = choices.measurements_path()
   path.write_text(json.dumps({choices.measurement_key(): {"choice": "on", "table": []}}))
@@ -408,12 +408,12 @@ def test_a_choice_measured_beside_other_work_is_provisional(cache_dir, monkeypat
   monkeypatch.setattr(choices.machine, "cpu_snapshot", lambda: next(snapshots))
   monkeypatch.setattr(choices.machine, "cpu_key", lambda: "amd-epyc-f25-m1-avx2")  # table: off
   busy_pick = choices.KernelChoice(True, True)
-  monkeypatch.setattr(choices, "measure", lambda *_, **__: (busy_pick, []))
+  monkeypatch.setattr(measuring, "measure", lambda *_, **__: (busy_pick, []))
   assert cli.main(["tune", "--repeats", "1"]) == 0
   out = capsys.readouterr().out
   assert "40% of the CPUs" in out and "provisional" in out
   assert choices.read_measurements()[choices.measurement_key()]["others"] == 0.4
-  monkeypatch.setattr(choices, "measure", lambda *_, **__: pytest.fail("a run must not measure"))
+  monkeypatch.setattr(measuring, "measure", lambda *_, **__: pytest.fail("a run must not measure"))
   lines = []
   # Still busy: the provisional choice serves.
   monkeypatch.setattr(choices.machine, "others_now", lambda: 0.5)
@@ -424,7 +424,7 @@ def test_a_choice_measured_beside_other_work_is_provisional(cache_dir, monkeypat
   assert "`sljax tune`" in lines[-1]
   # Measured again on the quiet machine: final, no look at the load any more.
   snapshots = iter([(0.0, 0.0, 0.0), (100.0, 51.0, 50.0)])
-  monkeypatch.setattr(choices, "tuned", lambda workload, repeats, blocks: (
+  monkeypatch.setattr(measuring, "tuned", lambda workload, repeats, blocks: (
       choices.KernelChoice(False, True), [], 0.01, None))
   assert cli.main(["tune", "--repeats", "1"]) == 0
   monkeypatch.setattr(choices.machine, "others_now", lambda: pytest.fail("a kept choice is final"))
@@ -436,12 +436,12 @@ def test_busy_threshold_and_unknown_load():
   assert not choices.busy(None) and not choices.busy("high")  # unknown (no /proc/stat): not provisional
   for odd in (5.0, float("inf"), float("nan"), -0.2, True):  # edited by hand: no share
     assert not choices.busy(odd)
-  assert choices.busy_note(None) == "" and choices.busy_note(0.05) == ""
+  assert measuring.busy_note(None) == "" and measuring.busy_note(0.05) == ""
 
 
 def test_cli_tune_says_the_load_beside_it(cache_dir, capsys, monkeypatch):
-  best, table = choices.measure(timings=fake({("forward", False): 0.5}))
-  monkeypatch.setattr(choices, "tuned", lambda workload, repeats, blocks: (best, table, 0.62, None))
+  best, table = measuring.measure(timings=fake({("forward", False): 0.5}))
+  monkeypatch.setattr(measuring, "tuned", lambda workload, repeats, blocks: (best, table, 0.62, None))
   assert cli.main(["tune", "--repeats", "1"]) == 0
   out = capsys.readouterr().out
   assert "other processes using 62% of the CPUs meanwhile" in out and "provisional" in out
@@ -519,19 +519,19 @@ def _fake_blocks(table):
 
 def test_blocks_measured_keep_the_default_unless_clearly_faster():
   small, large = choices.BLOCK_CANDIDATES
-  got = choices.measure_blocks(None, train_ynn=False, timings=_fake_blocks({small: 1.6}))
+  got = measuring.measure_blocks(None, train_ynn=False, timings=_fake_blocks({small: 1.6}))
   assert got["values"] == large and got["train_ynn"] is False  # the default without fusions
-  got = choices.measure_blocks(None, train_ynn=True, timings=_fake_blocks({large: 0.97}))
+  got = measuring.measure_blocks(None, train_ynn=True, timings=_fake_blocks({large: 0.97}))
   assert got["values"] == small  # 3% is within the margin
-  got = choices.measure_blocks(None, train_ynn=True, timings=_fake_blocks({large: 0.6}))
+  got = measuring.measure_blocks(None, train_ynn=True, timings=_fake_blocks({large: 0.6}))
   assert got["values"] == large
   assert [r["values"] for r in got["table"]] == list(choices.BLOCK_CANDIDATES)
   times = iter([1.0, 0.6, 1.0, 0.6, 1.0, 1.2])  # rounds (small, large): the last disagrees
-  got = choices.measure_blocks(None, train_ynn=True, timings=lambda values: next(times))
+  got = measuring.measure_blocks(None, train_ynn=True, timings=lambda values: next(times))
   assert got["values"] == small
-  table = choices.format_blocks(choices.measure_blocks(None, False, timings=_fake_blocks({})))
+  table = measuring.format_blocks(measuring.measure_blocks(None, False, timings=_fake_blocks({})))
   assert "1024 Ki values (chosen)" in table and "128 Ki values" in table
-  assert choices.format_blocks({"values": "x", "table": []}) == ""
+  assert measuring.format_blocks({"values": "x", "table": []}) == ""
 
 
 @pytest.mark.skipif(jax.default_backend() != "cpu", reason="XLA:CPU's fusions")
@@ -552,7 +552,7 @@ def test_the_block_measurement_compiles_what_it_times(monkeypatch):
       traced.append(kernels.grad_block_values(7))
       return a * 2
     return fn, (x,)
-  got = choices.measure_blocks(workload, train_ynn=False, repeats=1)
+  got = measuring.measure_blocks(workload, train_ynn=False, repeats=1)
   assert seen == [choices.YNN_OFF] * 2 and traced == list(choices.BLOCK_CANDIDATES)
   assert got["values"] in choices.BLOCK_CANDIDATES and len(got["table"]) == 2
 
@@ -560,11 +560,11 @@ def test_the_block_measurement_compiles_what_it_times(monkeypatch):
 def test_cli_tune_keeps_and_shows_the_blocks_it_measured(cache_dir, capsys, monkeypatch):
   """`sljax tune` prints the block table, keeps the size where training finds it, and --show
   prints it again."""
-  best, table = choices.measure(timings=fake({("train", False): 0.5, ("forward", False): 0.5}))
+  best, table = measuring.measure(timings=fake({("train", False): 0.5, ("forward", False): 0.5}))
   # Without the fusions the rule says 1 Mi; this machine measured 128 Ki faster.
-  blocks = choices.measure_blocks(None, best.train_ynn,
+  blocks = measuring.measure_blocks(None, best.train_ynn,
                                   timings=_fake_blocks({choices.BLOCK_CANDIDATES[0]: 0.5}))
-  monkeypatch.setattr(choices, "tuned", lambda workload, repeats, gradients: (
+  monkeypatch.setattr(measuring, "tuned", lambda workload, repeats, gradients: (
       best, table, 0.0, blocks))
   assert cli.main(["tune", "--repeats", "1"]) == 0
   out = capsys.readouterr().out

@@ -7,7 +7,7 @@ import time
 
 from sljax.errors import require
 from sljax.nets.workload import gradient_workload, workload
-from sljax.runtime import choices, machine
+from sljax.runtime import choices, machine, measuring
 
 
 def register(subparsers) -> None:
@@ -47,14 +47,14 @@ def run(args: argparse.Namespace) -> int:
     table = entry.get("table") if isinstance(entry.get("table"), list) else []
     others = entry.get("others")
     print(f"measured {entry.get('time', '?')} in {entry.get('seconds', '?')} s"
-          f"{_beside(others)}\n\n{choices.format_table(table, best)}\n\n"
+          f"{_beside(others)}\n\n{measuring.format_table(table, best)}\n\n"
           f"{_blocks(entry.get('grad_blocks'))}choice: {choices.describe(best)}")
     _notes(table, others)
     return 0
   t0 = time.perf_counter()
-  best, table, others, blocks = choices.tuned(workload, args.repeats, gradient_workload)
+  best, table, others, blocks = measuring.tuned(workload, args.repeats, gradient_workload)
   seconds = time.perf_counter() - t0
-  print(f"measured in {seconds:.0f} s{_beside(others)}\n\n{choices.format_table(table, best)}\n\n"
+  print(f"measured in {seconds:.0f} s{_beside(others)}\n\n{measuring.format_table(table, best)}\n\n"
         f"{_blocks(blocks)}choice: {choices.describe(best)}")
   _notes(table, others)
   try:
@@ -66,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _blocks(blocks) -> str:
   """The block measurement's table and its choice, then a blank line ('' where none)."""
-  table = choices.format_blocks(blocks)
+  table = measuring.format_blocks(blocks)
   if not table:
     return ""
   return (f"{table}\n\nkernel-gradient blocks: {blocks['values'] >> 10} Ki values in training "
@@ -82,5 +82,5 @@ def _beside(others) -> str:
 
 def _notes(table: list[dict], others) -> None:
   """Prints why a choice may not be this machine's when idle."""
-  for note in choices.notes(table, others):
+  for note in measuring.notes(table, others):
     print(note)

@@ -11,6 +11,8 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
+from sljax.runtime import choices
+
 DIMS_2D = ("NHWC", "HWIO", "NHWC")
 
 # Output planes are computed in blocks whose input holds about this many values (512 KiB of
@@ -62,8 +64,6 @@ def context_free_blocks() -> int | None:
   program compiled with XLA's default options (a plain `jax.jit(jax.grad(loss))`), as training
   would take them (sljax.runtime.choices.grad_blocks_for: `sljax tune`'s measurement, else the
   rule by fusions); None off the CPU. Read once per process."""
-  # Imported here: the choices' module imports this one (its programs set `grad_blocks`).
-  from sljax.runtime import choices  # noqa: PLC0415
   return choices.grad_blocks_for(choices.DEFAULT)
 
 

@@ -144,6 +144,13 @@ def _default_device() -> jax.Device:
   return chosen or jax.devices()[0]
 
 
+def variable_shapes(model: nn.Module, height: int, width: int, channels: int) -> dict[str, Any]:
+  """`init_variables`' tree as shapes and dtypes, traced and never run (no compile)."""
+  x = jax.ShapeDtypeStruct((1, height, width, channels), jnp.float32)
+  return dict(jax.eval_shape(lambda a, b: model.init(jax.random.PRNGKey(0), a, b, train=False),
+                             x, x))
+
+
 @functools.lru_cache(maxsize=8)
 def _init_fn(model: nn.Module, height: int, width: int, channels: int,
              device: jax.Device | None):

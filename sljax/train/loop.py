@@ -35,7 +35,7 @@ from tqdm import tqdm
 from sljax.losses import weighting
 from sljax.models import checkpoint as ckpt
 from sljax.nets import registry
-from sljax.nets.model_config import ModelConfig, init_variables
+from sljax.nets.model_config import ModelConfig, init_variables, variable_shapes
 from sljax.runtime import choices, kept_programs
 from sljax.train import state as st
 from sljax.train import step as stp
@@ -94,10 +94,8 @@ def step_shapes(run: Setup, model, tx, rows) -> tuple:
   program can be compiled while the state is initialised (`kept_programs.Program.ahead`); the
   batch's from one of the run's scenes (`rows` caches it for the first batch)."""
   config = run.config
-  x = jax.ShapeDtypeStruct((1, *config.size, run.info.channels), jnp.float32)
-  variables = jax.eval_shape(lambda k, x: model.init(k, x, x, train=False),
-                             jax.random.PRNGKey(0), x)
-  state = jax.eval_shape(lambda v: st.create_state(v, tx), dict(variables))
+  variables = variable_shapes(model, *config.size, run.info.channels)
+  state = jax.eval_shape(lambda v: st.create_state(v, tx), variables)
   one = rows.batch([run.train_idx[0]])
   batch = {k: jax.ShapeDtypeStruct((config.batch_size, *v.shape[1:]), v.dtype)
            for k, v in one.items()}

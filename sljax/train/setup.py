@@ -17,7 +17,7 @@ from sljax.errors import SljaxError, require
 from sljax.models import checkpoint as ckpt
 from sljax.models import load as trained
 from sljax.nets import detach_sl, registry
-from sljax.nets.model_config import ModelConfig
+from sljax.nets.model_config import ModelConfig, variable_shapes
 from sljax.runtime import choices
 from sljax.train.config import TrainConfig, validate
 from sljax.train.feed import DataInfo, batch_parts, check_source, open_source
@@ -164,12 +164,9 @@ def setup(config: TrainConfig, workdir: Path, resume: bool, overwrite: bool,
   init = None
   if config.init_from and not do_resume:
     # Shapes are compared on an abstract init, so a mismatch errors before compiling anything.
-    model = model_cfg.build()
-    x = jax.ShapeDtypeStruct((1, *config.size, info.channels), jnp.float32)
-    abstract = jax.eval_shape(
-        lambda a, b: model.init(jax.random.PRNGKey(0), a, b, train=False), x, x)
+    abstract = variable_shapes(model_cfg.build(), *config.size, info.channels)
     init = load_init(config.init_from, config)
-    merge_init(dict(abstract), init[1], init[0], config, config.init_from)
+    merge_init(abstract, init[1], init[0], config, config.init_from)
   return Setup(config, workdir, source, tuple(train_idx), tuple(val_idx), info, model_cfg,
                do_resume, init, config_json)
 

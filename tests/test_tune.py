@@ -573,3 +573,21 @@ def test_cli_tune_keeps_and_shows_the_blocks_it_measured(cache_dir, capsys, monk
   assert choices.grad_blocks_for(best) == 1 << 17  # the measurement, not the rule
   assert cli.main(["tune", "--show"]) == 0
   assert "| 128 Ki values (chosen) |" in capsys.readouterr().out
+
+
+def test_the_block_workload_is_the_layers_gradients():
+  """`gradient_workload` (what `sljax tune` times the block sizes on) is the gradient of its
+  layers' summed squares, input and kernel, as lax's convolutions give it."""
+  from sljax import kernels
+  from sljax.nets.workload import gradient_workload
+  layers = (("conv", 1, 4, 6, 6, 3, 2, 1), ("convT", 1, 2, 3, 3, 2, 2, 2))
+  fn, args = gradient_workload(layers)
+
+  def reference(args):
+    (x0, k0), (x1, k1) = args
+    y0 = kernels.lax_conv3d(x0, k0, (1, 1, 1), ((1, 1),) * 3)
+    y1 = kernels.lax_conv3d(x1, k1, (1, 1, 1), ((1, 2),) * 3, (2, 2, 2))
+    return jnp.sum(y0 * y0) + jnp.sum(y1 * y1)
+  got, want = fn(*args), jax.grad(reference)(*args)
+  for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want), strict=True):
+    np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-4)

@@ -5,8 +5,9 @@ function of N independent reductions (each a YNNPACK "reduce" fusion thunk, the 
 `--ynn off` keeps) or N independent 2D convolutions (YNNPACK convolution thunks under XLA's
 default options), compiled, serialised with `jax.experimental.serialize_executable` and loaded
 back. Prints compile, serialise and load seconds against N, with the fusions on and without any
-YNNPACK fusion, and the growth exponent of the load between the two largest N (1: linear,
-2: quadratic). On a 2-core Intel Xeon (jaxlib 0.10.2) the reductions' load grew as N^1.9 and
+YNNPACK fusion, the loaded program's first and a later run (YNNPACK's thunks set themselves up
+in the first run, about 1 ms each, loaded or freshly compiled alike), and the growth exponent of
+the load between the two largest N (1: linear, 2: quadratic). On a 2-core Intel Xeon (jaxlib 0.10.2) the reductions' load grew as N^1.9 and
 took longer than their compile from N = 4096: `perf` puts the time in
 `YnnFusionThunkFromProto` (a lookup of `HloInstruction::unique_id` over the whole module per
 thunk) and in `BufferUse::ReadWriteSet::HasConflicts` (building the execution graph).
@@ -58,11 +59,16 @@ def measure(ops: str, n: int, options: dict | None) -> dict:
   loads = []
   for _ in range(2):
     t0 = time.perf_counter()
-    serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
+    loaded = serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
     loads.append(time.perf_counter() - t0)
+  runs = []  # the loaded program's first run, then a later one
+  for _ in range(2):
+    t0 = time.perf_counter()
+    jax.block_until_ready(loaded(*args))
+    runs.append(time.perf_counter() - t0)
   return {"ops": ops, "n": n, "ynn": options is None, "ynn_thunks": thunks,
           "compile_s": compile_s, "serialise_s": serialise_s, "load_s": min(loads),
-          "mbytes": len(payload) / 1e6}
+          "first_run_s": runs[0], "later_run_s": runs[1], "mbytes": len(payload) / 1e6}
 
 
 def main() -> None:
@@ -74,15 +80,17 @@ def main() -> None:
   args = ap.parse_args()
   ns = [int(v) for v in args.n.split(",")]
   print(f"jax {jax.__version__}, backend {jax.default_backend()}, {args.ops} x N")
-  print("| N | YNNPACK fusions | YNNPACK thunks | compile s | serialise s | load s | MB |")
-  print("| ---: | --- | ---: | ---: | ---: | ---: | ---: |")
+  print("| N | YNNPACK fusions | YNNPACK thunks | compile s | serialise s | load s | first run s "
+        "| later run s | MB |")
+  print("| ---: | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
   rows = []
   for options in (None, NO_YNN):
     for n in ns:
       r = measure(args.ops, n, options)
       rows.append(r)
       print(f"| {n} | {'on' if r['ynn'] else 'none'} | {r['ynn_thunks']} | {r['compile_s']:.2f} | "
-            f"{r['serialise_s']:.3f} | {r['load_s']:.3f} | {r['mbytes']:.2f} |", flush=True)
+            f"{r['serialise_s']:.3f} | {r['load_s']:.3f} | {r['first_run_s']:.3f} | "
+            f"{r['later_run_s']:.3f} | {r['mbytes']:.2f} |", flush=True)
   for ynn in (True, False):
     a, b = [r for r in rows if r["ynn"] == ynn][-2:] if len(ns) > 1 else (None, None)
     if a and a["load_s"] > 0:

@@ -352,6 +352,81 @@ def test_batch_norm_in_training_is_flaxs_with_pytorchs_running_variance():
   np.testing.assert_allclose(np.asarray(ours).reshape(-1, c), want, rtol=1e-4, atol=1e-5)
 
 
+def _batch_norm_float64(x, scale, bias, ra_mean, ra_var, groups):
+  """A float64 reference of sljax's training BatchNorm: per group, two-pass statistics, the
+  normalisation, and PyTorch's running averages in order."""
+  xs = jnp.reshape(x, (groups, -1, x.shape[-1]))
+  ys = []
+  for g in range(groups):
+    n = xs[g].shape[0]
+    mean = xs[g].mean(0)
+    var = ((xs[g] - mean) ** 2).mean(0)
+    ys.append((xs[g] - mean) / jnp.sqrt(var + 1e-5) * scale + bias)
+    ra_mean = 0.9 * ra_mean + 0.1 * mean
+    ra_var = 0.9 * ra_var + 0.1 * var * n / (n - 1)
+  return jnp.concatenate(ys).reshape(x.shape), ra_mean, ra_var
+
+
+@pytest.mark.parametrize("groups,dtype", [(1, "float32"), (2, "float32"), (2, "bfloat16")])
+def test_batch_norm_gradient_is_autodiffs_of_a_float64_reference(groups, dtype):
+  """BatchNorm's own gradient in training (`_normalized`) equals autodiff of a float64
+  reference, for the input, scale and bias, through the output and through the running
+  statistics too (a loss may read them), per group; bfloat16 input within its rounding."""
+  from sljax.nets.layers import batch_norm
+  rng = np.random.default_rng(5)
+  shape = (4, 3, 5, 6)
+  x = rng.normal(1.5, 2.0, shape)
+  x[shape[0] // 2:] *= 0.5  # the groups' statistics differ
+  w = rng.normal(size=shape)
+  scale, bias = rng.uniform(0.5, 1.5, 6), rng.normal(0, 1, 6)
+  ra_mean, ra_var = rng.normal(0, 1, 6), rng.uniform(1, 2, 6)
+  a, b = rng.normal(size=6), rng.normal(size=6)
+  module = batch_norm(groups=groups)
+
+  def loss(x, scale, bias):
+    v = {"params": {"scale": scale, "bias": bias},
+         "batch_stats": {"mean": jnp.asarray(ra_mean, jnp.float32),
+                         "var": jnp.asarray(ra_var, jnp.float32)}}
+    y, upd = module.apply(v, x, use_running_average=False, mutable=["batch_stats"])
+    s = upd["batch_stats"]
+    return jnp.sum(jnp.sin(y) * w) + jnp.sum(a * s["mean"]) + jnp.sum(b * s["var"])
+
+  got = jax.jit(jax.grad(loss, (0, 1, 2)))(jnp.asarray(x, dtype), jnp.asarray(scale, jnp.float32),
+                                            jnp.asarray(bias, jnp.float32))
+  with jax.enable_x64(True):
+    def ref_loss(x, scale, bias):
+      y, m, v = _batch_norm_float64(x, scale, bias, ra_mean, ra_var, groups)
+      return jnp.sum(jnp.sin(y) * w) + jnp.sum(a * m) + jnp.sum(b * v)
+    x_in = np.asarray(jnp.asarray(x, dtype).astype(jnp.float32), np.float64)  # what ours saw
+    want = [np.asarray(g) for g in jax.grad(ref_loss, (0, 1, 2))(x_in, scale, bias)]
+  assert got[0].dtype == jnp.dtype(dtype) and got[1].dtype == got[2].dtype == jnp.float32
+  tol = 1e-4 if dtype == "float32" else 1e-2
+  for g, ref in zip(got, want):
+    np.testing.assert_allclose(np.asarray(g, np.float64), ref, rtol=tol,
+                               atol=tol * np.abs(ref).max())
+
+
+def test_batch_norm_backward_takes_two_reductions_per_group():
+  """The gradient of a training BatchNorm reduces twice per group (the sums of dy and of
+  dy * x_hat) and the forward twice (mean and mean square): each reduction is a YNNPACK thunk
+  of the step's, which costs load time and a first-run set-up (autodiff's backward took three)."""
+  from sljax.nets.layers import batch_norm
+  x = jnp.ones((4, 3, 5, 6), jnp.float32)
+  for groups in (1, 2):
+    module = batch_norm(groups=groups)
+    v = module.init(jax.random.PRNGKey(0), x, use_running_average=False)
+
+    def loss(params, x, module=module, v=v):
+      y, _ = module.apply({**v, "params": params}, x, use_running_average=False,
+                          mutable=["batch_stats"])
+      return jnp.sum(y * y)
+    forward = str(jax.make_jaxpr(loss)(v["params"], x))
+    both = str(jax.make_jaxpr(jax.grad(loss, (0, 1)))(v["params"], x))
+    count = lambda text: text.count("reduce_sum[")
+    # the loss's own sum once in each, its cotangent a broadcast
+    assert count(forward) == 2 + 1 and count(both) == 2 + 2 + 1, (groups, count(both))
+
+
 def test_layers_of_one_shape_are_traced_once(monkeypatch):
   """A network's BatchNorms and fast convolutions of one shape are traced (and differentiated)
   once, not once per layer: they are jitted (issue 49: half of the twin's step tracing).
@@ -392,7 +467,9 @@ def test_layers_of_one_shape_are_traced_once(monkeypatch):
   with nn.intercept_methods(record):
     jax.make_jaxpr(jax.grad(loss))(variables["params"])
   assert len(norms) > 2 * len(set(norms))  # many layers share a shape
-  assert traced["stats"] == len(set(norms))
+  # Twice per shape: BatchNorm's own gradient (a custom_vjp) traces its function and its
+  # forward rule once each.
+  assert traced["stats"] == 2 * len(set(norms))
 
   # Folded convolutions (forwards and, in the backward, input gradients): as many traces for
   # four hourglass-like blocks as for two (the first block's cotangents differ in kind from a

@@ -8,12 +8,14 @@ unbiased batch variance as PyTorch's does (flax's own averages the biased one).
 from __future__ import annotations
 
 import functools
+import math
 from collections.abc import Sequence
 
 import flax.linen as nn
 from flax.linen import normalization
 import jax
 import jax.numpy as jnp
+from jax import lax
 import numpy as np
 
 from sljax.kernels import Conv2D, Conv3D, ResolvesConvImpl
@@ -91,12 +93,20 @@ def _train_batch_norm(x, scale, bias, ra_mean, ra_var, *, groups, momentum, epsi
 
   Jitted, so that a network's BatchNorms of one shape are traced and differentiated once, not
   once per layer: they were half of the twin's step tracing (issue 49); XLA inlines the call,
-  so the program and its values are the same."""
+  so the program and its values are the same. What sljax builds (scale, bias, float32
+  statistics) is differentiated by `_normalized`'s own gradient, two reductions per group."""
   xs = x.reshape((groups, x.shape[0] // groups) + x.shape[1:]) if groups > 1 else x
   axes = tuple(range(1 if groups > 1 else 0, xs.ndim - 1))
-  mean, var = normalization._compute_stats(  # [groups, C] or [C]
-      xs, axes, dtype=dtype, use_fast_variance=fast_variance,
-      force_float32_reductions=float32_reductions)
+  if (scale is not None and bias is not None and dtype is None and float32_reductions
+      and param_dtype == jnp.float32):
+    y, mean, var = _normalized(xs, scale, bias, axes, epsilon, fast_variance)
+  else:
+    mean, var = normalization._compute_stats(  # [groups, C] or [C]
+        xs, axes, dtype=dtype, use_fast_variance=fast_variance,
+        force_float32_reductions=float32_reductions)
+    y = normalization._normalize(
+        _Params(scale, bias), xs, mean, var, axes, (xs.ndim - 1,), dtype, param_dtype, epsilon,
+        scale is not None, bias is not None, None, None, float32_reductions)
   n = xs.size // (groups * x.shape[-1])
   for i in range(groups):
     m, v = (mean[i], var[i]) if groups > 1 else (mean, var)
@@ -105,10 +115,63 @@ def _train_batch_norm(x, scale, bias, ra_mean, ra_var, *, groups, momentum, epsi
     # flax's m * old + (1 - m) * biased, turned into PyTorch's unbiased average: the
     # difference matters where n is small (the SPP branches' pooled maps have n = batch).
     ra_var = unbiased_update(momentum * old + (1 - momentum) * v, old, momentum, n)
-  y = normalization._normalize(
-      _Params(scale, bias), xs, mean, var, axes, (xs.ndim - 1,), dtype, param_dtype, epsilon,
-      scale is not None, bias is not None, None, None, float32_reductions)
   return y.reshape(x.shape), ra_mean, ra_var
+
+
+def _statistics_and_normalized(xs, scale, bias, axes, epsilon, fast_variance):
+  """(normalised xs, mean, variance) over `axes` in float32, as flax computes them (its
+  functions)."""
+  mean, var = normalization._compute_stats(xs, axes, dtype=None,
+                                           use_fast_variance=fast_variance,
+                                           force_float32_reductions=True)
+  y = normalization._normalize(_Params(scale, bias), xs, mean, var, axes, (xs.ndim - 1,), None,
+                               jnp.float32, epsilon, True, True, None, None, True)
+  return y, mean, var
+
+
+# The same with a gradient of its own (`_normalized_bwd`).
+_normalized = jax.custom_vjp(_statistics_and_normalized, nondiff_argnums=(3, 4, 5))
+
+
+def _normalized_fwd(xs, scale, bias, axes, epsilon, fast_variance):
+  y, mean, var = _statistics_and_normalized(xs, scale, bias, axes, epsilon, fast_variance)
+  return (y, mean, var), (xs, scale, mean, var)
+
+
+def _normalized_bwd(axes, epsilon, fast_variance, residuals, cotangents):
+  """BatchNorm's gradient written out, with two reductions per group (the sums of dy and of
+  dy * x_hat). Autodiff of the forward took three, and its YNNPACK reduction thunks each cost
+  load time and a first-run set-up: with this the main job's step has 454 instead of 560 and
+  its warm start takes 0.90x the time (docs/benchmarks/first-run.md). Where fast variance's
+  clamp at zero acts (a constant channel) autodiff drops the variance's term and this keeps it;
+  x_hat is then ~0 there."""
+  del fast_variance  # the same derivative either way
+  xs, scale, mean, var = residuals
+  dy, dmean, dvar = cotangents  # the statistics' own: zero unless a caller differentiates them
+  n = math.prod(xs.shape[a] for a in axes)
+  expand = lambda v: jnp.expand_dims(v, axes)
+  xc = xs.astype(jnp.float32) - expand(mean)
+  rstd = lax.rsqrt(expand(var) + epsilon)
+  xhat = xc * rstd
+  dy = dy.astype(jnp.float32)
+  sdy, sdyx = jnp.sum(dy, axes), jnp.sum(dy * xhat, axes)  # [groups, C] or [C]
+  dx = (scale * rstd) * (dy - expand(sdy) / n - xhat * (expand(sdyx) / n))
+  dx = dx + expand(dmean) / n + expand(dvar) * (2.0 / n) * xc
+  return dx.astype(xs.dtype), _over_groups(sdyx), _over_groups(sdy)
+
+
+_normalized.defvjp(_normalized_fwd, _normalized_bwd)
+
+
+def _over_groups(s: jax.Array) -> jax.Array:
+  """[groups, C] summed to [C] by additions in order (a reduction would be a thunk of its
+  own); [C] as it is."""
+  if s.ndim == 1:
+    return s
+  total = s[0]
+  for i in range(1, s.shape[0]):
+    total = total + s[i]
+  return total
 
 
 def unbiased_update(new: jax.Array, old: jax.Array, momentum: float, n: int) -> jax.Array:

@@ -142,7 +142,7 @@ def _normalized_bwd(axes, epsilon, fast_variance, residuals, cotangents):
   """BatchNorm's gradient written out, with two reductions per group (the sums of dy and of
   dy * x_hat). Autodiff of the forward took three, and its YNNPACK reduction thunks each cost
   load time and a first-run set-up: with this the main job's step has 454 instead of 560 and
-  its warm start takes 0.90x the time (docs/benchmarks/first-run.md). Where fast variance's
+  a warm launch of it takes 0.91x the time (docs/benchmarks/first-run.md). Where fast variance's
   clamp at zero acts (a constant channel) autodiff drops the variance's term and this keeps it;
   x_hat is then ~0 there."""
   del fast_variance  # the same derivative either way

@@ -2,7 +2,9 @@
 
 BatchNorm uses PyTorch's defaults (momentum 0.1 there, i.e. flax momentum 0.9; epsilon 1e-5) so
 that reference weights and training recipes carry over, and its running variance averages the
-unbiased batch variance as PyTorch's does (flax's own averages the biased one).
+unbiased batch variance as PyTorch's does (flax's own averages the biased one). In training its
+gradient is written out (two reductions per group instead of autodiff's three: fewer YNNPACK
+thunks for XLA:CPU to load and set up); the forward is flax's.
 """
 
 from __future__ import annotations

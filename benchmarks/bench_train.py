@@ -34,6 +34,7 @@ from sljax.losses.weighting import step_weights
 from sljax.nets import registry
 from sljax.nets.model_config import init_variables
 from sljax.render.synthetic import SynthConfig, SyntheticSource
+from sljax.runtime import choices
 from sljax.runtime.hugepages import reexec
 from sljax.train import loop
 from sljax.train import state as st
@@ -66,8 +67,11 @@ def compiled_step(config: TrainConfig):
   source = open_source(config)
   info = check_source(source, config)
   mesh = stp.make_mesh()
+  # The fusions a new run of this config trains with (--ynn auto: this CPU's choice), so that
+  # (a) is the program the loop's (b) and (c) run.
+  ynn = config.ynn if config.ynn != "auto" else choices.choice(log=lambda line: None).name
   model, tx, step, _ = loop.compiled_steps(model_config(config, info), config.disp_loss,
-                                           config.lr, None, mesh)
+                                           config.lr, None, mesh, ynn)
   state = jax.device_put(st.create_state(init_variables(model, 0, *config.size,
                                                            info.channels), tx),
                          stp.shardings(mesh)[0])

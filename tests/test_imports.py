@@ -156,10 +156,6 @@ def test_the_architecture_page_names_every_room_and_root_module():
   assert not missing, f"docs/architecture.md says nothing of {missing}"
 
 
-if __name__ == "__main__":
-  sys.stdout.write(drawing())
-
-
 def test_a_training_run_starts_without_matplotlib():
   """train.py's imports leave matplotlib out (0.25 s of every start, for pictures a run never
   draws): it is imported where a figure is made (sljax.io.pictures.new_figure)."""
@@ -169,3 +165,7 @@ def test_a_training_run_starts_without_matplotlib():
   out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
                        cwd=ROOT.parent, check=True).stdout
   assert out.strip() == "[]", out
+
+
+if __name__ == "__main__":
+  sys.stdout.write(drawing())

@@ -52,6 +52,7 @@ def save_panels(path: str | os.PathLike, panels: list[Panel], ncols: int = 4,
   values are drawn grey."""
   ncols = max(1, min(ncols, len(panels)))
   nrows = -(-len(panels) // ncols)
+  import matplotlib  # noqa: PLC0415  (see new_figure)
   fig = new_figure(figsize=(tile_inches * ncols * 1.15, tile_inches * nrows))
   axes = fig.subplots(nrows, ncols, squeeze=False)
   for ax in axes.flat:
@@ -67,7 +68,6 @@ def save_panels(path: str | os.PathLike, panels: list[Panel], ncols: int = 4,
       finite = img[np.isfinite(img)]
       vmin = p.vmin if p.vmin is not None else (float(finite.min()) if finite.size else 0.0)
       vmax = p.vmax if p.vmax is not None else (float(finite.max()) if finite.size else 1.0)
-      import matplotlib  # noqa: PLC0415  (see new_figure)
       cmap = matplotlib.colormaps[p.cmap].with_extremes(bad="0.5")
       im = ax.imshow(np.ma.masked_invalid(img), cmap=cmap, vmin=vmin, vmax=vmax,
                      interpolation="nearest")

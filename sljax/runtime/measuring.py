@@ -71,14 +71,8 @@ def measure(workload: Workload | None = None, repeats: int = 5,
   keys = [(kind, ynn) for kind in KINDS for ynn in (True, False)]
   if timings is None:
     fns, args = workload()
-    programs = {k: _compiled(fns, args, *k) for k in keys}
-    for k in keys:
-      jax.block_until_ready(programs[k](*args))  # warm-up
-
-    def timings(kind, ynn):
-      t0 = clock()
-      jax.block_until_ready(programs[(kind, ynn)](*args))
-      return clock() - t0
+    timed = _timer({k: _compiled(fns, args, *k) for k in keys}, args, clock)
+    timings = lambda kind, ynn: timed((kind, ynn))
   samples = _rounds(timings, keys, repeats)
   batches = dict.fromkeys(KINDS, 1)
   for _ in range(RETRIES):
@@ -119,14 +113,7 @@ def measure_blocks(workload: BlocksWorkload | None, train_ynn: bool, repeats: in
         with grad_blocks(values):
           return fn(*a)
       return jax.jit(blocked, compiler_options=options).lower(*args).compile()
-    programs = {v: program(v) for v in BLOCK_CANDIDATES}
-    for p in programs.values():
-      jax.block_until_ready(p(*args))  # warm-up
-
-    def timings(values):
-      t0 = clock()
-      jax.block_until_ready(programs[values](*args))
-      return clock() - t0
+    timings = _timer({v: program(v) for v in BLOCK_CANDIDATES}, args, clock)
   samples = {v: [] for v in BLOCK_CANDIDATES}
   for _ in range(repeats):
     for v in BLOCK_CANDIDATES:
@@ -158,6 +145,19 @@ def format_blocks(blocks: Any) -> str:
     lines.append(f"| {r['values'] >> 10} Ki values{mark} | {r['seconds'] * 1e3:.1f} | "
                  f"{spread} |")
   return "\n".join(lines)
+
+
+def _timer(programs: dict, args: tuple, clock: Callable[[], float]) -> Callable[[Any], float]:
+  """Runs each compiled program once (a first run sets things up: YNNPACK's thunks build their
+  runtimes), then returns key -> seconds of one call of that program on `args`."""
+  for p in programs.values():
+    jax.block_until_ready(p(*args))
+
+  def timed(key) -> float:
+    t0 = clock()
+    jax.block_until_ready(programs[key](*args))
+    return clock() - t0
+  return timed
 
 
 def _rounds(timings: Callable[[str, bool], float], keys: list[tuple[str, bool]],

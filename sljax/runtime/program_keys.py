@@ -25,6 +25,7 @@ _IGNORED_SETTINGS = ("jax_compilation_cache", "jax_persistent_cache", "jax_log_c
                      "jax_tracer_error_num_traceback_frames", "jax_transfer_guard",
                      "jax_thread_guard", "jax_source_url_schema", "jax_captured_constants")
 
+
 @functools.cache
 def source_digest(root: Path | None = None) -> str:
   """SHA-256 over the Python files under root, sljax's by default (their paths and bytes):
@@ -76,5 +77,5 @@ def digest(obj: Any) -> str:
 def entry_key(name: str, description: Any, sig: str) -> str:
   """The file-name-safe key of one program: a digest of what it is and where it runs."""
   found = digest({"name": name, "description": repr(description), "signature": sig,
-                    **environment()})
+                  **environment()})
   return f"{PREFIX}{name}-{found}"
